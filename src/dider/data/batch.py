@@ -1,0 +1,63 @@
+"""The one batch format every data module yields, and min/max normalisation.
+
+A batch is a plain dict (collates and moves between devices for free):
+- ``states``: [B, T, N, 4] float, (x, y, vx, vy) normalised to [-1, 1] with train-split statistics.
+- ``mask``:   [B, T, N] bool, agent present at that step.
+- ``edges``:  [B, T-1, E] long (optional, synthetic data only): ground-truth type of each directed edge
+  for the *transition* t -> t+1, i.e. the force that produced state t+1 from state t.
+"""
+
+from __future__ import annotations
+
+from typing import NotRequired, TypedDict
+
+import torch
+
+
+class Batch(TypedDict):
+    states: torch.Tensor
+    mask: torch.Tensor
+    edges: NotRequired[torch.Tensor]
+
+
+class Normalizer:
+    """Maps positions and velocities separately to [-1, 1] with scalar min/max (DNRI's scheme).
+
+    Scalar (not per-axis) ranges keep the geometry isotropic, so distances stay comparable in x and y.
+    """
+
+    def __init__(self, pos_range: tuple[float, float], vel_range: tuple[float, float]) -> None:
+        for name, (lo, hi) in {"pos_range": pos_range, "vel_range": vel_range}.items():
+            if not hi > lo:
+                raise ValueError(f"Normalizer {name}={(lo, hi)}: max must exceed min")
+        self.pos_range = (float(pos_range[0]), float(pos_range[1]))
+        self.vel_range = (float(vel_range[0]), float(vel_range[1]))
+
+    @classmethod
+    def fit(cls, states: torch.Tensor, mask: torch.Tensor | None = None) -> Normalizer:
+        """states: [..., N, 4] raw; mask: [..., N] bool (present agents) or None."""
+        flat = states.reshape(-1, 4)
+        if mask is not None:
+            flat = flat[mask.reshape(-1)]
+        if flat.numel() == 0:
+            raise ValueError("Normalizer.fit: no present agent states to fit on")
+        pos, vel = flat[:, :2], flat[:, 2:]
+        return cls((pos.min().item(), pos.max().item()), (vel.min().item(), vel.max().item()))
+
+    def _lo_span(self, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lo = torch.tensor([self.pos_range[0]] * 2 + [self.vel_range[0]] * 2, dtype=ref.dtype, device=ref.device)
+        hi = torch.tensor([self.pos_range[1]] * 2 + [self.vel_range[1]] * 2, dtype=ref.dtype, device=ref.device)
+        return lo, hi - lo
+
+    def normalize(self, states: torch.Tensor) -> torch.Tensor:
+        """[..., 4] raw -> [..., 4] in [-1, 1] on the fitting data."""
+        lo, span = self._lo_span(states)
+        return (states - lo) * (2.0 / span) - 1.0
+
+    def denormalize(self, states: torch.Tensor) -> torch.Tensor:
+        """[..., 4] normalised -> [..., 4] raw units."""
+        lo, span = self._lo_span(states)
+        return (states + 1.0) * (span / 2.0) + lo
+
+    def state_dict(self) -> dict[str, tuple[float, float]]:
+        return {"pos_range": self.pos_range, "vel_range": self.vel_range}

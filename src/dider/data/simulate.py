@@ -1,0 +1,54 @@
+"""Vectorised simulator of DNRI's 3-particle "push" system (design.md section 4).
+
+Particles 0 and 1 move at constant velocity; particle 2 is pushed away from particle i whenever it is
+within distance 1 of it: v2 += push * (1 - d) * unit(p2 - p_i). All samples advance together, so 40k
+clips of 50 steps take well under a second per step of the loop over time.
+"""
+
+from __future__ import annotations
+
+import torch
+
+# Directed edges in sender-major order for N = 3: (0,1) (0,2) (1,0) (1,2) (2,0) (2,1).
+EDGE_0_TO_2 = 1
+EDGE_1_TO_2 = 3
+
+
+def simulate_push(
+    num_samples: int,
+    num_steps: int = 50,
+    push_factor: float = 0.05,
+    radius: float = 1.0,
+    seed: int = 0,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Simulate the push system.
+
+    Returns:
+        states: [S, T, 3, 4] float32, (x, y, vx, vy) after each step's update.
+        edges:  [S, T, 6] long; edges[:, t] is the force that produced state t from state t-1
+            (distances measured on the pre-update positions), as in DNRI's generator.
+    """
+    if num_samples < 1 or num_steps < 2:
+        raise ValueError(f"simulate_push: need num_samples >= 1 and num_steps >= 2, got {num_samples}, {num_steps}")
+    g = torch.Generator().manual_seed(seed)
+
+    def uniform(lo: float, hi: float) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(num_samples, 2, generator=g, dtype=torch.float64)
+
+    pos = torch.stack([uniform(-2, -1), uniform(1, 2), uniform(-1, 1)], dim=1)  # [S, 3, 2]
+    vel = torch.stack([uniform(0.05, 0.1), uniform(-0.1, -0.05), uniform(-0.05, 0.05)], dim=1)
+
+    states = torch.empty(num_samples, num_steps, 3, 4, dtype=torch.float64)
+    edges = torch.zeros(num_samples, num_steps, 6, dtype=torch.long)
+    for t in range(num_steps):
+        offset = pos[:, 2:3] - pos[:, :2]  # [S, 2, 2]: particle 2 relative to particles 0 and 1
+        dist = offset.norm(dim=-1, keepdim=True)  # [S, 2, 1]
+        active = dist < radius
+        push = torch.where(active, push_factor * (1 - dist) * offset / dist.clamp_min(1e-12), 0.0)
+        vel[:, 2] += push.sum(dim=1)
+        edges[:, t, EDGE_0_TO_2] = active[:, 0, 0].long()
+        edges[:, t, EDGE_1_TO_2] = active[:, 1, 0].long()
+        pos = pos + vel
+        states[:, t, :, :2] = pos
+        states[:, t, :, 2:] = vel
+    return states.float(), edges

@@ -1,0 +1,48 @@
+"""Directed complete graphs over N agents: edge indexing shared by encoder, decoders and data.
+
+Edges are the off-diagonal entries of an N x N matrix in row-major order, sender first:
+for N = 3 the order is (0,1), (0,2), (1,0), (1,2), (2,0), (2,1) as (sender, receiver).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import torch
+
+
+@lru_cache(maxsize=64)
+def _edge_index_cpu(num_agents: int) -> tuple[torch.Tensor, torch.Tensor]:
+    send, recv = torch.where(~torch.eye(num_agents, dtype=torch.bool))
+    return send, recv
+
+
+def edge_index(num_agents: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Sender and receiver agent index of every directed edge, each [E] long, E = N(N-1)."""
+    send, recv = _edge_index_cpu(num_agents)
+    return send.to(device), recv.to(device)
+
+
+def num_edges(num_agents: int) -> int:
+    return num_agents * (num_agents - 1)
+
+
+def edge_mask(agent_mask: torch.Tensor) -> torch.Tensor:
+    """Edges whose sender and receiver are both present.
+
+    agent_mask: [..., N] bool -> [..., E] bool.
+    """
+    send, recv = edge_index(agent_mask.shape[-1], agent_mask.device)
+    return agent_mask[..., send] & agent_mask[..., recv]
+
+
+def aggregate_to_receivers(edge_values: torch.Tensor, num_agents: int) -> torch.Tensor:
+    """Sum edge values over senders for each receiver: [..., E, F] -> [..., N, F].
+
+    The edges are scattered into a dense [N * N] sender x receiver grid (unique slots, so no atomic
+    adds: deterministic on every device) and summed over the sender axis.
+    """
+    send, recv = edge_index(num_agents, edge_values.device)
+    dense = edge_values.new_zeros(*edge_values.shape[:-2], num_agents * num_agents, edge_values.shape[-1])
+    dense[..., send * num_agents + recv, :] = edge_values
+    return dense.unflatten(-2, (num_agents, num_agents)).sum(-3)

@@ -1,0 +1,1 @@
+"""The relational VAE (one LightningModule) and its plugins: encoder, prior, duration, decoder."""

@@ -1,0 +1,135 @@
+"""Decoder plugins: predict x_{t+1} from x_t and the sampled edge types z_t.
+
+Edge type 0 is "no interaction" when ``skip_first``: it sends no message and its MLP is never built.
+Shapes: x [B, T, N, D], z [B, T, E, K] (one-hot or soft), mask [B, T, N] bool or None.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from dider.graph import aggregate_to_receivers, edge_mask
+from dider.models.layers import PairLinear, TypedLinear
+
+
+class _MessagePassing(nn.Module):
+    """Typed messages over directed edges, weighted by z and summed over types.
+
+    nodes [..., N, F], z [..., E, K] -> edge messages [..., E, H].
+    """
+
+    def __init__(self, num_types: int, node_dim: int, hidden: int, skip_first: bool, act: nn.Module, dropout: float):
+        super().__init__()
+        self.first = 1 if skip_first else 0
+        self.num_msg = num_types - self.first
+        if self.num_msg < 1:
+            raise ValueError(f"model.num_edges={num_types}: need at least 2 edge types when type 0 sends nothing")
+        self.fc1 = PairLinear(node_dim, self.num_msg * hidden)
+        self.fc2 = TypedLinear(self.num_msg, hidden, hidden)
+        self.act, self.drop, self.hidden = act, nn.Dropout(dropout), hidden
+
+    def forward(self, nodes: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        pre = self.act(self.fc1(nodes))  # [..., E, K'*H]: every type's first layer in one matmul
+        msg = self.act(self.fc2(self.drop(pre.unflatten(-1, (self.num_msg, self.hidden)))))  # [..., E, K', H]
+        return (msg * z[..., self.first :, None]).sum(-2)
+
+
+class MarkovDecoder(nn.Module):
+    """NRI/DNRI's Markovian MLP decoder: messages from the current states, summed over senders.
+
+    Under teacher forcing it has no recurrence, so all steps run in one batched call.
+    """
+
+    stateless = True
+
+    def __init__(
+        self, num_types: int, input_dim: int = 4, hidden: int = 256, skip_first: bool = True, dropout: float = 0.0
+    ) -> None:
+        super().__init__()
+        self.messages = _MessagePassing(num_types, input_dim, hidden, skip_first, nn.ReLU(), dropout)
+        self.out = nn.Sequential(
+            nn.Linear(input_dim + hidden, hidden), nn.ReLU(), nn.Dropout(dropout),
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Dropout(dropout),
+            nn.Linear(hidden, input_dim),
+        )  # fmt: skip
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Teacher-forced prediction of every next state. x [B, T, N, D], z [B, T, E, K] -> [B, T, N, D]."""
+        msg = self.messages(x, z)
+        if mask is not None:
+            msg = msg * edge_mask(mask).unsqueeze(-1).to(msg.dtype)
+        agg = aggregate_to_receivers(msg, x.shape[-2])
+        return x + self.out(torch.cat([x, agg], dim=-1))
+
+    def init_state(self, batch: int, num_agents: int, ref: torch.Tensor) -> None:
+        return None
+
+    def step(
+        self, x_t: torch.Tensor, z_t: torch.Tensor, state: None, mask_t: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, None]:
+        """One step: x_t [B, N, D], z_t [B, E, K] -> prediction of x_{t+1} [B, N, D]."""
+        return self.forward(x_t, z_t, mask_t), None
+
+
+class RecurrentDecoder(nn.Module):
+    """DNRI's recurrent GNN decoder: messages from the agents' hidden states, a GRU-style update driven
+    by x_t and the aggregated message, and a residual output MLP."""
+
+    stateless = False
+
+    def __init__(
+        self, num_types: int, input_dim: int = 4, hidden: int = 256, skip_first: bool = True, dropout: float = 0.0
+    ) -> None:
+        super().__init__()
+        self.messages = _MessagePassing(num_types, hidden, hidden, skip_first, nn.Tanh(), dropout)
+        self.type_norm = float(num_types - 1 if skip_first else num_types)
+        self.input_gates = nn.Linear(input_dim, 3 * hidden)  # W_r, W_i, W_n with bias
+        self.message_gates = nn.Linear(hidden, 3 * hidden, bias=False)  # U_r, U_i, U_n
+        self.out = nn.Sequential(
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Dropout(dropout),
+            nn.Linear(hidden, hidden), nn.ReLU(), nn.Dropout(dropout),
+            nn.Linear(hidden, input_dim),
+        )  # fmt: skip
+        self.hidden = hidden
+
+    def init_state(self, batch: int, num_agents: int, ref: torch.Tensor) -> torch.Tensor:
+        return ref.new_zeros(batch, num_agents, self.hidden)
+
+    def _update(
+        self, gates_x: torch.Tensor, z_t: torch.Tensor, h: torch.Tensor, mask_t: torch.Tensor | None
+    ) -> torch.Tensor:
+        """gates_x [B, N, 3H] (input projections), z_t [B, E, K], h [B, N, H] -> new h [B, N, H]."""
+        n = h.shape[-2]
+        msg = self.messages(h, z_t) / self.type_norm
+        if mask_t is None:
+            agg = aggregate_to_receivers(msg, n) / max(n - 1, 1)
+        else:
+            em = edge_mask(mask_t).unsqueeze(-1).to(msg.dtype)
+            count = aggregate_to_receivers(em, n).clamp_min(1.0)
+            agg = aggregate_to_receivers(msg * em, n) / count
+        xr, xi, xn = gates_x.chunk(3, dim=-1)
+        mr, mi, mn = self.message_gates(agg).chunk(3, dim=-1)
+        r, i = torch.sigmoid(xr + mr), torch.sigmoid(xi + mi)
+        new = (1 - i) * torch.tanh(xn + r * mn) + i * h
+        if mask_t is not None:  # absent agents keep their state
+            new = torch.where(mask_t.unsqueeze(-1), new, h)
+        return new
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Teacher-forced: x [B, T, N, D], z [B, T, E, K] -> predictions of x_{t+1}, [B, T, N, D]."""
+        b, t, n, _ = x.shape
+        gates_x = self.input_gates(x)  # all steps at once; only the message path is recurrent
+        h = self.init_state(b, n, x)
+        hs = []
+        for s in range(t):
+            h = self._update(gates_x[:, s], z[:, s], h, None if mask is None else mask[:, s])
+            hs.append(h)
+        return x + self.out(torch.stack(hs, dim=1))
+
+    def step(
+        self, x_t: torch.Tensor, z_t: torch.Tensor, h: torch.Tensor, mask_t: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step: x_t [B, N, D], z_t [B, E, K], h [B, N, H] -> (prediction of x_{t+1}, new h)."""
+        h = self._update(self.input_gates(x_t), z_t, h, mask_t)
+        return x_t + self.out(h), h

@@ -1,0 +1,114 @@
+"""Encoder plugin: per-step GNN edge embedding, forward (past) and reverse (future) LSTMs per edge,
+and the posterior head.
+
+Shapes: B batch, T steps, N agents, E = N(N-1) directed edges, H GNN width, R LSTM width, K edge types.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dider.graph import aggregate_to_receivers, edge_mask
+from dider.models.layers import MLP, PairLinear, head
+
+LSTMState = tuple[torch.Tensor, torch.Tensor]
+
+
+@dataclass
+class EncoderOutput:
+    """Per-edge features of the T-1 transitions t -> t+1 of a T-frame clip."""
+
+    h_fwd: torch.Tensor  # [B, E, T-1, R] forward LSTM: transition t has seen x_0..x_t (the prior's input)
+    h_rev: torch.Tensor  # [B, E, T-1, R] reverse LSTM: transition t has seen x_{t+1}..x_{T-1}
+    posterior_logits: torch.Tensor  # [B, E, T-1, K] from [h_rev, h_fwd]
+    state: LSTMState  # forward LSTM state after x_{T-2}, each [1, B*E, R]
+
+
+class GNNEdgeEmbedding(nn.Module):
+    """NRI/DNRI factor-graph embedding, node -> edge -> node -> edge, at every step independently.
+
+    x: [..., N, D], mask: [..., N] bool or None -> [..., E, H].
+    """
+
+    def __init__(self, input_dim: int = 4, hidden: int = 256, dropout: float = 0.0, batch_norm: bool = True):
+        super().__init__()
+        self.node1 = MLP(input_dim, hidden, hidden, dropout, batch_norm)
+        self.edge1_in = PairLinear(hidden, hidden)
+        self.edge1 = MLP(2 * hidden, hidden, hidden, dropout, batch_norm)
+        self.node2 = MLP(hidden, hidden, hidden, dropout, batch_norm)
+        self.edge2_in = PairLinear(hidden, hidden, extra_dim=hidden)
+        self.edge2 = MLP(3 * hidden, hidden, hidden, dropout, batch_norm)
+        # The first Linear of each edge MLP lives in its PairLinear.
+        del self.edge1.fc1, self.edge2.fc1
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        n = x.shape[-2]
+        h = self.node1(x)
+        e_skip = self.edge1.tail(self.edge1_in(h))
+        if mask is None:
+            h = aggregate_to_receivers(e_skip, n) / (n - 1)
+        else:  # mean over present senders; absent edges contribute nothing
+            em = edge_mask(mask).unsqueeze(-1).to(e_skip.dtype)
+            count = aggregate_to_receivers(em, n).clamp_min(1.0)
+            h = aggregate_to_receivers(e_skip * em, n) / count
+        h = self.node2(h)
+        return self.edge2.tail(self.edge2_in(h, e_skip))
+
+
+class GNNLSTMEncoder(nn.Module):
+    """DNRI's encoder: GNN embedding per step, per-edge forward and reverse LSTMs, posterior head."""
+
+    def __init__(
+        self,
+        num_types: int,
+        input_dim: int = 4,
+        hidden: int = 256,
+        rnn_hidden: int = 64,
+        head_hidden: int = 128,
+        head_layers: int = 3,
+        dropout: float = 0.0,
+        batch_norm: bool = True,
+    ) -> None:
+        super().__init__()
+        self.embed = GNNEdgeEmbedding(input_dim, hidden, dropout, batch_norm)
+        self.forward_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
+        self.reverse_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
+        self.posterior_head = head(2 * rnn_hidden, head_hidden, num_types, head_layers)
+        self.rnn_hidden = rnn_hidden
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> EncoderOutput:
+        """Features of the T-1 transitions of a clip. x: [B, T, N, D], mask: [B, T, N] bool or None.
+
+        For transition t -> t+1 the prior reads h_fwd (x_0..x_t) and the posterior reads
+        [h_rev, h_fwd] where h_rev has seen x_{t+1}..x_{T-1}: unlike DNRI's released code, the
+        posterior sees the state the transition produced.
+        """
+        b, t, n, _ = x.shape
+        emb = self.embed(x, mask)  # [B, T, E, H]
+        e = emb.shape[2]
+        seq = emb.transpose(1, 2).reshape(b * e, t, -1)  # one sequence per edge
+        h_fwd, state = self.forward_rnn(seq[:, :-1])
+        h_rev = self.reverse_rnn(seq[:, 1:].flip(1))[0].flip(1)
+        h_fwd, h_rev = h_fwd.view(b, e, t - 1, -1), h_rev.view(b, e, t - 1, -1)
+        logits = self.posterior_head(torch.cat([h_rev, h_fwd], dim=-1))
+        return EncoderOutput(h_fwd, h_rev, logits, state)
+
+    def past(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, LSTMState]:
+        """Forward LSTM only, over every given frame: x [B, T, N, D] -> h_fwd [B, E, T, R] and its state."""
+        b, t, n, _ = x.shape
+        emb = self.embed(x, mask)
+        e = emb.shape[2]
+        h_fwd, state = self.forward_rnn(emb.transpose(1, 2).reshape(b * e, t, -1))
+        return h_fwd.view(b, e, t, -1), state
+
+    def step(
+        self, x_t: torch.Tensor, state: LSTMState | None, mask_t: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, LSTMState]:
+        """Advance the forward LSTM by one frame. x_t: [B, N, D] -> h_fwd_t [B, E, R] and the new state."""
+        b = x_t.shape[0]
+        emb = self.embed(x_t, mask_t)  # [B, E, H]
+        out, state = self.forward_rnn(emb.reshape(-1, 1, emb.shape[-1]), state)
+        return out.view(b, -1, self.rnn_hidden), state

@@ -1,0 +1,100 @@
+"""Building blocks: MLPs and the pair MLP whose first layer is split over sender and receiver.
+
+A Linear on a concatenation [h_send, h_recv] equals W_s h_send + W_r h_recv. Applying the two halves on
+the N node rows and gathering onto the E = N(N-1) edge rows does the expensive matmul N times per step
+instead of N(N-1) times, which is where most of the encoder's and decoders' arithmetic went.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from dider.graph import edge_index
+
+
+def init_linear(layer: nn.Linear, bias: float = 0.1) -> None:
+    nn.init.xavier_normal_(layer.weight)
+    if layer.bias is not None:
+        nn.init.constant_(layer.bias, bias)
+
+
+class FlatBatchNorm(nn.BatchNorm1d):
+    """BatchNorm1d over every leading dimension: [..., F] -> [..., F]."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.reshape(-1, x.shape[-1])).view(x.shape)
+
+
+class MLP(nn.Module):
+    """DNRI's two-layer block: Linear -> ELU -> Dropout -> Linear -> ELU (-> BatchNorm). [..., i] -> [..., o]."""
+
+    def __init__(self, in_dim: int, hidden: int, out_dim: int, dropout: float = 0.0, batch_norm: bool = True):
+        super().__init__()
+        self.fc1, self.fc2 = nn.Linear(in_dim, hidden), nn.Linear(hidden, out_dim)
+        self.drop = nn.Dropout(dropout)
+        self.bn = FlatBatchNorm(out_dim) if batch_norm else nn.Identity()
+        init_linear(self.fc1)
+        init_linear(self.fc2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.tail(self.fc1(x))
+
+    def tail(self, pre: torch.Tensor) -> torch.Tensor:
+        """Everything after the first Linear, given its output ``pre``."""
+        h = self.drop(nn.functional.elu(pre))
+        return self.bn(nn.functional.elu(self.fc2(h)))
+
+
+def head(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequential:
+    """Linear/ELU stack ending in a Linear to ``out_dim`` (the prior and posterior heads)."""
+    dims = [in_dim] + [hidden] * (num_layers - 1) + [out_dim]
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
+        layers.append(nn.Linear(a, b))
+        if i < len(dims) - 2:
+            layers.append(nn.ELU())
+    return nn.Sequential(*layers)
+
+
+class PairLinear(nn.Module):
+    """Linear([node_send, node_recv, edge_extra]) computed as node projections gathered onto edges.
+
+    nodes: [..., N, F] and optional extra: [..., E, F_e] -> [..., E, out].
+    """
+
+    def __init__(self, node_dim: int, out_dim: int, extra_dim: int = 0) -> None:
+        super().__init__()
+        self.node_dim, self.out_dim = node_dim, out_dim
+        self.weight = nn.Parameter(torch.empty(out_dim, 2 * node_dim + extra_dim))
+        self.bias = nn.Parameter(torch.full((out_dim,), 0.1))
+        nn.init.xavier_normal_(self.weight)
+
+    def forward(self, nodes: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
+        n, f = nodes.shape[-2], self.node_dim
+        send, recv = edge_index(n, nodes.device)
+        # One matmul for both halves, then gather: [..., N, 2*out] -> [..., E, out] twice.
+        both = nodes @ torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]], dim=0).T
+        out = both[..., send, : self.out_dim] + both[..., recv, self.out_dim :] + self.bias
+        if extra is not None:
+            out = out + extra @ self.weight[:, 2 * f :].T
+        return out
+
+
+class TypedLinear(nn.Module):
+    """One Linear per edge type, applied to its own slice: [..., K, i] -> [..., K, o]."""
+
+    def __init__(self, num_types: int, in_dim: int, out_dim: int) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(num_types, in_dim, out_dim))
+        self.bias = nn.Parameter(torch.zeros(num_types, out_dim))
+        bound = 1.0 / math.sqrt(in_dim)
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.weight.shape[0] == 1:  # the common K=2 skip-first case: a plain matmul, no batching
+            return (x @ self.weight[0] + self.bias[0]).view(*x.shape[:-1], -1)
+        return torch.einsum("...ki,kio->...ko", x, self.weight) + self.bias

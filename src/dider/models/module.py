@@ -1,0 +1,273 @@
+"""The relational VAE: one LightningModule composing encoder, prior, duration and decoder plugins.
+
+DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins they are built with: the duration
+plugin decides how each edge's time axis is cut into segments, and the edge prior and posterior are
+read once per segment. With one-step segments this is exactly DNRI.
+
+Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots,
+R LSTM width, P predicted steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dider.data.batch import Batch
+from dider.graph import edge_mask
+from dider.losses import capacity, categorical_kl, gaussian_nll
+from dider.metrics import EdgeAccuracy, HorizonMSE
+from dider.models.prior import fixed_log_probs
+from dider.models.segments import Segmentation
+
+
+@dataclass
+class Inference:
+    """Result of the teacher-forced pass over a clip."""
+
+    pred: torch.Tensor  # [B, T-1, N, D] predictions of x_1..x_{T-1}
+    posterior_logits: torch.Tensor  # [B, E, S, K] per segment
+    prior_logits: torch.Tensor  # [B, E, S, K] per segment
+    probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
+    seg: Segmentation
+    h_fwd: torch.Tensor  # [B, E, T-1, R]
+    nll: torch.Tensor  # [B]
+    kl_edge: torch.Tensor  # [B]
+    kl_duration: torch.Tensor  # [B]
+
+    def posterior_types(self) -> torch.Tensor:
+        """[B, E, T-1] long: the argmax type of each step's segment."""
+        return self.seg.spread(F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()).argmax(-1)
+
+
+class RelationalVAE(L.LightningModule):
+    def __init__(
+        self,
+        encoder: nn.Module,
+        prior: nn.Module,
+        duration: nn.Module,
+        decoder: nn.Module,
+        optimizer: Callable[..., torch.optim.Optimizer],
+        num_edges: int = 2,
+        burn_in: int = 5,
+        horizons: Sequence[int] = (1, 15, 25),
+        scheduler: Callable[..., Any] | None = None,
+        nll_variance: float = 5e-5,
+        gumbel_tau: float = 0.5,
+        beta_edge: float = 1.0,
+        beta_duration: float = 1.0,
+        capacity_edge: float = 0.0,
+        capacity_duration: float = 0.0,
+        capacity_ramp_steps: int = 0,
+        sparsity_mix: float = 0.0,
+        no_edge_prob: float = 0.9,
+        rollout_edges: str = "sample",
+        num_figure_clips: int = 4,
+        name: str = "model",
+    ) -> None:
+        super().__init__()
+        if num_edges < 2:
+            raise ValueError(f"model.num_edges={num_edges}: need at least 2 edge types (type 0 is 'no interaction')")
+        if rollout_edges not in ("sample", "argmax"):
+            raise ValueError(f"model.rollout_edges={rollout_edges!r}: expected 'sample' or 'argmax'")
+        for key, value in {"model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau}.items():
+            if value <= 0:
+                raise ValueError(f"{key}={value}: must be > 0")
+        for key, value in {
+            "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
+            "model.beta_edge": beta_edge, "model.beta_duration": beta_duration,
+        }.items():  # fmt: skip
+            if value < 0:
+                raise ValueError(f"{key}={value}: must be >= 0")
+        if not 0.0 <= sparsity_mix <= 1.0:
+            raise ValueError(f"model.sparsity_mix={sparsity_mix}: must lie in [0, 1]")
+        # Plugins and optimiser factories stay out of the checkpoint's hyper-parameters: checkpoints then
+        # load with torch's safe weights_only unpickler; the Hydra config rebuilds them.
+        self.save_hyperparameters(logger=False, ignore=["encoder", "prior", "duration", "decoder", "optimizer", "scheduler"])
+        self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
+        self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
+        self.num_types = num_edges
+        self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
+        self.val_mse = HorizonMSE(horizons)
+        self.test_mse = HorizonMSE(horizons)
+        self.test_mse_raw = HorizonMSE(horizons)
+        self.test_acc_post = EdgeAccuracy()
+        self.test_acc_prior = EdgeAccuracy()
+        self.figure_data: dict[str, torch.Tensor] = {}
+
+    # ------------------------------------------------------------------ inference
+    def infer(self, batch: Batch, hard: bool) -> Inference:
+        """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame."""
+        x, mask = batch["states"], batch["mask"]
+        enc = self.encoder(x, mask)
+        seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x)
+        q_seg = seg.gather(enc.posterior_logits)
+        p_seg = seg.gather(self.prior(enc.h_fwd))
+        z = seg.spread(F.gumbel_softmax(q_seg, tau=self.hparams.gumbel_tau, hard=hard))  # [B, E, T-1, K]
+        pred = self.decoder(x[:, :-1], z.transpose(1, 2), mask[:, :-1])
+        nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.hparams.nll_variance)
+
+        # Edge KL per segment, summed over an edge's segments and divided by its steps, so that with
+        # one-step segments it is DNRI's mean over (step, edge).
+        present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        at_start = present.gather(2, seg.start) & seg.valid
+        kl_slots = categorical_kl(q_seg, p_seg) * at_start
+        steps = present.flatten(1).sum(1).clamp_min(1)
+        kl_edge = kl_slots.flatten(1).sum(1) / steps
+        probs = seg.spread(F.softmax(q_seg, dim=-1))
+        if self.hparams.sparsity_mix > 0:  # DNRI's synthetic runs: KL(mean_e q_t || [0.9, 0.1, ...])
+            w = present.unsqueeze(-1).to(probs.dtype)
+            mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
+            kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
+            kl_edge = (1 - self.hparams.sparsity_mix) * kl_edge + self.hparams.sparsity_mix * kl_sparse
+        return Inference(pred, q_seg, p_seg, probs, seg, enc.h_fwd, nll, kl_edge, seg.kl)
+
+    def loss(self, out: Inference) -> dict[str, torch.Tensor]:
+        """NLL + beta_e |KL_e - C_e| + beta_d |KL_d - C_d|, capacities ramped linearly (beta-VAE, Burgess et al.)."""
+        h, step = self.hparams, self.global_step
+        c_e = capacity(step, h.capacity_edge, h.capacity_ramp_steps)
+        c_d = capacity(step, h.capacity_duration, h.capacity_ramp_steps)
+        nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
+        loss = nll + h.beta_edge * (kl_e - c_e).abs() + h.beta_duration * (kl_d - c_d).abs()
+        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d}
+
+    def _advance_edges(
+        self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
+        left, a new type comes from the prior and a new duration from the duration plugin."""
+        logits = self.prior(h_t)  # [B, E, K]
+        if sample:
+            logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
+        need = left <= 0
+        etype = torch.where(need, logits.argmax(-1), etype)
+        left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
+        return etype, left
+
+    @torch.no_grad()
+    def online_types(self, h_fwd: torch.Tensor) -> torch.Tensor:
+        """Prior-only (past-only) edge types over a clip: h_fwd [B, E, T, R] -> [B, E, T] long."""
+        b, e, t, _ = h_fwd.shape
+        etype = torch.zeros(b, e, dtype=torch.long, device=h_fwd.device)
+        left = torch.zeros_like(etype)
+        types = []
+        for s in range(t):
+            etype, left = self._advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False)
+            types.append(etype)
+        return torch.stack(types, dim=2)
+
+    @torch.no_grad()
+    def rollout(
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Forecast: ground truth for ``burn_in`` frames, then the model's own predictions.
+
+        Edges come from the prior only, read from the forward LSTM that is advanced on the predictions,
+        so no state after the burn-in window is ever seen. x: [B, >=burn_in, N, D], mask: [B, >=burn_in+P, N]
+        (agents present) -> predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] and the edge types
+        used for every transition [B, E, burn_in+P-1].
+        """
+        b, n = x.shape[0], x.shape[2]
+        end = burn_in + num_pred - 1  # transitions covered
+        sample = self.hparams.rollout_edges == "sample"
+        h_past, enc_state = self.encoder.past(x[:, :burn_in], mask[:, :burn_in])
+        etype = torch.zeros(b, h_past.shape[1], dtype=torch.long, device=x.device)
+        left = torch.zeros_like(etype)
+        dec_state = self.decoder.init_state(b, n, x)
+        preds, types = [], []
+        cur = x[:, 0]
+        for t in range(end):
+            m_t = mask[:, t]
+            if t < burn_in:
+                cur, h_t = x[:, t], h_past[:, :, t]
+            else:
+                h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
+            etype, left = self._advance_edges(h_t, t, end, etype, left, sample)
+            types.append(etype)
+            if t < burn_in - 1 and self.decoder.stateless:
+                continue  # nothing to warm up
+            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * edge_mask(m_t).unsqueeze(-1)
+            out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
+            if t >= burn_in - 1:
+                preds.append(out)
+                cur = out
+        return torch.stack(preds, dim=1), torch.stack(types, dim=2)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int) -> torch.Tensor:
+        """Inference entry point: the forecast of :meth:`rollout`, [B, P, N, D]."""
+        return self.rollout(x, mask, burn_in, num_pred)[0]
+
+    # ------------------------------------------------------------------ Lightning hooks
+    def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
+        terms = self.loss(self.infer(batch, hard=False))
+        self.log_dict({f"train/{k}": v for k, v in terms.items()}, prog_bar=False, on_step=True, on_epoch=True,
+                      batch_size=batch["states"].shape[0])
+        self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=batch["states"].shape[0])
+        return terms["loss"]
+
+    def _forecast(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Roll out over the whole clip after the burn-in: predictions, targets, target mask, edge types."""
+        x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in
+        pred, types = self.rollout(x, mask, b, x.shape[1] - b)
+        return pred, x[:, b:], mask[:, b:], types
+
+    def validation_step(self, batch: Batch, batch_idx: int) -> None:
+        bs = batch["states"].shape[0]
+        terms = self.loss(self.infer(batch, hard=True))
+        self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=bs)
+        pred, target, tmask, _ = self._forecast(batch)
+        self.val_mse.update(pred, target, tmask)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_horizons("val/mse", self.val_mse)
+
+    def test_step(self, batch: Batch, batch_idx: int) -> None:
+        bs = batch["states"].shape[0]
+        out = self.infer(batch, hard=True)
+        terms = self.loss(out)
+        self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs)
+        pred, target, tmask, roll_types = self._forecast(batch)
+        self.test_mse.update(pred, target, tmask)
+        norm = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
+        if norm is not None:
+            self.test_mse_raw.update(norm.denormalize(pred), norm.denormalize(target), tmask)
+        post_types = out.posterior_types()
+        prior_types = self.online_types(out.h_fwd)
+        if "edges" in batch:
+            present = edge_mask(batch["mask"][:, :-1])
+            self.test_acc_post.update(post_types.transpose(1, 2), batch["edges"], present)
+            self.test_acc_prior.update(prior_types.transpose(1, 2), batch["edges"], present)
+        if batch_idx == 0:
+            k = self.hparams.num_figure_clips
+            self.figure_data = {"posterior": post_types[:k].cpu(), "prior": prior_types[:k].cpu(),
+                                "probs": out.probs[:k].cpu(), "states": batch["states"][:k].cpu()}
+            if "edges" in batch:
+                self.figure_data["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
+
+    def on_test_epoch_end(self) -> None:
+        self._log_horizons("test/mse", self.test_mse)
+        if self.test_mse_raw.update_count:
+            self._log_horizons("test/mse_raw", self.test_mse_raw)
+        for name, metric in {"posterior": self.test_acc_post, "prior": self.test_acc_prior}.items():
+            if metric.update_count:
+                none, inter = metric.compute()
+                self.log(f"test/edge_acc/{name}/none", none)
+                self.log(f"test/edge_acc/{name}/interaction", inter)
+                metric.reset()
+
+    def _log_horizons(self, prefix: str, metric: HorizonMSE) -> None:
+        for h, v in zip(metric.horizons, metric.compute(), strict=True):
+            self.log(f"{prefix}/h{h:02d}", v)
+        metric.reset()
+
+    def configure_optimizers(self) -> Any:
+        opt = self.optimizer_factory(params=self.parameters())
+        if self.scheduler_factory is None:
+            return opt
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": self.scheduler_factory(optimizer=opt), "interval": "epoch"}}

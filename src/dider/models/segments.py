@@ -1,0 +1,45 @@
+"""Segmentations of each edge's time axis into slots that each hold one edge type.
+
+Shapes: B batch, E edges, T steps (transitions), S slots, K edge types.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class Segmentation:
+    start: torch.Tensor  # [B, E, S] long: first step of each slot
+    valid: torch.Tensor  # [B, E, S] bool: the slot holds at least one step
+    assign: torch.Tensor | None  # [B, E, T, S] one-hot step -> slot (straight-through); None: slot s is step s
+    kl: torch.Tensor  # [B] KL of the duration latents (zero for plugins without one)
+
+    @property
+    def num_steps_per_slot(self) -> torch.Tensor:
+        """[B, E, S] float: steps in each slot (the number of steps when ``assign`` is None)."""
+        if self.assign is None:
+            return self.valid.to(torch.float32)
+        return self.assign.detach().sum(dim=2)
+
+    def gather(self, values: torch.Tensor) -> torch.Tensor:
+        """Read per-step values at each slot's first step: [B, E, T, F] -> [B, E, S, F]."""
+        if self.assign is None:
+            return values
+        index = self.start.unsqueeze(-1).expand(*self.start.shape, values.shape[-1])
+        return values.gather(2, index)
+
+    def spread(self, per_slot: torch.Tensor) -> torch.Tensor:
+        """Hold each slot's value over its steps: [B, E, S, F] -> [B, E, T, F]."""
+        if self.assign is None:
+            return per_slot
+        return torch.einsum("bets,besf->betf", self.assign, per_slot)
+
+    def step_slot(self) -> torch.Tensor:
+        """[B, E, T] long: the slot index of every step."""
+        if self.assign is None:
+            b, e, s = self.start.shape
+            return torch.arange(s, device=self.start.device).expand(b, e, s)
+        return self.assign.argmax(dim=-1)

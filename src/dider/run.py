@@ -1,0 +1,137 @@
+"""Hydra entry point: `python -m dider.run [overrides]` trains, tests and writes metrics.json."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import hydra
+import lightning as L
+import torch
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.loggers import Logger, TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+
+from dider.data.cache import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+# The metrics shown in TensorBoard's HParams tab (those that a run produces).
+HPARAM_METRICS = ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/interaction",
+                  "test/edge_acc/prior/interaction", "val/nll")
+
+
+def _overrides() -> list[str]:
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # composed outside a Hydra app
+        return []
+
+
+def _hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The scalar settings worth comparing across runs, flattened with '/'."""
+    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
+    for section in ("model", "data"):
+        flat = OmegaConf.to_container(cfg[section], resolve=True)
+        for key, value in _flatten(flat, section).items():
+            if isinstance(value, (int, float, str, bool)) and not key.endswith("_target_"):
+                keep[key] = value
+    return keep
+
+
+def _flatten(d: Any, prefix: str) -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}/{k}"))
+    return out
+
+
+def _build_list(group: DictConfig | None) -> list[Any]:
+    return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
+
+
+def resolve_ckpt(ckpt_path: str | None, output_dir: Path) -> str | None:
+    """'last' means this run folder's checkpoints/last.ckpt (absent on a fresh run: start from scratch)."""
+    if ckpt_path is None:
+        return None
+    if ckpt_path == "last":
+        last = output_dir / "checkpoints" / "last.ckpt"
+        return str(last) if last.exists() else None
+    if not Path(ckpt_path).is_file():
+        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
+    return ckpt_path
+
+
+def format_table(metrics: dict[str, float]) -> str:
+    width = max((len(k) for k in metrics), default=10)
+    lines = [f"{'metric':<{width}}  value", f"{'-' * width}  ----------"]
+    lines += [f"{k:<{width}}  {v:.4g}" for k, v in sorted(metrics.items())]
+    return "\n".join(lines)
+
+
+def train(cfg: DictConfig) -> dict[str, float]:
+    """Fit (mode=train) and test, or test a checkpoint (mode=eval). Returns the test metrics."""
+    if cfg.mode not in ("train", "eval"):
+        raise ValueError(f"mode={cfg.mode!r}: expected 'train' or 'eval'")
+    if cfg.mode == "eval" and not cfg.ckpt_path:
+        raise ValueError("mode=eval needs ckpt_path=PATH (or ckpt_path=last)")
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    out_dir = Path(cfg.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
+
+    datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
+    model = instantiate(cfg.model, _convert_="all")
+    callbacks = _build_list(cfg.get("callbacks"))
+    loggers: list[Logger] = _build_list(cfg.get("logger"))
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    ckpt = resolve_ckpt(cfg.ckpt_path, out_dir)
+    if cfg.mode == "eval" and ckpt is None:
+        raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
+
+    for lg in loggers:  # once, with the metric tags, so the HParams tab compares runs on them
+        if isinstance(lg, TensorBoardLogger) and trainer.is_global_zero:
+            lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in HPARAM_METRICS})
+
+    if cfg.mode == "train":
+        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+        best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
+        trainer.test(model, datamodule=datamodule, ckpt_path=best or None)
+    else:
+        trainer.test(model, datamodule=datamodule, ckpt_path=ckpt)
+
+    metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    if trainer.is_global_zero:
+        record = {
+            "metrics": metrics,
+            "overrides": _overrides(),
+            "seed": int(cfg.seed),
+            "model": cfg.model.get("name", "model"),
+            "checkpoint": ckpt if cfg.mode == "eval" else (best or None),
+            "config": OmegaConf.to_container(cfg, resolve=True),
+        }
+        atomic_write_text(out_dir / "metrics.json", json.dumps(record, indent=2, default=str))
+        print(f"\n{format_table(metrics)}\n")
+        print(f"metrics: {out_dir / 'metrics.json'}")
+        figs = out_dir / "figures"
+        if figs.exists():
+            print(f"figures: {figs}  (TensorBoard: tensorboard --logdir {out_dir})")
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="pkg://dider.conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    metrics = train(cfg)
+    return metrics.get("test/mse/h01")
+
+
+if __name__ == "__main__":
+    main()
