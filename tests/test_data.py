@@ -1,0 +1,57 @@
+import pytest
+import torch
+
+from dider.data.batch import Normalizer
+from dider.data.simulate import simulate_push
+from dider.data.synth import SynthDataModule
+
+
+def make_dm(tmp_path, **kw) -> SynthDataModule:
+    params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), batch_size=8)
+    params.update(kw)
+    dm = SynthDataModule(**params)
+    dm.prepare_data()
+    dm.setup()
+    return dm
+
+
+def test_batches_normalised_and_aligned(tmp_path):
+    dm = make_dm(tmp_path)
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["states"].shape == (8, 50, 3, 4) and batch["mask"].all() and batch["edges"].shape == (8, 49, 6)
+    train = dm.datasets["train"].states
+    assert train.min() >= -1 - 1e-6 and train.max() <= 1 + 1e-6 and train.min() < -0.99
+    # edges of transition t -> t+1 are the raw edges of step t+1 (the force that produced x_{t+1})
+    states, raw_edges = simulate_push(40, 50, seed=1 * 1000 + 0)
+    torch.testing.assert_close(dm.normalizer.normalize(states), train)
+    assert torch.equal(dm.datasets["train"].edges, raw_edges[:, 1:])
+
+
+def test_cache_is_keyed_and_reused(tmp_path):
+    dm = make_dm(tmp_path)
+    files = sorted(p.name for p in tmp_path.glob("synth_*.pt"))
+    assert len(files) == 3 and not list(tmp_path.glob(".*tmp"))
+    mtimes = {p: p.stat().st_mtime_ns for p in tmp_path.glob("synth_*.pt")}
+    make_dm(tmp_path)  # same parameters: nothing regenerated
+    assert {p: p.stat().st_mtime_ns for p in tmp_path.glob("synth_*.pt")} == mtimes
+    bigger = make_dm(tmp_path, num_test=20)  # only the test split changes
+    assert len(list(tmp_path.glob("synth_*.pt"))) == 4
+    assert torch.equal(bigger.datasets["train"].states, dm.datasets["train"].states)
+
+
+@pytest.mark.parametrize(
+    "kw, key",
+    [({"num_train": 0}, "data.num_train"), ({"burn_in": 50}, "data.burn_in"),
+     ({"horizons": (1, 46)}, "data.horizons"), ({"num_steps": 1}, "data.num_steps")],
+)
+def test_bad_config_names_the_key(tmp_path, kw, key):
+    with pytest.raises(ValueError, match=key):
+        SynthDataModule(cache_dir=str(tmp_path), **kw)
+
+
+def test_normalizer_roundtrip_and_errors():
+    x = torch.randn(10, 5, 3, 4)
+    n = Normalizer.fit(x)
+    torch.testing.assert_close(n.denormalize(n.normalize(x)), x, atol=1e-5, rtol=0)
+    with pytest.raises(ValueError, match="pos_range"):
+        Normalizer((1.0, 1.0), (0.0, 1.0))
