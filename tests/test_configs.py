@@ -2,11 +2,10 @@
 
 from pathlib import Path
 
+import dider.conf
 import pytest
 import torch
 from hydra.utils import instantiate
-
-import dider.conf
 
 CONF = Path(dider.conf.__file__).parent
 

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+
 def test_multirun_two_jobs(tmp_path, cache_dir):
     env = {**os.environ, "HYDRA_FULL_ERROR": "1"}
     cmd = [sys.executable, "-m", "dider.run", "-m", f"hydra.sweep.dir={tmp_path}", f"data.cache_dir={cache_dir}",

@@ -12,7 +12,7 @@ import multiprocessing as mp
 import platform
 import resource
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,9 +39,11 @@ class Case:
 def cases() -> list[Case]:
     recurrent = ["model/decoder=recurrent", "model.sparsity_mix=0"]
     out = []
-    for model in ("dnri",):
+    for model in ("dnri", "dider", "dider_skid"):
         out.append(Case(f"train/{model}/synth", [f"model={model}"], 128, 3, 50))
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
+    for model in ("dnri", "dider"):
+        out.append(Case(f"train/{model}/synth/bf16", [f"model={model}"], 128, 3, 50, settings={"autocast": "bf16"}))
     return out
 
 
@@ -51,9 +53,13 @@ def build_model(overrides: list[str]) -> torch.nn.Module:
     return instantiate(cfg.model, _convert_="all")
 
 
-def _train_step(model: Any, opt: torch.optim.Optimizer, batch: dict[str, torch.Tensor]) -> None:
+def _train_step(
+    model: Any, opt: torch.optim.Optimizer, batch: dict[str, torch.Tensor], autocast: str | None = None
+) -> None:
     opt.zero_grad(set_to_none=True)
-    loss = model.loss(model.infer(batch, hard=False))["loss"]
+    device = batch["states"].device.type
+    with torch.autocast(device, dtype=torch.bfloat16, enabled=autocast == "bf16"):
+        loss = model.loss(model.infer(batch, hard=False))["loss"]
     loss.backward()
     opt.step()
 
@@ -64,15 +70,16 @@ def run_case(case: Case, device: str) -> dict[str, Any]:
     opt = torch.optim.Adam(model.parameters(), lr=5e-4)
     states = torch.rand(case.batch, case.steps, case.agents, 4, device=device) * 2 - 1
     batch = {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
+    autocast = case.settings.get("autocast")
     for _ in range(case.warmup):
-        _train_step(model, opt, batch)
+        _train_step(model, opt, batch, autocast)
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     sync()
     start = time.perf_counter()
     for _ in range(case.iters):
-        _train_step(model, opt, batch)
+        _train_step(model, opt, batch, autocast)
     sync()
     step_s = (time.perf_counter() - start) / case.iters
     peak = (torch.cuda.max_memory_allocated() if device == "cuda"

@@ -65,3 +65,74 @@ class EdgeAccuracy(Metric):
 
     def compute(self) -> torch.Tensor:
         return (self.correct / self.total.clamp_min(1)).float()
+
+
+def switches(types: torch.Tensor) -> torch.Tensor:
+    """[..., T] types -> [..., T-1] bool: the type changes between step t and t+1 (a switch at t+1)."""
+    return types[..., 1:] != types[..., :-1]
+
+
+class SegmentStats(Metric):
+    """Readability of inferred interactions: segments per edge and type switches per 100 steps.
+
+    update(types [B, E, T] long, edge_mask [B, E] bool or None); compute() -> [segments_per_edge, switches_per_100].
+    """
+
+    is_differentiable = False
+    full_state_update = False
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        for name in ("switches", "edges", "steps"):
+            self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, types: torch.Tensor, edge_mask: torch.Tensor | None = None) -> None:
+        sw = switches(types).sum(-1).double()  # [B, E]
+        keep = torch.ones_like(sw, dtype=torch.bool) if edge_mask is None else edge_mask
+        self.switches += sw[keep].sum()
+        self.edges += keep.sum()
+        self.steps += keep.sum() * types.shape[-1]
+
+    def compute(self) -> torch.Tensor:
+        per_edge = 1 + self.switches / self.edges.clamp_min(1)
+        per_100 = 100 * self.switches / self.steps.clamp_min(1)
+        return torch.stack([per_edge, per_100]).float()
+
+
+class BoundaryF1(Metric):
+    """F1 of inferred switch times against ground-truth switch times, matched within +-``tolerance`` steps.
+
+    A predicted switch is correct when a true switch lies within the tolerance, and a true switch is found
+    when a predicted one does (micro-averaged over all edges and clips).
+    update(pred [B, E, T] long, target [B, E, T] long); compute() -> scalar F1 (1 when neither has switches).
+    """
+
+    is_differentiable = False
+    higher_is_better = True
+    full_state_update = False
+
+    def __init__(self, tolerance: int = 2, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.tolerance = tolerance
+        for name in ("pred_hit", "pred_all", "true_hit", "true_all"):
+            self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
+
+    def _near(self, events: torch.Tensor) -> torch.Tensor:
+        """Dilate boolean events [..., T] by the tolerance along time."""
+        k = 2 * self.tolerance + 1
+        flat = events.reshape(-1, 1, events.shape[-1]).float()
+        return torch.nn.functional.max_pool1d(flat, k, stride=1, padding=self.tolerance).view(events.shape) > 0
+
+    def update(self, pred: torch.Tensor, target: torch.Tensor) -> None:
+        p, g = switches(pred), switches(target > 0)
+        self.pred_hit += (p & self._near(g)).sum().double()
+        self.true_hit += (g & self._near(p)).sum().double()
+        self.pred_all += p.sum().double()
+        self.true_all += g.sum().double()
+
+    def compute(self) -> torch.Tensor:
+        if self.pred_all == 0 and self.true_all == 0:
+            return torch.tensor(1.0)
+        precision = self.pred_hit / self.pred_all.clamp_min(1)
+        recall = self.true_hit / self.true_all.clamp_min(1)
+        return (2 * precision * recall / (precision + recall).clamp_min(1e-12)).float()

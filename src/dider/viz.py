@@ -53,12 +53,9 @@ class TimelineFigures(L.Callback):
             return
         self.output_dir.mkdir(parents=True, exist_ok=True)
         tb = next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
-        for i in range(data["posterior"].shape[0]):
-            rows = {}
-            if "truth" in data:
-                rows["truth"] = data["truth"][i]
-            rows["posterior"] = data["posterior"][i]
-            rows["prior (online)"] = data["prior"][i]
+        labels = {"truth": "truth", "per_step": "per step", "segments": "segments", "prior": "prior (online)"}
+        for i in range(data["segments"].shape[0]):
+            rows = {label: data[key][i] for key, label in labels.items() if key in data}
             fig = timeline_figure(rows, pl_module.num_types, title=f"test clip {i}")
             fig.savefig(self.output_dir / f"timeline_{i:02d}.png", dpi=100)
             if tb is not None:

@@ -3,40 +3,21 @@
 from __future__ import annotations
 
 import logging
-import os
 from pathlib import Path
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
-from dider.data.batch import Batch, Normalizer
+from dider.data.batch import Normalizer
 from dider.data.cache import atomic_torch_save, cache_key
+from dider.data.common import SPLITS, ClipDataset, default_cache_dir
 from dider.data.simulate import simulate_push
 
 log = logging.getLogger(__name__)
 
-SPLITS = ("train", "val", "test")
-
-
-class ClipDataset(Dataset):
-    """Clips held in memory. states: [S, T, N, 4]; mask: [S, T, N] bool; edges: [S, T-1, E] long or None."""
-
-    def __init__(self, states: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor | None = None) -> None:
-        self.states, self.mask, self.edges = states, mask, edges
-
-    def __len__(self) -> int:
-        return self.states.shape[0]
-
-    def __getitem__(self, i: int) -> Batch:
-        item: Batch = {"states": self.states[i], "mask": self.mask[i]}
-        if self.edges is not None:
-            item["edges"] = self.edges[i]
-        return item
-
-
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("DIDER_CACHE", Path.home() / ".cache" / "dider"))
+# ClipDataset and default_cache_dir live in common.py (shared with the real-data modules); re-exported.
+__all__ = ["SPLITS", "ClipDataset", "SynthDataModule", "default_cache_dir"]
 
 
 class SynthDataModule(L.LightningDataModule):

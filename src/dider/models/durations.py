@@ -10,9 +10,12 @@ Shapes: h_fwd, h_rev [B, E, T, R]; x [B, T+1, N, D]; h_t [B, E, R].
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
+from dider.losses import gaussian_kl
 from dider.models.segments import Segmentation
 
 
@@ -41,3 +44,132 @@ class StaticDuration(nn.Module):
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         return torch.full(h_t.shape[:2], max(end - t, 1), dtype=torch.long, device=h_t.device)
+
+
+class LearnedDuration(nn.Module):
+    """DIDER's duration module: a Gaussian latent per segment sets the fraction of the remaining steps
+    that the segment lasts.
+
+    For each edge and slot k (a Python loop over at most ``max_segments`` slots, vectorised over B x E):
+    features at the slot's first step give mu = tanh(f_mu(h)), sigma = sigma_min + (1 - sigma_min) *
+    sigmoid(f_sigma(h)); z = mu + sigma * eps (z = mu in eval); rho = clamp((z + 1) / 2, rho_min, 1);
+    d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
+    the fixed prior N(prior_mu, prior_sigma^2).
+
+    Resolutions of what the paper leaves open (design.md section 3):
+    - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
+    - sigma could collapse to 0: it is a std with a floor ``sigma_min``;
+    - continuous d against discrete steps: step j belongs to slot k when s_k <= j < s_{k+1} (hard,
+      exact one-hot in the forward pass); the gradient reaches the boundaries through a soft step
+      sigmoid((j + 0.5 - s) / tau_s), straight-through; tau_s anneals from ``tau_start`` to
+      ``tau_end`` over ``tau_anneal_steps`` optimiser steps;
+    - the boundary step starts the new segment and its latents are read there.
+
+    ``source`` picks what the duration is read from: ``past`` (DIDER: the forward LSTM state, online,
+    usable when forecasting) or ``future`` (DIDER with SKID: the reverse LSTM state, i.e. the whole
+    remaining trajectory; when forecasting there is no future, so the prior mean sets the fraction).
+    ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
+    """
+
+    def __init__(
+        self,
+        rnn_hidden: int = 64,
+        hidden: int = 64,
+        source: str = "past",
+        max_segments: int = 8,
+        min_duration: float = 1.0,
+        rho_min: float = 0.0,
+        sigma_min: float = 1e-2,
+        prior_mu: float = 0.0,
+        prior_sigma: float = 1.0,
+        tau_start: float = 1.5,
+        tau_end: float = 0.5,
+        tau_anneal_steps: int = 10000,
+        fixed_duration: int | None = None,
+    ) -> None:
+        super().__init__()
+        checks = {
+            "model.duration.source": (source in ("past", "future"), "expected 'past' or 'future'"),
+            "model.duration.max_segments": (max_segments >= 1, "must be >= 1"),
+            "model.duration.min_duration": (min_duration >= 1, "must be >= 1 step"),
+            "model.duration.rho_min": (0 <= rho_min <= 1, "must lie in [0, 1]"),
+            "model.duration.sigma_min": (0 < sigma_min < 1, "must lie in (0, 1)"),
+            "model.duration.prior_sigma": (prior_sigma > 0, "must be > 0"),
+            "model.duration.tau_start": (tau_start > 0 and tau_end > 0, "tau_start and tau_end must be > 0"),
+            "model.duration.fixed_duration": (fixed_duration is None or fixed_duration >= 1, "must be >= 1 or null"),
+        }
+        for key, (ok, why) in checks.items():
+            if not ok:
+                raise ValueError(f"{key}: {why} (got {locals()[key.rsplit('.', 1)[1]]!r})")
+        self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
+        self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
+        self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
+        self.tau_start, self.tau_end, self.tau_anneal_steps = tau_start, tau_end, tau_anneal_steps
+        self.head = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 2))
+        with torch.no_grad():  # start at the prior's mean fraction rather than at rho = 0.5
+            self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
+        self.step = 0  # optimiser step, set by the module; drives the tau_s annealing
+
+    @property
+    def tau(self) -> float:
+        frac = min(1.0, self.step / self.tau_anneal_steps) if self.tau_anneal_steps > 0 else 1.0
+        return self.tau_start + (self.tau_end - self.tau_start) * frac
+
+    def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """h [..., R] -> mu, sigma [...] of the duration latent."""
+        raw_mu, raw_sigma = self.head(h).unbind(-1)
+        return torch.tanh(raw_mu), self.sigma_min + (1 - self.sigma_min) * torch.sigmoid(raw_sigma)
+
+    def fraction(self, z: torch.Tensor) -> torch.Tensor:
+        return ((z + 1) / 2).clamp(self.rho_min, 1.0)
+
+    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor) -> Segmentation:
+        b, e, t, _ = h_fwd.shape
+        feats = h_fwd if self.source == "past" else h_rev
+        slots = min(self.max_segments, t) if self.fixed_duration is None else -(-t // self.fixed_duration)
+        s = h_fwd.new_zeros(b, e)  # continuous start of the current slot
+        bounds, starts, kls = [s], [], []
+        for k in range(slots):
+            start = s.detach().ceil().long().clamp(max=t - 1)  # first integer step of the slot
+            starts.append(start)
+            remaining = t - s
+            if self.fixed_duration is not None:
+                d = torch.full_like(s, float(self.fixed_duration))
+            else:
+                h = feats.gather(2, start[..., None, None].expand(b, e, 1, feats.shape[-1])).squeeze(2)
+                mu, sigma = self.gaussian(h)
+                z = mu + sigma * torch.randn_like(mu) if self.training else mu
+                d = torch.maximum(self.fraction(z) * remaining, torch.full_like(s, self.min_duration))
+                kls.append(gaussian_kl(mu, sigma, self.prior_mu, self.prior_sigma))
+            d = remaining if k == slots - 1 else torch.minimum(d, remaining)
+            s = s + d
+            bounds.append(s)
+        assign, hard = self._assignment(torch.stack(bounds, dim=-1), t)
+        valid = hard.sum(2) > 0  # slots holding at least one step (a slot past the end holds none)
+        kl = h_fwd.new_zeros(b)
+        if kls:  # summed over an edge's segments, divided by its steps: the edge KL's convention
+            kl = (torch.stack(kls, -1) * valid).flatten(1).sum(1) / (e * t)
+        return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl)
+
+    def _assignment(self, bounds: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Continuous boundaries [B, E, S+1] -> step-to-slot assignment [B, E, T, S]: exactly one-hot in
+        the forward pass, with the gradient of a soft step to every boundary (straight-through).
+        Returns (assignment, its hard part)."""
+        j = torch.arange(t, device=bounds.device, dtype=bounds.dtype)[:, None]  # [T, 1]
+        lo, hi = bounds[..., None, :-1], bounds[..., None, 1:]  # [B, E, 1, S]
+        hard = ((j >= lo.detach()) & (j < hi.detach())).to(bounds.dtype)
+        if not torch.is_grad_enabled() or not bounds.requires_grad:
+            return hard, hard
+        above = torch.sigmoid((j + 0.5 - bounds[..., None, :]) / self.tau)  # [B, E, T, S+1]
+        soft = above[..., :-1] - above[..., 1:]
+        return hard + (soft - soft.detach()), hard  # soft - soft.detach() is exactly 0 forward
+
+    def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
+        remaining = float(end - t)
+        if self.fixed_duration is not None:
+            return torch.full(h_t.shape[:2], self.fixed_duration, dtype=torch.long, device=h_t.device)
+        if self.source == "past":
+            rho = self.fraction(self.gaussian(h_t)[0])
+        else:  # the future-reading posterior is unavailable online: the prior mean sets the fraction
+            rho = self.fraction(torch.full(h_t.shape[:2], self.prior_mu, device=h_t.device))
+        return (rho * remaining).round().clamp_min(self.min_duration).long()

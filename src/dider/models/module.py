@@ -22,7 +22,7 @@ from torch import nn
 from dider.data.batch import Batch
 from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, gaussian_nll
-from dider.metrics import EdgeAccuracy, HorizonMSE
+from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, SegmentStats
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation
 
@@ -35,6 +35,7 @@ class Inference:
     posterior_logits: torch.Tensor  # [B, E, S, K] per segment
     prior_logits: torch.Tensor  # [B, E, S, K] per segment
     probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
+    step_logits: torch.Tensor  # [B, E, T-1, K] per-step posterior logits (before segmentation)
     seg: Segmentation
     h_fwd: torch.Tensor  # [B, E, T-1, R]
     nll: torch.Tensor  # [B]
@@ -43,7 +44,8 @@ class Inference:
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
-        return self.seg.spread(F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()).argmax(-1)
+        one_hot = F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()
+        return self.seg.spread(one_hot).argmax(-1)
 
 
 class RelationalVAE(L.LightningModule):
@@ -64,16 +66,19 @@ class RelationalVAE(L.LightningModule):
         beta_duration: float = 1.0,
         capacity_edge: float = 0.0,
         capacity_duration: float = 0.0,
-        capacity_ramp_steps: int = 0,
+        capacity_ramp: float = 0.5,
         sparsity_mix: float = 0.0,
         no_edge_prob: float = 0.9,
         rollout_edges: str = "sample",
+        posterior_readout: str = "start",
         num_figure_clips: int = 4,
         name: str = "model",
     ) -> None:
         super().__init__()
         if num_edges < 2:
             raise ValueError(f"model.num_edges={num_edges}: need at least 2 edge types (type 0 is 'no interaction')")
+        if posterior_readout not in ("start", "mean"):
+            raise ValueError(f"model.posterior_readout={posterior_readout!r}: expected 'start' or 'mean'")
         if rollout_edges not in ("sample", "argmax"):
             raise ValueError(f"model.rollout_edges={rollout_edges!r}: expected 'sample' or 'argmax'")
         for key, value in {"model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau}.items():
@@ -85,11 +90,14 @@ class RelationalVAE(L.LightningModule):
         }.items():  # fmt: skip
             if value < 0:
                 raise ValueError(f"{key}={value}: must be >= 0")
+        if not 0.0 <= capacity_ramp <= 1.0:
+            raise ValueError(f"model.capacity_ramp={capacity_ramp}: a fraction of training, in [0, 1]")
         if not 0.0 <= sparsity_mix <= 1.0:
             raise ValueError(f"model.sparsity_mix={sparsity_mix}: must lie in [0, 1]")
         # Plugins and optimiser factories stay out of the checkpoint's hyper-parameters: checkpoints then
         # load with torch's safe weights_only unpickler; the Hydra config rebuilds them.
-        self.save_hyperparameters(logger=False, ignore=["encoder", "prior", "duration", "decoder", "optimizer", "scheduler"])
+        plugins = ["encoder", "prior", "duration", "decoder", "optimizer", "scheduler"]
+        self.save_hyperparameters(logger=False, ignore=plugins)
         self.optimizer_factory, self.scheduler_factory = optimizer, scheduler
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.num_types = num_edges
@@ -99,6 +107,10 @@ class RelationalVAE(L.LightningModule):
         self.test_mse_raw = HorizonMSE(horizons)
         self.test_acc_post = EdgeAccuracy()
         self.test_acc_prior = EdgeAccuracy()
+        self.test_segments = SegmentStats()
+        self.test_boundary = BoundaryF1(tolerance=2)
+        self.test_types: list[torch.Tensor] = []  # per-step posterior types and probabilities, for export
+        self.test_probs: list[torch.Tensor] = []
         self.figure_data: dict[str, torch.Tensor] = {}
 
     # ------------------------------------------------------------------ inference
@@ -107,7 +119,10 @@ class RelationalVAE(L.LightningModule):
         x, mask = batch["states"], batch["mask"]
         enc = self.encoder(x, mask)
         seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x)
-        q_seg = seg.gather(enc.posterior_logits)
+        # The posterior reads a segment's type at its first step (the paper) or pools the per-step
+        # logits over the segment; the prior always reads the first step, so it stays online.
+        pooled = self.hparams.posterior_readout == "mean"
+        q_seg = seg.pool(enc.posterior_logits) if pooled else seg.gather(enc.posterior_logits)
         p_seg = seg.gather(self.prior(enc.h_fwd))
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.hparams.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), mask[:, :-1])
@@ -126,13 +141,15 @@ class RelationalVAE(L.LightningModule):
             mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
             kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
             kl_edge = (1 - self.hparams.sparsity_mix) * kl_edge + self.hparams.sparsity_mix * kl_sparse
-        return Inference(pred, q_seg, p_seg, probs, seg, enc.h_fwd, nll, kl_edge, seg.kl)
+        return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl)
 
     def loss(self, out: Inference) -> dict[str, torch.Tensor]:
         """NLL + beta_e |KL_e - C_e| + beta_d |KL_d - C_d|, capacities ramped linearly (beta-VAE, Burgess et al.)."""
-        h, step = self.hparams, self.global_step
-        c_e = capacity(step, h.capacity_edge, h.capacity_ramp_steps)
-        c_d = capacity(step, h.capacity_duration, h.capacity_ramp_steps)
+        h = self.hparams
+        total = self._trainer.estimated_stepping_batches if self._trainer is not None else 0
+        ramp = int(h.capacity_ramp * total) if total and total != float("inf") else 0
+        c_e = capacity(self.global_step, h.capacity_edge, ramp)
+        c_d = capacity(self.global_step, h.capacity_duration, ramp)
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
         loss = nll + h.beta_edge * (kl_e - c_e).abs() + h.beta_duration * (kl_d - c_d).abs()
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d}
@@ -204,6 +221,10 @@ class RelationalVAE(L.LightningModule):
         return self.rollout(x, mask, burn_in, num_pred)[0]
 
     # ------------------------------------------------------------------ Lightning hooks
+    def on_train_batch_start(self, batch: Batch, batch_idx: int) -> None:
+        if hasattr(self.duration, "step"):  # annealed schedules inside the duration plugin
+            self.duration.step = self.global_step
+
     def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
         terms = self.loss(self.infer(batch, hard=False))
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, prog_bar=False, on_step=True, on_epoch=True,
@@ -242,21 +263,35 @@ class RelationalVAE(L.LightningModule):
             self.test_mse_raw.update(norm.denormalize(pred), norm.denormalize(target), tmask)
         post_types = out.posterior_types()
         prior_types = self.online_types(out.h_fwd)
+        present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
+        self.test_segments.update(post_types, present.any(1))
         if "edges" in batch:
-            present = edge_mask(batch["mask"][:, :-1])
             self.test_acc_post.update(post_types.transpose(1, 2), batch["edges"], present)
             self.test_acc_prior.update(prior_types.transpose(1, 2), batch["edges"], present)
+            self.test_boundary.update(post_types, batch["edges"].transpose(1, 2))
+        self.test_types.append(post_types.cpu())
+        self.test_probs.append(out.probs.gather(-1, post_types.unsqueeze(-1)).squeeze(-1).cpu())
         if batch_idx == 0:
             k = self.hparams.num_figure_clips
-            self.figure_data = {"posterior": post_types[:k].cpu(), "prior": prior_types[:k].cpu(),
-                                "probs": out.probs[:k].cpu(), "states": batch["states"][:k].cpu()}
+            self.figure_data = {"segments": post_types[:k].cpu(), "prior": prior_types[:k].cpu(),
+                                "per_step": out.step_logits[:k].argmax(-1).cpu(), "states": batch["states"][:k].cpu()}
             if "edges" in batch:
                 self.figure_data["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
+
+    def on_test_epoch_start(self) -> None:
+        self.test_types, self.test_probs = [], []
 
     def on_test_epoch_end(self) -> None:
         self._log_horizons("test/mse", self.test_mse)
         if self.test_mse_raw.update_count:
             self._log_horizons("test/mse_raw", self.test_mse_raw)
+        per_edge, per_100 = self.test_segments.compute()
+        self.log("test/segments_per_edge", per_edge)
+        self.log("test/switches_per_100", per_100)
+        self.test_segments.reset()
+        if self.test_boundary.update_count:
+            self.log("test/boundary_f1", self.test_boundary.compute())
+            self.test_boundary.reset()
         for name, metric in {"posterior": self.test_acc_post, "prior": self.test_acc_prior}.items():
             if metric.update_count:
                 none, inter = metric.compute()
@@ -273,4 +308,5 @@ class RelationalVAE(L.LightningModule):
         opt = self.optimizer_factory(params=self.parameters())
         if self.scheduler_factory is None:
             return opt
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": self.scheduler_factory(optimizer=opt), "interval": "epoch"}}
+        scheduler = self.scheduler_factory(optimizer=opt)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}

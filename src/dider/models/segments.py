@@ -31,6 +31,13 @@ class Segmentation:
         index = self.start.unsqueeze(-1).expand(*self.start.shape, values.shape[-1])
         return values.gather(2, index)
 
+    def pool(self, values: torch.Tensor) -> torch.Tensor:
+        """Mean of per-step values over each slot's steps: [B, E, T, F] -> [B, E, S, F] (0 for empty slots)."""
+        if self.assign is None:
+            return values
+        total = torch.einsum("bets,betf->besf", self.assign, values)
+        return total / self.assign.sum(2).unsqueeze(-1).clamp_min(1.0)
+
     def spread(self, per_slot: torch.Tensor) -> torch.Tensor:
         """Hold each slot's value over its steps: [B, E, S, F] -> [B, E, T, F]."""
         if self.assign is None:

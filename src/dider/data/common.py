@@ -1,0 +1,200 @@
+"""Pieces shared by every data module: in-memory clip datasets, padding, config checks, the loaders API.
+
+Shapes: S clips, T steps, N agents, P packed agent rows (one per agent per clip), E = N(N-1) edges.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import lightning as L
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from dider.data.batch import Batch, Normalizer
+
+SPLITS = ("train", "val", "test")
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("DIDER_CACHE", Path.home() / ".cache" / "dider"))
+
+
+class ClipDataset(Dataset):
+    """Clips held in memory. states: [S, T, N, 4]; mask: [S, T, N] bool; edges: [S, T-1, E] long or None."""
+
+    def __init__(self, states: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor | None = None) -> None:
+        self.states, self.mask, self.edges = states, mask, edges
+
+    def __len__(self) -> int:
+        return self.states.shape[0]
+
+    def __getitem__(self, i: int) -> Batch:
+        item: Batch = {"states": self.states[i], "mask": self.mask[i]}
+        if self.edges is not None:
+            item["edges"] = self.edges[i]
+        return item
+
+
+class PackedClipDataset(Dataset):
+    """Clips with a different number of agents each, stored without padding.
+
+    states: [P, T, 4] (one row per agent per clip), mask: [P, T] bool, offsets: [S+1] long, so clip i owns
+    rows offsets[i]:offsets[i+1] (agent order inside a clip is kept). Batches are gathered in one
+    vectorised step by ``__getitems__`` (the DataLoader calls it with a whole batch of indices) and padded
+    to the largest agent count in the batch; padded agents have mask False and zero states.
+    """
+
+    def __init__(self, states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor) -> None:
+        if states.shape[0] != mask.shape[0] or int(offsets[-1]) != states.shape[0]:
+            raise ValueError(f"PackedClipDataset: {states.shape[0]} rows, mask {mask.shape[0]}, offsets end "
+                             f"{int(offsets[-1])}: these must agree")
+        self.states, self.mask, self.offsets = states, mask, offsets
+
+    def __len__(self) -> int:
+        return self.offsets.shape[0] - 1
+
+    @property
+    def num_agents(self) -> torch.Tensor:
+        """Agents per clip, [S] long."""
+        return self.offsets[1:] - self.offsets[:-1]
+
+    def __getitem__(self, i: int) -> Batch:
+        lo, hi = int(self.offsets[i]), int(self.offsets[i + 1])
+        return {"states": self.states[lo:hi].transpose(0, 1), "mask": self.mask[lo:hi].transpose(0, 1)}
+
+    def __getitems__(self, indices: Sequence[int]) -> Batch:
+        """A padded batch: states [B, T, N_max, 4], mask [B, T, N_max]."""
+        idx = torch.as_tensor(indices, dtype=torch.long)
+        start, count = self.offsets[idx], self.num_agents[idx]
+        n_max = max(int(count.max()), 1) if len(idx) else 1
+        slot = torch.arange(n_max)
+        valid = slot[None, :] < count[:, None]  # [B, N_max]
+        # Padded slots read row 0 (any in-range row) and are zeroed below, so one gather serves the batch.
+        rows = torch.where(valid, start[:, None] + slot[None, :], 0)
+        states = self.states[rows] * valid[:, :, None, None].to(self.states.dtype)  # [B, N, T, 4]
+        mask = self.mask[rows] & valid[:, :, None]  # [B, N, T]
+        return {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
+
+
+def pad_collate(items: Batch | list[Batch]) -> Batch:
+    """collate_fn for variable agent counts: passes a batch made by ``__getitems__`` through, and pads a list
+    of single clips (states [T, N_i, 4], mask [T, N_i]) to [B, T, N_max, 4] / [B, T, N_max]."""
+    if isinstance(items, dict):
+        return items
+    # Only reached when a dataset without __getitems__ is wrapped (e.g. a Subset): not the hot path.
+    states = torch.nn.utils.rnn.pad_sequence([it["states"].transpose(0, 1) for it in items], batch_first=True)
+    mask = torch.nn.utils.rnn.pad_sequence([it["mask"].transpose(0, 1) for it in items], batch_first=True)
+    return {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
+
+
+def ragged_rows(offsets: torch.Tensor, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rows of the selected clips of a packed layout, in order, and their new offsets.
+
+    offsets: [S+1] long, idx: [K] long -> rows [sum of the selected counts] long, new offsets [K+1] long.
+    """
+    counts = offsets[idx + 1] - offsets[idx]
+    new_offsets = torch.zeros(len(idx) + 1, dtype=torch.long)
+    new_offsets[1:] = counts.cumsum(0)
+    total = int(new_offsets[-1])
+    within = torch.arange(total) - torch.repeat_interleave(new_offsets[:-1], counts)
+    return torch.repeat_interleave(offsets[idx], counts) + within, new_offsets
+
+
+def spread_indices(n: int, cap: int | None) -> torch.Tensor:
+    """``cap`` indices spread evenly over range(n) (all of them when cap is None or >= n).
+
+    Evenly spaced rather than the first ``cap`` so a small cap still samples every recording / file part.
+    """
+    if cap is None or cap >= n:
+        return torch.arange(n)
+    return torch.linspace(0, n - 1, cap).round().long().unique()
+
+
+def burn_in_mask(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
+    """The steps that are each agent's own burn-in: its first ``burn_in`` present steps.
+
+    DNRI's inD protocol observes every agent for ``burn_in`` steps from its first appearance (agents enter
+    and leave mid-clip), so forecasting errors are only counted after that. mask: [B, T, N] bool ->
+    [B, T, N] bool.
+    """
+    return mask & (mask.long().cumsum(dim=1) <= burn_in)
+
+
+def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Zero the states of absent agents (normalised space: the centre of the range), never NaN.
+
+    states: [..., N, 4], mask: [..., N] bool -> [..., N, 4].
+    """
+    return torch.where(mask[..., None], states, torch.zeros((), dtype=states.dtype))
+
+
+def check_counts(**values: tuple[int | None, int]) -> None:
+    """values: name -> (value, minimum); None values are skipped. Raises a ValueError naming the key."""
+    for key, (value, low) in values.items():
+        if value is not None and value < low:
+            raise ValueError(f"data.{key}={value}: must be >= {low}")
+
+
+def check_horizons(horizons: Sequence[int], seq_len: int, burn_in: int, where: str = "") -> None:
+    """Each horizon h is the h-th predicted step after the burn-in, so it must lie in 1..seq_len-burn_in."""
+    if burn_in < 1:
+        raise ValueError(f"data.burn_in={burn_in}: must be >= 1")
+    if burn_in >= seq_len:
+        raise ValueError(f"data.burn_in={burn_in} must be shorter than the clips ({seq_len} steps{where})")
+    if not horizons or min(horizons) < 1 or max(horizons) > seq_len - burn_in:
+        raise ValueError(
+            f"data.horizons={list(horizons)}: each must lie in 1..{seq_len - burn_in} "
+            f"(the predicted steps after data.burn_in={burn_in} of {seq_len}-step clips{where})"
+        )
+
+
+def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = None) -> None:
+    """Raise naming ``name`` and the first bad index if any (selected) value is NaN or infinite.
+
+    array: [...]; where: bool broadcastable to array (only those entries are checked) or None.
+    """
+    bad = ~torch.isfinite(array)
+    if where is not None:
+        bad &= where
+    if bad.any():
+        first = tuple(int(i) for i in torch.nonzero(bad)[0])
+        raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first})")
+
+
+class ClipDataModule(L.LightningDataModule):
+    """The loaders API every data module shares. Subclasses fill ``self.datasets`` and ``self.normalizer``
+    in ``setup`` and keep ``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory`` in hparams."""
+
+    collate_fn = None  # None: torch's default collate (fixed agent count)
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.normalizer: Normalizer | None = None
+        self.datasets: dict[str, Dataset] = {}
+
+    def _loader(self, split: str, train: bool) -> DataLoader:
+        if split not in self.datasets:
+            raise RuntimeError(f"{type(self).__name__}: call setup() before asking for the {split} loader")
+        h = self.hparams
+        return DataLoader(
+            self.datasets[split],
+            batch_size=h.batch_size if train else h.eval_batch_size,
+            shuffle=train,
+            drop_last=False,
+            num_workers=h.num_workers,
+            pin_memory=h.pin_memory,
+            persistent_workers=h.num_workers > 0,
+            collate_fn=self.collate_fn,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", train=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", train=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", train=False)

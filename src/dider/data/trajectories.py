@@ -1,0 +1,179 @@
+"""Bring-your-own trajectories: one ``.npz`` file (``data.path``) of fixed-length multi-agent clips.
+
+Keys (others are ignored):
+- ``positions``  [S, T, N, 2] float, required;
+- ``velocities`` [S, T, N, 2] float, optional: else finite differences (pos[t] - pos[t-1]) * frame_rate,
+  which drops the first step (T-1 steps remain) and needs the agent at both steps;
+- ``mask``       [S, T, N] bool (or 0/1), optional: agent present; values of absent agents may be NaN;
+- ``edges``      [S, T, N(N-1)] int >= 0, optional ground-truth edge types in the synthetic data's
+  convention: edges[:, t] is the interaction that produced step t from step t-1, edge order of
+  dider.graph (sender-major, no self edges). Batches then carry ``edges`` [B, T'-1, E] for the
+  transitions t -> t+1 of the clip (edges[:, 1:], or edges[:, 2:] when velocities are differenced).
+
+Clips are split into train / val / test with a seeded permutation (``split`` fractions, ``seed``);
+min/max normalisation is fitted on the present agents of the train split; absent agents get zeros.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dider.data.batch import Normalizer
+from dider.data.common import (
+    ClipDataModule,
+    ClipDataset,
+    check_counts,
+    check_finite,
+    check_horizons,
+    default_cache_dir,
+    fill_absent,
+    spread_indices,
+)
+from dider.graph import num_edges
+
+log = logging.getLogger(__name__)
+
+
+def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Tensor]:
+    """Read and validate the file -> states [S, T', N, 4] float32 (raw, zeros where absent), mask
+    [S, T', N] bool and, if present, edges [S, T'-1, E] long (the transitions of the clip)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"data.path={path}: no such file")
+    try:
+        z = np.load(path)
+    except (ValueError, OSError) as e:
+        raise ValueError(f"{path}: not a readable .npz file ({e})") from e
+    with z:
+        if "positions" not in z.files:
+            raise ValueError(f"{path}: no key 'positions' (keys: {z.files}); expected [S, T, N, 2]")
+        arrays = {k: z[k] for k in ("positions", "velocities", "mask", "edges") if k in z.files}
+    pos = arrays["positions"]
+    if pos.ndim != 4 or pos.shape[-1] != 2 or min(pos.shape) == 0:
+        raise ValueError(f"{path}: key 'positions' has shape {pos.shape}; expected [S, T, N, 2] (non-empty)")
+    s, t, n, _ = pos.shape
+    pos = torch.from_numpy(np.ascontiguousarray(pos, dtype=np.float32))
+
+    if "mask" in arrays:
+        m = arrays["mask"]
+        if m.shape != (s, t, n):
+            raise ValueError(f"{path}: key 'mask' has shape {m.shape}; expected [S, T, N] = {(s, t, n)}")
+        if m.dtype != bool and not np.isin(m, (0, 1)).all():
+            raise ValueError(f"{path}: key 'mask' must be bool or 0/1 (dtype {m.dtype})")
+        mask = torch.from_numpy(m.astype(bool))
+    else:
+        mask = torch.ones(s, t, n, dtype=torch.bool)
+    hint = "" if "mask" in arrays else " (mark absent agents with a 'mask' key)"
+    check_finite(f"{path}: key 'positions'{hint}", pos, mask[..., None])
+
+    if "velocities" in arrays:
+        v = arrays["velocities"]
+        if v.shape != (s, t, n, 2):
+            raise ValueError(f"{path}: key 'velocities' has shape {v.shape}; expected {(s, t, n, 2)} like "
+                             f"positions")
+        vel = torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32))
+        check_finite(f"{path}: key 'velocities'{hint}", vel, mask[..., None])
+        drop = 0
+    else:
+        if t < 2:
+            raise ValueError(f"{path}: key 'positions' has {t} step(s): finite-difference velocities need "
+                             f">= 2")
+        # A velocity needs the agent at both ends of the step.
+        vel = (pos[:, 1:] - pos[:, :-1]) * frame_rate
+        pos, mask, drop = pos[:, 1:], mask[:, 1:] & mask[:, :-1], 1
+    states = torch.cat([pos, vel], dim=-1)
+    out = {"states": fill_absent(states, mask), "mask": mask}
+
+    if "edges" in arrays:
+        e = arrays["edges"]
+        if e.shape != (s, t, num_edges(n)):
+            raise ValueError(f"{path}: key 'edges' has shape {e.shape}; expected [S, T, N(N-1)] = "
+                             f"{(s, t, num_edges(n))}")
+        if not np.issubdtype(e.dtype, np.integer) and not (np.isfinite(e).all() and (e == np.round(e)).all()):
+            raise ValueError(f"{path}: key 'edges' must hold integer edge types (dtype {e.dtype})")
+        if (e < 0).any():
+            raise ValueError(f"{path}: key 'edges' has negative edge types")
+        # edges[t] produced step t from t-1, so the clip's transition j -> j+1 (raw step drop+j -> drop+j+1)
+        # is labelled by raw edges[drop + j + 1].
+        out["edges"] = torch.from_numpy(e.astype(np.int64))[:, drop + 1:]
+    return out
+
+
+def split_indices(num: int, fractions: Sequence[float], seed: int) -> dict[str, torch.Tensor]:
+    """Seeded train / val / test index sets of range(num); val and test get >= 1 clip each."""
+    if len(fractions) != 3 or min(fractions) <= 0 or abs(sum(fractions) - 1) > 1e-6:
+        raise ValueError(f"data.split={list(fractions)}: three positive fractions (train, val, test) "
+                         f"summing to 1")
+    val, test = (max(1, round(f * num)) for f in fractions[1:])
+    if num - val - test < 1:
+        raise ValueError(f"data.split={list(fractions)}: {num} clips are too few for train, val and test")
+    perm = torch.randperm(num, generator=torch.Generator().manual_seed(seed))
+    parts = {"train": perm[val + test:], "val": perm[:val], "test": perm[val:val + test]}
+    return {k: v.sort().values for k, v in parts.items()}
+
+
+class TrajectoryDataModule(ClipDataModule):
+    """Clips from a user's npz (see the module docstring). Batches: states [B, T, N, 4] normalised,
+    mask [B, T, N] bool, and edges [B, T-1, E] long when the file has them.
+
+    After ``setup``: ``normalizer``, ``datasets`` (ClipDataset per split). ``cache_dir`` is accepted for a
+    uniform interface; nothing is cached (loading one npz is fast).
+    """
+
+    def __init__(
+        self,
+        path: str | None = None,
+        split: Sequence[float] = (0.8, 0.1, 0.1),
+        seed: int = 1,
+        frame_rate: float = 1.0,
+        burn_in: int = 5,
+        horizons: Sequence[int] = (1, 5, 10),
+        num_train: int | None = None,
+        num_val: int | None = None,
+        num_test: int | None = None,
+        batch_size: int = 16,
+        eval_batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        cache_dir: str | None = None,
+    ) -> None:
+        super().__init__()
+        check_counts(burn_in=(burn_in, 1), num_train=(num_train, 1), num_val=(num_val, 1),
+                     num_test=(num_test, 1), batch_size=(batch_size, 1), eval_batch_size=(eval_batch_size, 1),
+                     num_workers=(num_workers, 0))
+        if not frame_rate > 0:
+            raise ValueError(f"data.frame_rate={frame_rate}: must be > 0")
+        if horizons is None or not len(horizons) or min(horizons) < 1:
+            raise ValueError(f"data.horizons={horizons}: need at least one horizon >= 1")
+        split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup
+        self.save_hyperparameters(logger=False)
+        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.datasets:
+            return
+        h = self.hparams
+        if h.path is None:
+            raise ValueError("data.path is not set: point it at an .npz with 'positions' [S, T, N, 2] "
+                             "(optional 'velocities', 'mask', 'edges')")
+        path = Path(h.path).expanduser()
+        data = load_trajectories(path, h.frame_rate)
+        check_horizons(h.horizons, data["states"].shape[1], h.burn_in, where=f" in {path}")
+        parts = split_indices(data["states"].shape[0], h.split, h.seed)
+        caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
+        parts = {s: idx[spread_indices(len(idx), caps[s])] for s, idx in parts.items()}
+        train = parts["train"]
+        self.normalizer = Normalizer.fit(data["states"][train], data["mask"][train])
+        for split, idx in parts.items():
+            states, mask = data["states"][idx], data["mask"][idx]
+            edges = data["edges"][idx] if "edges" in data else None
+            states = fill_absent(self.normalizer.normalize(states), mask)
+            self.datasets[split] = ClipDataset(states, mask, edges)
+        _, t, n, _ = data["states"].shape
+        log.info("trajectories %s: %s clips, %d steps, %d agents%s", path,
+                 {s: len(d) for s, d in self.datasets.items()}, t, n,
+                 ", with edges" if "edges" in data else "")

@@ -1,0 +1,142 @@
+"""DIDER's segment machinery: invariants, reduction to DNRI, gradients, causality."""
+
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from dider.models.durations import LearnedDuration
+
+
+def build(make_cfg, *overrides):
+    torch.manual_seed(0)
+    return instantiate(make_cfg(list(overrides)).model, _convert_="all")
+
+
+def clip(b=4, t=30, n=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+
+
+@pytest.mark.parametrize("source", ["past", "future"])
+@pytest.mark.parametrize("training", [True, False])
+@pytest.mark.parametrize("max_segments", [1, 3, 8, 40])
+def test_segments_tile_the_clip(source, training, max_segments):
+    torch.manual_seed(max_segments)
+    dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, max_segments=max_segments).train(training)
+    with torch.no_grad():  # spread the durations: some long, some short
+        dur.head[-1].bias.copy_(torch.tensor([0.0, 1.0]))
+        dur.head[-1].weight.mul_(20)
+    t = 25
+    h_fwd, h_rev = torch.randn(3, 6, t, 8), torch.randn(3, 6, t, 8)
+    seg = dur.segment(h_fwd, h_rev, torch.zeros(3, t + 1, 3, 4))
+    a = seg.assign.detach()
+    assert a.shape[-1] == min(max_segments, t)
+    assert torch.equal(a.sum(-1), torch.ones(3, 6, t))  # every step in exactly one slot (exact one-hot)
+    assert set(a.unique().tolist()) <= {0.0, 1.0}
+    slot = a.argmax(-1)
+    assert (slot[..., 1:] - slot[..., :-1] >= 0).all() and (slot[..., 1:] - slot[..., :-1] <= 1).all()  # contiguous
+    assert (slot[..., 0] == 0).all()
+    counts = a.sum(2)
+    assert torch.equal(counts > 0, seg.valid)  # a valid slot holds >= 1 step; slots are used in order
+    assert (seg.valid.sum(-1) == slot[..., -1] + 1).all()  # the last used slot ends at T
+    first = torch.where(seg.valid, seg.start, -1)
+    expected = torch.stack([(slot == k).float().argmax(-1) for k in range(a.shape[-1])], -1)
+    assert torch.equal(first[seg.valid], expected[seg.valid])  # latents are read at the slot's first step
+    if max_segments > 1:
+        assert seg.valid.sum(-1).float().mean() > 1.2  # the test exercises real splits
+
+
+def test_unit_durations_reproduce_dnri_exactly(make_cfg):
+    dnri = build(make_cfg, "model=dnri").train()
+    dider = build(make_cfg, "model=dider", "model.duration.fixed_duration=1").train()
+    missing, unexpected = dider.load_state_dict(dnri.state_dict(), strict=False)
+    assert not unexpected and all(k.startswith("duration.") for k in missing)
+    batch = clip()
+    torch.manual_seed(5)
+    a = dnri.infer(batch, hard=False)
+    torch.manual_seed(5)
+    b = dider.infer(batch, hard=False)
+    assert torch.equal(a.pred, b.pred)
+    assert torch.equal(a.nll, b.nll) and torch.equal(a.kl_edge, b.kl_edge)
+    assert torch.equal(b.kl_duration, torch.zeros_like(b.kl_duration))
+    la, lb = dnri.loss(a)["loss"], dider.loss(b)["loss"]
+    assert torch.equal(la, lb)
+
+
+@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+def test_gradients_reach_the_duration_heads(make_cfg, model):
+    net = build(make_cfg, f"model={model}").train()
+    terms = net.loss(net.infer(clip(), hard=False))
+    # the reconstruction alone (no KL) must move the boundaries: the straight-through path works
+    terms["nll"].backward(retain_graph=True)
+    grads = [p.grad for p in net.duration.parameters()]
+    assert all(g is not None for g in grads) and sum(g.abs().sum() for g in grads) > 0
+    net.zero_grad()
+    terms["kl_duration"].backward()
+    assert sum(p.grad.abs().sum() for p in net.duration.parameters()) > 0
+
+
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri"])
+def test_evaluation_is_deterministic(make_cfg, model):
+    net = build(make_cfg, f"model={model}").eval()
+    batch = clip()
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(11)
+        out = net.infer(batch, hard=True)
+        pred, types = net.rollout(batch["states"], batch["mask"], 5, 20)
+        runs.append((out.pred, out.posterior_types(), pred, types))
+    for x, y in zip(*runs, strict=True):
+        assert torch.equal(x, y)
+
+
+def test_online_duration_reads_only_the_past():
+    """DIDER's segmentation of steps < t is fixed by the forward states up to t (which see x_0..x_t
+    only: test_model.py); SKID's reads the reverse states and changes with the future."""
+    torch.manual_seed(0)
+    t, cut = 25, 12
+    h_fwd, h_rev = torch.randn(3, 6, t, 8), torch.randn(3, 6, t, 8)
+    h_fwd2, h_rev2 = h_fwd.clone(), torch.randn(3, 6, t, 8)  # the future changed: all reverse states move
+    h_fwd2[:, :, cut:] = torch.randn(3, 6, t - cut, 8)
+    for source, causal in (("past", True), ("future", False)):
+        torch.manual_seed(1)
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source).eval()
+        a = dur.segment(h_fwd, h_rev, torch.zeros(1)).assign[:, :, :cut]
+        b = dur.segment(h_fwd2, h_rev2, torch.zeros(1)).assign[:, :, :cut]
+        assert torch.equal(a, b) == causal, source
+
+
+@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+def test_rollout_and_online_types_are_causal(make_cfg, model):
+    net = build(make_cfg, f"model={model}", "model/decoder=recurrent").eval()
+    batch = clip(t=30)
+    changed = batch["states"].clone()
+    changed[:, 8:] = torch.rand_like(changed[:, 8:])
+    outs = []
+    for states in (batch["states"], changed):
+        torch.manual_seed(3)
+        pred, types = net.rollout(states, batch["mask"], 8, 20)
+        online = net.online_types(net.encoder(states, batch["mask"]).h_fwd)
+        outs.append((pred, types, online[..., :8]))
+    for a, b in zip(*outs, strict=True):
+        assert torch.equal(a, b)
+
+
+def test_rollout_holds_types_for_their_duration(make_cfg):
+    net = build(make_cfg, "model=dider", "model.rollout_edges=argmax").eval()
+    with torch.no_grad():
+        net.duration.head[-1].bias.copy_(torch.tensor([5.0, 0.0]))  # rho -> 1: one segment to the end
+    _, types = net.rollout(clip()["states"], clip()["mask"], 5, 20)
+    assert (types == types[..., :1]).all()
+    with torch.no_grad():
+        net.duration.head[-1].bias.copy_(torch.tensor([-50.0, 0.0]))  # rho -> 0: one-step segments
+    online = net.online_types(net.encoder(clip()["states"], clip()["mask"]).h_fwd)
+    prior = net.prior(net.encoder(clip()["states"], clip()["mask"]).h_fwd).argmax(-1)
+    assert torch.equal(online, prior)
+
+
+def test_bad_duration_values_name_the_key():
+    with pytest.raises(ValueError, match="model.duration.max_segments"):
+        LearnedDuration(max_segments=0)
+    with pytest.raises(ValueError, match="model.duration.source"):
+        LearnedDuration(source="sideways")
