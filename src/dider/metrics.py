@@ -11,7 +11,11 @@ from torchmetrics import Metric
 class HorizonMSE(Metric):
     """MSE at forecast horizons: the h-th predicted step, over present agents and all features.
 
-    update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool); compute() -> [len(horizons)].
+    update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool, horizon [B, P, N] long or None);
+    compute() -> [len(horizons)]. Without ``horizon`` frame p of the window is horizon p + 1 for every agent
+    (one burn-in for the whole window). With it, each element carries its own horizon (e.g. the agent's
+    h-th own predicted step, dider.data.common.agent_horizons): horizon h scores, per agent, the present
+    frame whose horizon equals h (at most one per agent; <= 0 marks burn-in frames, never scored).
     """
 
     is_differentiable = False
@@ -26,12 +30,24 @@ class HorizonMSE(Metric):
         self.add_state("sum_sq", torch.zeros(len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("count", torch.zeros(len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
 
-    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> None:
+    def update(
+        self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, horizon: torch.Tensor | None = None
+    ) -> None:
         if max(self.horizons) > pred.shape[1]:
             raise ValueError(f"horizon {max(self.horizons)} exceeds the {pred.shape[1]} predicted steps")
-        idx = torch.tensor([h - 1 for h in self.horizons], device=pred.device)
-        sq = (pred.index_select(1, idx) - target.index_select(1, idx)).pow(2).sum(-1)  # [B, H, N]
-        m = mask.index_select(1, idx).to(sq.dtype)
+        hs = torch.tensor(self.horizons, device=pred.device)
+        if horizon is None:
+            idx = hs - 1
+            sq = (pred.index_select(1, idx) - target.index_select(1, idx)).pow(2).sum(-1)  # [B, H, N]
+            m = mask.index_select(1, idx).to(sq.dtype)
+        else:
+            # The frame of each (sample, horizon, agent): one gather, so the sums below run in the same
+            # layout (and order) as the global case, which they equal when horizon = p + 1 everywhere.
+            hit = (horizon.unsqueeze(1) == hs.view(1, -1, 1, 1)) & mask.unsqueeze(1)  # [B, H, P, N]
+            frame = hit.to(torch.uint8).argmax(dim=2)  # [B, H, N]: the (only) matching frame, 0 if none
+            at = frame.unsqueeze(-1).expand(-1, -1, -1, pred.shape[-1])  # [B, H, N, D]
+            sq = (pred.gather(1, at) - target.gather(1, at)).pow(2).sum(-1)  # [B, H, N]
+            m = hit.any(dim=2).to(sq.dtype)
         self.sum_sq += (sq * m).sum(dim=(0, 2)).double()
         self.count += (m.sum(dim=(0, 2)) * pred.shape[-1]).double()
 

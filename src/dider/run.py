@@ -14,11 +14,14 @@ import lightning as L
 import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
+from lightning.fabric.plugins import CheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
+from dider.checkpoint import AtomicCheckpointIO
 from dider.data.cache import atomic_write_text
+from dider.data.common import BURN_IN_MODES
 from dider.perf import tune_allocator
 
 log = logging.getLogger(__name__)
@@ -70,6 +73,97 @@ def _build_list(group: DictConfig | None) -> list[Any]:
     return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
 
 
+class ConfigError(ValueError):
+    """Invalid configuration values; the message lists each one by its key."""
+
+
+# The key holding the clip length of each data module that knows it from its config alone.
+CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Check the values that would otherwise fail late (after data preparation, or mid-training), before any
+    work: raises :class:`ConfigError` listing every problem by its key."""
+    problems: list[str] = []
+
+    def get(key: str) -> Any:
+        try:
+            return OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=True)
+        except Exception as e:  # an interpolation that cannot resolve, e.g. a missing environment variable
+            problems.append(f"{key}: cannot resolve ({e})")
+            return None
+
+    def number(key: str, low: float, what: str = "") -> float | None:
+        value = get(key)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            problems.append(f"{key}={value!r}: must be a number")
+            return None
+        if not value >= low:
+            problems.append(f"{key}={value}: must be >= {low}{what}")
+        return value
+
+    mode = get("mode")
+    if mode not in ("train", "eval"):
+        problems.append(f"mode={mode!r}: expected 'train' or 'eval'")
+    ckpt = get("ckpt_path")
+    if mode == "eval" and not ckpt:
+        problems.append("ckpt_path: mode=eval needs ckpt_path=PATH (or ckpt_path=last)")
+    if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
+
+    number("model.num_edges", 2, " (type 0 is 'no interaction': a relation needs another type)")
+    for key in ("model.capacity_edge", "model.capacity_duration", "model.beta_edge", "model.beta_duration"):
+        number(key, 0)
+    if get("model.duration") is not None and "max_segments" in cfg.model.duration:
+        number("model.duration.max_segments", 1)
+    for key in ("data.burn_in_mode", "model.burn_in_mode"):
+        value = get(key)
+        if value is not None and value not in BURN_IN_MODES:
+            problems.append(f"{key}={value!r}: expected one of {list(BURN_IN_MODES)}")
+
+    clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
+    clip = get(clip_key) if clip_key else None
+    for section in ("data", "model"):
+        burn_in = number(f"{section}.burn_in", 1)
+        if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
+            problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
+        horizons = get(f"{section}.horizons")
+        if horizons is None:
+            continue
+        try:
+            hs = [int(h) for h in horizons]
+        except (TypeError, ValueError):
+            problems.append(f"{section}.horizons={horizons!r}: expected a list of ints")
+            continue
+        longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
+        if not hs or min(hs) < 1 or (longest is not None and longest >= 1 and max(hs) > longest):
+            span = f"1..{longest} (the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip})" \
+                if longest is not None else ">= 1"
+            problems.append(f"{section}.horizons={hs}: each must lie in {span}")
+
+    for key, kind in (("data.root", "folder"), ("data.path", "file")):
+        value = get(key)
+        if value is None:
+            continue
+        path = Path(str(value)).expanduser()
+        if not (path.is_dir() if kind == "folder" else path.is_file()):
+            problems.append(f"{key}={value}: no such {kind}")
+
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+
+
+def trainer_plugins(cfg: DictConfig) -> list[Any]:
+    """The trainer's plugins from ``trainer.plugins`` (if any), with atomic checkpoint writes unless a
+    CheckpointIO is configured there."""
+    plugins = [instantiate(p) if isinstance(p, DictConfig) else p for p in (cfg.trainer.get("plugins") or [])]
+    if not any(isinstance(p, CheckpointIO) for p in plugins):
+        plugins.append(AtomicCheckpointIO())
+    return plugins
+
+
 def resolve_ckpt(ckpt_path: str | None, output_dir: Path) -> str | None:
     """'last' means this run folder's checkpoints/last.ckpt (absent on a fresh run: start from scratch)."""
     if ckpt_path is None:
@@ -91,10 +185,7 @@ def format_table(metrics: dict[str, float]) -> str:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit (mode=train) and test, or test a checkpoint (mode=eval). Returns the test metrics."""
-    if cfg.mode not in ("train", "eval"):
-        raise ValueError(f"mode={cfg.mode!r}: expected 'train' or 'eval'")
-    if cfg.mode == "eval" and not cfg.ckpt_path:
-        raise ValueError("mode=eval needs ckpt_path=PATH (or ckpt_path=last)")
+    validate_config(cfg)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.output_dir)
@@ -105,7 +196,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     model = instantiate(cfg.model, _convert_="all")
     callbacks = _build_list(cfg.get("callbacks"))
     loggers: list[Logger] = _build_list(cfg.get("logger"))
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
+                                     plugins=trainer_plugins(cfg))
     ckpt = resolve_ckpt(cfg.ckpt_path, out_dir)
     if cfg.mode == "eval" and ckpt is None:
         raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")

@@ -26,6 +26,7 @@ from dider.data.batch import Normalizer
 from dider.data.common import (
     ClipDataModule,
     ClipDataset,
+    check_burn_in_mode,
     check_counts,
     check_finite,
     check_horizons,
@@ -133,8 +134,10 @@ class BasketballDataModule(ClipDataModule):
         num_workers: int = 0,
         pin_memory: bool = False,
         cache_dir: str | None = None,
+        burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
+        check_burn_in_mode(burn_in_mode)
         if format not in ("auto", "zhan", "dnri"):
             raise ValueError(f"data.format={format!r}: expected 'auto', 'zhan' or 'dnri'")
         if agents not in AGENT_COLUMNS:

@@ -123,6 +123,27 @@ def burn_in_mask(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
     return mask & (mask.long().cumsum(dim=1) <= burn_in)
 
 
+BURN_IN_MODES = ("global", "per_agent")
+
+
+def check_burn_in_mode(mode: str) -> None:
+    """``global``: every agent is observed for the window's first ``burn_in`` frames (synthetic, basketball);
+    ``per_agent``: each agent for its own first ``burn_in`` present frames (inD: agents enter mid-window)."""
+    if mode not in BURN_IN_MODES:
+        raise ValueError(f"data.burn_in_mode={mode!r}: expected one of {list(BURN_IN_MODES)}")
+
+
+def agent_horizons(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
+    """Per-agent forecast horizon of every frame: h >= 1 at an agent's h-th present frame after its own
+    burn-in (its first ``burn_in`` present frames, :func:`burn_in_mask`); <= 0 in its burn-in, 0 where absent.
+
+    With every agent present from frame 0 this is the global horizon t - burn_in + 1. mask: [B, T, N] bool
+    -> [B, T, N] long.
+    """
+    steps = mask.long().cumsum(dim=1) - burn_in
+    return torch.where(mask, steps, torch.zeros((), dtype=steps.dtype, device=steps.device))
+
+
 def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Zero the states of absent agents (normalised space: the centre of the range), never NaN.
 
@@ -174,6 +195,11 @@ class ClipDataModule(L.LightningDataModule):
         super().__init__()
         self.normalizer: Normalizer | None = None
         self.datasets: dict[str, Dataset] = {}
+
+    @property
+    def burn_in_mode(self) -> str:
+        """How forecasts are observed before the roll-out: ``global`` or ``per_agent`` (check_burn_in_mode)."""
+        return self.hparams.get("burn_in_mode", "global")
 
     def _loader(self, split: str, train: bool) -> DataLoader:
         if split not in self.datasets:

@@ -3,7 +3,8 @@
 DNRI's protocol by default (design.md section 4, research/data.md section 1.5): recordings in sorted order
 split 19 / 7 / 7 into train / val / test, features [xCenter, yCenter, xVelocity, yVelocity] (metres, m/s),
 25 Hz downsampled by 10 to 2.5 Hz, all road-user classes, min/max normalisation fitted on the present
-agents of the train split, burn-in 5.
+agents of the train split, burn-in 5 per agent (``burn_in_mode=per_agent``: each agent is observed for its
+own first 5 present steps, then rolled out; see RelationalVAE.rollout).
 
 Each recording is cut into windows of ``seq_len`` downsampled steps (every ``stride`` steps). A window keeps
 the tracks present in it (at least ``min_agent_steps`` of its steps), ordered by trackId, with a
@@ -42,6 +43,7 @@ from dider.data.common import (
     SPLITS,
     ClipDataModule,
     PackedClipDataset,
+    check_burn_in_mode,
     check_counts,
     check_horizons,
     default_cache_dir,
@@ -55,6 +57,8 @@ log = logging.getLogger(__name__)
 
 CACHE_VERSION = 1
 DEFAULT_FEATURES = ("xCenter", "yCenter", "xVelocity", "yVelocity")
+# Cap on the dense (steps x tracks) grid of one recording: a real one has ~4k steps x ~400 tracks.
+MAX_GRID_CELLS = 2**28
 
 
 @dataclass(frozen=True)
@@ -178,6 +182,8 @@ def _header(path: Path) -> list[str]:
         return list(pd.read_csv(path, nrows=0).columns)
     except pd.errors.EmptyDataError as e:
         raise ValueError(f"{path}: empty file (expected a CSV header)") from e
+    except (ValueError, OSError) as e:  # e.g. binary garbage, a bad encoding
+        raise ValueError(f"{path}: not a readable CSV file ({type(e).__name__}: {e})") from e
 
 
 def _read_columns(path: Path, numeric: Sequence[str], text: Sequence[str] = ()) -> pd.DataFrame:
@@ -216,7 +222,13 @@ def _read_tracks(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np
     if (frame < 0).any():
         raise ValueError(f"{files.tracks}: column {p.frame_column!r} has negative frames "
                          f"(first on line {int(np.argmax(frame < 0)) + 2})")
-    return tid, frame, df[list(p.features)].to_numpy()
+    feats = df[list(p.features)].to_numpy()
+    big = np.abs(feats) > np.finfo(np.float32).max  # would turn into inf in the float32 windows
+    if big.any():
+        row, col = (int(i[0]) for i in np.nonzero(big))
+        raise ValueError(f"{files.tracks}: column {p.features[col]!r} has values beyond the float32 range "
+                         f"(first on line {row + 2}: {feats[row, col]!r})")
+    return tid, frame, feats
 
 
 def _read_tracks_meta(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -319,6 +331,9 @@ def preprocess_recording(files: RecordingFiles, p: WindowParams) -> dict[str, An
     # Dense grid of the recording: [S steps, K tracks]. Column order = sorted trackId = agent order.
     tracks, k = np.unique(tid, return_inverse=True)
     num_steps = int(step.max()) + 1
+    if num_steps * tracks.size > MAX_GRID_CELLS:
+        raise ValueError(f"{files.tracks}: column {p.frame_column!r} reaches frame {int(frame.max())}: "
+                         f"{num_steps} steps x {tracks.size} tracks is implausibly large for one recording")
     grid = np.zeros((num_steps, tracks.size, 4), np.float32)
     present = np.zeros((num_steps, tracks.size), bool)
     grid[step, k] = feats
@@ -450,8 +465,10 @@ class InDDataModule(ClipDataModule):
         num_workers: int = 0,
         pin_memory: bool = False,
         cache_dir: str | None = None,
+        burn_in_mode: str = "per_agent",
     ) -> None:
         super().__init__()
+        check_burn_in_mode(burn_in_mode)
         check_counts(
             downsample=(downsample, 1), seq_len=(seq_len, 2), stride=(stride, 1),
             eval_stride=(eval_stride, 1), min_agent_steps=(min_agent_steps, 1), min_agents=(min_agents, 1),

@@ -7,6 +7,9 @@ clips of 50 steps take well under a second per step of the loop over time.
 
 from __future__ import annotations
 
+import math
+import numbers
+
 import torch
 
 # Directed edges in sender-major order for N = 3: (0,1) (0,2) (1,0) (1,2) (2,0) (2,1).
@@ -28,8 +31,18 @@ def simulate_push(
         edges:  [S, T, 6] long; edges[:, t] is the force that produced state t from state t-1
             (distances measured on the pre-update positions), as in DNRI's generator.
     """
-    if num_samples < 1 or num_steps < 2:
-        raise ValueError(f"simulate_push: need num_samples >= 1 and num_steps >= 2, got {num_samples}, {num_steps}")
+    for name, value, low in (("num_samples", num_samples, 1), ("num_steps", num_steps, 2)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+            raise ValueError(f"simulate_push: {name}={value!r}: need an integer >= {low}")
+    for name, value in (("push_factor", push_factor), ("radius", radius)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            raise ValueError(f"simulate_push: {name}={value!r}: need a finite number")
+    if radius <= 0:
+        raise ValueError(f"simulate_push: radius={radius!r}: must be > 0")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not -(2**63) <= seed < 2**64:
+        raise ValueError(f"simulate_push: seed={seed!r}: need an integer in [-2**63, 2**64)")
+    num_samples, num_steps, seed = int(num_samples), int(num_steps), int(seed)
+    push_factor, radius = float(push_factor), float(radius)
     g = torch.Generator().manual_seed(seed)
 
     def uniform(lo: float, hi: float) -> torch.Tensor:
@@ -51,4 +64,7 @@ def simulate_push(
         pos = pos + vel
         states[:, t, :, :2] = pos
         states[:, t, :, 2:] = vel
-    return states.float(), edges
+    out = states.float()
+    if not bool(torch.isfinite(out).all()):
+        raise ValueError(f"simulate_push: the states left the float32 range (push_factor={push_factor!r} too large?)")
+    return out, edges

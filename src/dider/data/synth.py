@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import math
+import numbers
 from pathlib import Path
 
 import lightning as L
@@ -11,7 +13,7 @@ from torch.utils.data import DataLoader
 
 from dider.data.batch import Normalizer
 from dider.data.cache import atomic_torch_save, cache_key
-from dider.data.common import SPLITS, ClipDataset, default_cache_dir
+from dider.data.common import SPLITS, ClipDataset, check_burn_in_mode, default_cache_dir
 from dider.data.simulate import simulate_push
 
 log = logging.getLogger(__name__)
@@ -43,17 +45,27 @@ class SynthDataModule(L.LightningDataModule):
         seed: int = 1,
         cache_dir: str | None = None,
         horizons: tuple[int, ...] = (1, 15, 25),
+        burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
+        check_burn_in_mode(burn_in_mode)
         for key, value, low in [
             ("data.num_train", num_train, 1), ("data.num_val", num_val, 1), ("data.num_test", num_test, 1),
             ("data.num_steps", num_steps, 2), ("data.burn_in", burn_in, 1), ("data.batch_size", batch_size, 1),
+            ("data.eval_batch_size", eval_batch_size, 1), ("data.num_workers", num_workers, 0),
         ]:
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+                raise ValueError(f"{key}={value!r}: must be an integer")
             if value < low:
                 raise ValueError(f"{key}={value}: must be >= {low}")
+        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not abs(seed) < 2**53:
+            raise ValueError(f"data.seed={seed!r}: must be an integer of magnitude < 2**53")
+        if isinstance(push_factor, bool) or not isinstance(push_factor, (int, float)) or not math.isfinite(push_factor):
+            raise ValueError(f"data.push_factor={push_factor!r}: must be a finite number")
         if burn_in >= num_steps:
             raise ValueError(f"data.burn_in={burn_in} must be shorter than the clip (data.num_steps={num_steps})")
-        if not horizons or min(horizons) < 1 or max(horizons) > num_steps - burn_in:
+        if (not horizons or not all(isinstance(h, numbers.Integral) and not isinstance(h, bool) for h in horizons)
+                or min(horizons) < 1 or max(horizons) > num_steps - burn_in):
             raise ValueError(
                 f"data.horizons={list(horizons)}: each must lie in 1..{num_steps - burn_in} "
                 f"(the predicted steps after data.burn_in={burn_in} of data.num_steps={num_steps})"
@@ -63,6 +75,10 @@ class SynthDataModule(L.LightningDataModule):
         self.normalizer: Normalizer | None = None
         self.datasets: dict[str, ClipDataset] = {}
 
+    @property
+    def burn_in_mode(self) -> str:
+        """How forecasts are observed before the roll-out (see dider.data.common.check_burn_in_mode)."""
+        return self.hparams.burn_in_mode
 
     def _split_params(self, split: str) -> dict:
         h = self.hparams

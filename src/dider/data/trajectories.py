@@ -17,6 +17,8 @@ min/max normalisation is fitted on the present agents of the train split; absent
 from __future__ import annotations
 
 import logging
+import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,6 +29,7 @@ from dider.data.batch import Normalizer
 from dider.data.common import (
     ClipDataModule,
     ClipDataset,
+    check_burn_in_mode,
     check_counts,
     check_finite,
     check_horizons,
@@ -39,24 +42,58 @@ from dider.graph import num_edges
 log = logging.getLogger(__name__)
 
 
-def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Tensor]:
-    """Read and validate the file -> states [S, T', N, 4] float32 (raw, zeros where absent), mask
-    [S, T', N] bool and, if present, edges [S, T'-1, E] long (the transitions of the clip)."""
-    if not path.is_file():
-        raise FileNotFoundError(f"data.path={path}: no such file")
+# What a damaged or foreign file can raise while numpy opens or decompresses it.
+_READ_ERRORS = (ValueError, OSError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The known keys of the archive (numeric arrays only, no pickles); errors name the file and key."""
     try:
-        z = np.load(path)
-    except (ValueError, OSError) as e:
-        raise ValueError(f"{path}: not a readable .npz file ({e})") from e
+        z = np.load(path, allow_pickle=False)
+    except _READ_ERRORS as e:
+        raise ValueError(f"{path}: not a readable .npz file ({type(e).__name__}: {e})") from e
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{path}: a single .npy array, not an .npz archive with key 'positions' [S, T, N, 2]")
+    arrays = {}
     with z:
         if "positions" not in z.files:
             raise ValueError(f"{path}: no key 'positions' (keys: {z.files}); expected [S, T, N, 2]")
-        arrays = {k: z[k] for k in ("positions", "velocities", "mask", "edges") if k in z.files}
+        for key in ("positions", "velocities", "mask", "edges"):
+            if key not in z.files:
+                continue
+            try:
+                arrays[key] = z[key]
+            except _READ_ERRORS as e:
+                raise ValueError(f"{path}: key {key!r} cannot be read ({type(e).__name__}: {e})") from e
+    for key, a in arrays.items():
+        kinds = "biuf" if key in ("mask", "edges") else "iuf"
+        if a.dtype.kind not in kinds:
+            raise ValueError(f"{path}: key {key!r} has dtype {a.dtype}; expected real numbers")
+    return arrays
+
+
+def _float32(a: np.ndarray) -> torch.Tensor:
+    """float32 copy; values beyond its range become inf, which check_finite then reports by key."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Tensor]:
+    """Read and validate the file -> states [S, T', N, 4] float32 (raw, zeros where absent), mask
+    [S, T', N] bool and, if present, edges [S, T'-1, E] long (the transitions of the clip).
+
+    Every problem raises ValueError (FileNotFoundError for a missing file) naming the file and the key.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(f"data.path={path}: no such file")
+    arrays = _read_npz(path)
     pos = arrays["positions"]
     if pos.ndim != 4 or pos.shape[-1] != 2 or min(pos.shape) == 0:
         raise ValueError(f"{path}: key 'positions' has shape {pos.shape}; expected [S, T, N, 2] (non-empty)")
     s, t, n, _ = pos.shape
-    pos = torch.from_numpy(np.ascontiguousarray(pos, dtype=np.float32))
+    if n < 2:
+        raise ValueError(f"{path}: key 'positions' has {n} agent(s) per clip; relations need >= 2")
+    pos = _float32(pos)
 
     if "mask" in arrays:
         m = arrays["mask"]
@@ -75,7 +112,7 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Te
         if v.shape != (s, t, n, 2):
             raise ValueError(f"{path}: key 'velocities' has shape {v.shape}; expected {(s, t, n, 2)} like "
                              f"positions")
-        vel = torch.from_numpy(np.ascontiguousarray(v, dtype=np.float32))
+        vel = _float32(v)
         check_finite(f"{path}: key 'velocities'{hint}", vel, mask[..., None])
         drop = 0
     else:
@@ -85,6 +122,8 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Te
         # A velocity needs the agent at both ends of the step.
         vel = (pos[:, 1:] - pos[:, :-1]) * frame_rate
         pos, mask, drop = pos[:, 1:], mask[:, 1:] & mask[:, :-1], 1
+        check_finite(f"{path}: key 'positions' (finite-difference velocities x data.frame_rate={frame_rate})",
+                     vel, mask[..., None])
     states = torch.cat([pos, vel], dim=-1)
     out = {"states": fill_absent(states, mask), "mask": mask}
 
@@ -93,10 +132,12 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Te
         if e.shape != (s, t, num_edges(n)):
             raise ValueError(f"{path}: key 'edges' has shape {e.shape}; expected [S, T, N(N-1)] = "
                              f"{(s, t, num_edges(n))}")
-        if not np.issubdtype(e.dtype, np.integer) and not (np.isfinite(e).all() and (e == np.round(e)).all()):
+        if e.dtype.kind == "f" and not (np.isfinite(e).all() and (e == np.round(e)).all()):
             raise ValueError(f"{path}: key 'edges' must hold integer edge types (dtype {e.dtype})")
         if (e < 0).any():
             raise ValueError(f"{path}: key 'edges' has negative edge types")
+        if e.size and e.max() >= 2**31:
+            raise ValueError(f"{path}: key 'edges' has edge type {e.max()}: implausibly large")
         # edges[t] produced step t from t-1, so the clip's transition j -> j+1 (raw step drop+j -> drop+j+1)
         # is labelled by raw edges[drop + j + 1].
         out["edges"] = torch.from_numpy(e.astype(np.int64))[:, drop + 1:]
@@ -140,8 +181,10 @@ class TrajectoryDataModule(ClipDataModule):
         num_workers: int = 0,
         pin_memory: bool = False,
         cache_dir: str | None = None,
+        burn_in_mode: str = "per_agent",
     ) -> None:
         super().__init__()
+        check_burn_in_mode(burn_in_mode)
         check_counts(burn_in=(burn_in, 1), num_train=(num_train, 1), num_val=(num_val, 1),
                      num_test=(num_test, 1), batch_size=(batch_size, 1), eval_batch_size=(eval_batch_size, 1),
                      num_workers=(num_workers, 0))
@@ -167,7 +210,10 @@ class TrajectoryDataModule(ClipDataModule):
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
         parts = {s: idx[spread_indices(len(idx), caps[s])] for s, idx in parts.items()}
         train = parts["train"]
-        self.normalizer = Normalizer.fit(data["states"][train], data["mask"][train])
+        try:
+            self.normalizer = Normalizer.fit(data["states"][train], data["mask"][train])
+        except ValueError as e:  # e.g. no present agent, or agents that never move
+            raise ValueError(f"{path}: cannot fit the normalisation on the train split: {e}") from None
         for split, idx in parts.items():
             states, mask = data["states"][idx], data["mask"][idx]
             edges = data["edges"][idx] if "edges" in data else None

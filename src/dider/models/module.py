@@ -10,21 +10,65 @@ R LSTM width, P predicted steps.
 
 from __future__ import annotations
 
+import logging
+import math
+import random
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from dider.data.batch import Batch
+from dider.data.common import BURN_IN_MODES, agent_horizons, burn_in_mask, fill_absent
 from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, gaussian_nll
 from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, SegmentStats
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation
+
+log = logging.getLogger(__name__)
+
+LOSS_TERMS = ("nll", "kl_edge", "kl_duration")
+
+
+class NonFiniteError(FloatingPointError):
+    """A NaN/inf loss term or gradient during training: the message names the step, batch and term."""
+
+
+def rng_state(full: bool = True) -> dict[str, Any]:
+    """The global random states a run draws from: torch CPU and CUDA and, with ``full``, numpy and Python.
+
+    Plain tensors, ints and tuples only, so checkpoints holding it still load with ``weights_only=True``.
+    """
+    state: dict[str, Any] = {"torch": torch.get_rng_state()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    if full:
+        kind, keys, pos, has_gauss, gauss = np.random.get_state()
+        state["numpy"] = {"kind": str(kind), "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                          "has_gauss": int(has_gauss), "gauss": float(gauss)}
+        state["python"] = random.getstate()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what :func:`rng_state` captured (missing parts are left alone)."""
+    if "torch" in state:
+        torch.set_rng_state(torch.as_tensor(state["torch"], dtype=torch.uint8).cpu())
+    if "cuda" in state and torch.cuda.is_available() and len(state["cuda"]) == torch.cuda.device_count():
+        torch.cuda.set_rng_state_all(state["cuda"])
+    if "numpy" in state:
+        s = state["numpy"]
+        keys = np.asarray(s["keys"].cpu().numpy(), dtype=np.uint32)
+        np.random.set_state((s["kind"], keys, s["pos"], s["has_gauss"], s["gauss"]))
+    if "python" in state:
+        v, internal, gauss = state["python"]
+        random.setstate((v, tuple(internal), gauss))
 
 
 @dataclass
@@ -73,7 +117,15 @@ class RelationalVAE(L.LightningModule):
         posterior_readout: str = "start",
         num_figure_clips: int = 4,
         name: str = "model",
+        burn_in_mode: str | None = None,
+        eval_seed: int = 0,
+        check_finite: bool = True,
     ) -> None:
+        """burn_in_mode: ``global`` (every agent observed for the window's first ``burn_in`` frames),
+        ``per_agent`` (each agent for its own first ``burn_in`` present frames, DNRI's inD protocol) or None:
+        the attached datamodule's ``burn_in_mode`` (``global`` without one). eval_seed: validation and test
+        draw from a generator seeded with it (restored afterwards), so their metrics depend on the weights
+        only. check_finite: stop training on a NaN/inf loss term or gradient (:class:`NonFiniteError`)."""
         super().__init__()
         if num_edges < 2:
             raise ValueError(f"model.num_edges={num_edges}: need at least 2 edge types (type 0 is 'no interaction')")
@@ -94,6 +146,8 @@ class RelationalVAE(L.LightningModule):
             raise ValueError(f"model.capacity_ramp={capacity_ramp}: a fraction of training, in [0, 1]")
         if not 0.0 <= sparsity_mix <= 1.0:
             raise ValueError(f"model.sparsity_mix={sparsity_mix}: must lie in [0, 1]")
+        if burn_in_mode is not None and burn_in_mode not in BURN_IN_MODES:
+            raise ValueError(f"model.burn_in_mode={burn_in_mode!r}: expected one of {list(BURN_IN_MODES)} or null")
         # Plugins and optimiser factories stay out of the checkpoint's hyper-parameters: checkpoints then
         # load with torch's safe weights_only unpickler; the Hydra config rebuilds them.
         plugins = ["encoder", "prior", "duration", "decoder", "optimizer", "scheduler"]
@@ -112,6 +166,16 @@ class RelationalVAE(L.LightningModule):
         self.test_types: list[torch.Tensor] = []  # per-step posterior types and probabilities, for export
         self.test_probs: list[torch.Tensor] = []
         self.figure_data: dict[str, torch.Tensor] = {}
+        self._rng_outside_eval: dict[str, Any] | None = None  # the training run's random state during evaluation
+        self._last_step: tuple[Batch, int, dict[str, Any]] | None = None  # batch, index, rng: for diagnosis
+
+    @property
+    def burn_in_mode(self) -> str:
+        """The forecast protocol in force: the model's own setting, else the attached datamodule's."""
+        if self.hparams.burn_in_mode is not None:
+            return self.hparams.burn_in_mode
+        dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        return getattr(dm, "burn_in_mode", None) or "global"
 
     # ------------------------------------------------------------------ inference
     def infer(self, batch: Batch, hard: bool) -> Inference:
@@ -181,19 +245,45 @@ class RelationalVAE(L.LightningModule):
 
     @torch.no_grad()
     def rollout(
-        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Forecast: ground truth for ``burn_in`` frames, then the model's own predictions.
+        """Forecast: ground truth during the burn-in, then the model's own predictions.
 
-        Edges come from the prior only, read from the forward LSTM that is advanced on the predictions,
-        so no state after the burn-in window is ever seen. x: [B, >=burn_in, N, D], mask: [B, >=burn_in+P, N]
-        (agents present) -> predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] and the edge types
-        used for every transition [B, E, burn_in+P-1].
+        mode ``global``: every agent's input is ground truth for the window's first ``burn_in`` frames, its
+        own prediction afterwards; x may hold only those frames, [B, >=burn_in, N, D].
+        mode ``per_agent`` (agents entering mid-window, DNRI's inD protocol): agent i's input at frame t is
+        ground truth while t is among its own first ``burn_in`` present frames (``burn_in_mask``), its own
+        previous prediction afterwards; absent agents are zeros and masked. x: [B, >=burn_in+P-1, N, D].
+        With every agent present from frame 0 both modes compute the same thing, bit for bit.
+        mode None: :attr:`burn_in_mode`.
+
+        Edges come from the prior only, read from the forward LSTM that is advanced on the inputs above, so
+        no state after an agent's burn-in is ever seen. mask: [B, >=burn_in+P, N] (agents present) ->
+        predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an agent's frame t is predicted from its
+        input at t-1; score it with :func:`dider.data.common.agent_horizons` in ``per_agent`` mode) and the
+        edge types used for every transition [B, E, burn_in+P-1].
         """
+        mode = mode or self.burn_in_mode
+        if mode not in BURN_IN_MODES:
+            raise ValueError(f"burn_in_mode={mode!r}: expected one of {list(BURN_IN_MODES)}")
+        if burn_in < 1 or num_pred < 1:
+            raise ValueError(f"rollout: need burn_in >= 1 and num_pred >= 1, got {burn_in}, {num_pred}")
         b, n = x.shape[0], x.shape[2]
         end = burn_in + num_pred - 1  # transitions covered
         sample = self.hparams.rollout_edges == "sample"
-        h_past, enc_state = self.encoder.past(x[:, :burn_in], mask[:, :burn_in])
+        if mode == "per_agent":
+            if x.shape[1] < end or mask.shape[1] < end:
+                raise ValueError(f"rollout(per_agent): need >= {end} frames of states and mask (an agent may "
+                                 f"enter late and be observed then), got {x.shape[1]} and {mask.shape[1]}")
+            fed = burn_in_mask(mask[:, :end], burn_in)  # [B, end, N]: inputs that are ground truth
+            # Frames before any present agent has left its burn-in are pure ground truth: one batched LSTM
+            # pass over them, exactly as in the global mode (where this prefix is the burn-in itself).
+            rolled = (mask[:, :end] & ~fed).any(dim=2).any(dim=0)  # [end]
+            t_obs = int(rolled.to(torch.uint8).argmax()) if bool(rolled.any()) else end
+            x_obs = fill_absent(x[:, :t_obs], mask[:, :t_obs])
+        else:
+            fed, t_obs, x_obs = None, burn_in, x[:, :burn_in]
+        h_past, enc_state = self.encoder.past(x_obs, mask[:, :t_obs])
         etype = torch.zeros(b, h_past.shape[1], dtype=torch.long, device=x.device)
         left = torch.zeros_like(etype)
         dec_state = self.decoder.init_state(b, n, x)
@@ -201,14 +291,18 @@ class RelationalVAE(L.LightningModule):
         cur = x[:, 0]
         for t in range(end):
             m_t = mask[:, t]
-            if t < burn_in:
-                cur, h_t = x[:, t], h_past[:, :, t]
-            else:
+            if t < t_obs:
+                cur, h_t = x_obs[:, t], h_past[:, :, t]
+            else:  # t >= t_obs >= burn_in: cur holds the previous step's prediction
+                if fed is not None:
+                    cur = fill_absent(torch.where(fed[:, t, :, None], x[:, t], cur), m_t)
                 h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
             etype, left = self._advance_edges(h_t, t, end, etype, left, sample)
             types.append(etype)
+            # No input before burn_in - 1 is ever a prediction (an agent needs burn_in present frames
+            # first), so a stateless decoder has nothing to do there.
             if t < burn_in - 1 and self.decoder.stateless:
-                continue  # nothing to warm up
+                continue
             z_t = F.one_hot(etype, self.num_types).to(x.dtype) * edge_mask(m_t).unsqueeze(-1)
             out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
             if t >= burn_in - 1:
@@ -216,9 +310,11 @@ class RelationalVAE(L.LightningModule):
                 cur = out
         return torch.stack(preds, dim=1), torch.stack(types, dim=2)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str | None = None
+    ) -> torch.Tensor:
         """Inference entry point: the forecast of :meth:`rollout`, [B, P, N, D]."""
-        return self.rollout(x, mask, burn_in, num_pred)[0]
+        return self.rollout(x, mask, burn_in, num_pred, mode)[0]
 
     # ------------------------------------------------------------------ Lightning hooks
     def on_train_batch_start(self, batch: Batch, batch_idx: int) -> None:
@@ -226,7 +322,11 @@ class RelationalVAE(L.LightningModule):
             self.duration.step = self.global_step
 
     def training_step(self, batch: Batch, batch_idx: int) -> torch.Tensor:
+        if self.hparams.check_finite:  # what a gradient diagnosis needs to replay this step
+            self._last_step = (batch, batch_idx, rng_state(full=False))
         terms = self.loss(self.infer(batch, hard=False))
+        if self.hparams.check_finite:
+            self._check_finite_terms(terms, batch_idx)
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, prog_bar=False, on_step=True, on_epoch=True,
                       batch_size=batch["states"].shape[0])
         self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=batch["states"].shape[0])
@@ -235,32 +335,121 @@ class RelationalVAE(L.LightningModule):
     def on_train_epoch_end(self) -> None:
         self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
 
-    def _forecast(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Roll out over the whole clip after the burn-in: predictions, targets, target mask, edge types."""
+    # ------------------------------------------------------------------ guards
+    def _where(self, batch_idx: int) -> str:
+        return f"step {self.global_step}, batch {batch_idx} of epoch {self.current_epoch}"
+
+    def _check_finite_terms(self, terms: dict[str, torch.Tensor], batch_idx: int) -> None:
+        """Raise :class:`NonFiniteError` naming the step, batch and term when a loss term is NaN/inf
+        (one device sync per step)."""
+        names = [*LOSS_TERMS, "loss"]
+        values = torch.stack([terms[k].detach().float() for k in names])
+        if bool(torch.isfinite(values).all()):
+            return
+        bad = {k: v for k, v in zip(names, values.tolist(), strict=True) if not math.isfinite(v)}
+        culprits = [k for k in bad if k != "loss"] or ["loss"]
+        msg = (f"non-finite loss at {self._where(batch_idx)}: term {', '.join(culprits)} "
+               f"({', '.join(f'{k}={v}' for k, v in bad.items())}); stopping the run")
+        log.error(msg)
+        raise NonFiniteError(msg)
+
+    def _uses_grad_scaler(self) -> bool:
+        """fp16 mixed precision skips steps with inf gradients on purpose: not an error there."""
+        plugin = getattr(self._trainer, "precision_plugin", None)
+        return getattr(plugin, "scaler", None) is not None
+
+    def on_after_backward(self) -> None:
+        if not self.hparams.check_finite or self._trainer is None or self._uses_grad_scaler():
+            return
+        named = [(k, p.grad) for k, p in self.named_parameters() if p.grad is not None]
+        if not named or bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
+            return
+        params = [k for k, g in named if not bool(torch.isfinite(g).all())]
+        batch_idx = self._last_step[1] if self._last_step is not None else -1
+        culprits = self._gradient_culprits()
+        msg = (f"non-finite gradient at {self._where(batch_idx)}: from loss term {', '.join(culprits)}; "
+               f"{len(params)} parameter(s) hit, e.g. {params[:3]}; stopping the run")
+        log.error(msg)
+        raise NonFiniteError(msg)
+
+    def _gradient_culprits(self) -> list[str]:
+        """Replay the last training step (same batch and random state) and differentiate each loss term
+        on its own: the terms whose gradient is NaN/inf. Runs only when a bad gradient was found."""
+        if self._last_step is None:
+            return ["unknown (no step to replay)"]
+        batch, _, state = self._last_step
+        set_rng_state(state)
+        params = [p for p in self.parameters() if p.requires_grad]
+        context = self.trainer.precision_plugin.forward_context()
+        with torch.enable_grad(), context:
+            terms = self.loss(self.infer(batch, hard=False))
+        culprits = []
+        for name in LOSS_TERMS:
+            if not terms[name].requires_grad:
+                continue
+            grads = torch.autograd.grad(terms[name], params, retain_graph=True, allow_unused=True)
+            if any(g is not None and not bool(torch.isfinite(g).all()) for g in grads):
+                culprits.append(name)
+        return culprits or ["loss (no single term: their sum)"]
+
+    # ------------------------------------------------------------------ reproducibility
+    def _enter_eval_rng(self) -> None:
+        """Evaluation draws (rollout edge samples, hard Gumbel samples) from ``eval_seed``, not from the
+        training run's random state, which is put back afterwards: metrics are a function of the weights."""
+        if self._rng_outside_eval is None:
+            self._rng_outside_eval = rng_state()
+        torch.manual_seed(self.hparams.eval_seed)
+
+    def _exit_eval_rng(self) -> None:
+        if self._rng_outside_eval is not None:
+            set_rng_state(self._rng_outside_eval)
+            self._rng_outside_eval = None
+
+    def on_validation_epoch_start(self) -> None:
+        self._enter_eval_rng()
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # The random state of the training run (not of an evaluation in progress), so a resumed run draws
+        # exactly what the uninterrupted one would have drawn after this point.
+        checkpoint["dider_rng"] = self._rng_outside_eval or rng_state()
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        if "dider_rng" in checkpoint and self._trainer is not None and self.trainer.state.fn == "fit":
+            set_rng_state(checkpoint["dider_rng"])
+
+    def _forecast(
+        self, batch: Batch
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Roll out over the whole clip after the burn-in: predictions, targets [B, P, N, D], target mask
+        [B, P, N], edge types [B, E, T-1] and, in ``per_agent`` mode, each target's own horizon [B, P, N]
+        (None in ``global`` mode: frame p is horizon p + 1)."""
         x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in
-        pred, types = self.rollout(x, mask, b, x.shape[1] - b)
-        return pred, x[:, b:], mask[:, b:], types
+        mode = self.burn_in_mode
+        pred, types = self.rollout(x, mask, b, x.shape[1] - b, mode)
+        horizon = agent_horizons(mask, b)[:, b:] if mode == "per_agent" else None
+        return pred, x[:, b:], mask[:, b:], types, horizon
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         bs = batch["states"].shape[0]
         terms = self.loss(self.infer(batch, hard=True))
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=bs)
-        pred, target, tmask, _ = self._forecast(batch)
-        self.val_mse.update(pred, target, tmask)
+        pred, target, tmask, _, horizon = self._forecast(batch)
+        self.val_mse.update(pred, target, tmask, horizon)
 
     def on_validation_epoch_end(self) -> None:
         self._log_horizons("val/mse", self.val_mse)
+        self._exit_eval_rng()
 
     def test_step(self, batch: Batch, batch_idx: int) -> None:
         bs = batch["states"].shape[0]
         out = self.infer(batch, hard=True)
         terms = self.loss(out)
         self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs)
-        pred, target, tmask, roll_types = self._forecast(batch)
-        self.test_mse.update(pred, target, tmask)
+        pred, target, tmask, roll_types, horizon = self._forecast(batch)
+        self.test_mse.update(pred, target, tmask, horizon)
         norm = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
         if norm is not None:
-            self.test_mse_raw.update(norm.denormalize(pred), norm.denormalize(target), tmask)
+            self.test_mse_raw.update(norm.denormalize(pred), norm.denormalize(target), tmask, horizon)
         post_types = out.posterior_types()
         prior_types = self.online_types(out.h_fwd)
         present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
@@ -280,6 +469,7 @@ class RelationalVAE(L.LightningModule):
 
     def on_test_epoch_start(self) -> None:
         self.test_types, self.test_probs = [], []
+        self._enter_eval_rng()
 
     def on_test_epoch_end(self) -> None:
         self._log_horizons("test/mse", self.test_mse)
@@ -298,6 +488,7 @@ class RelationalVAE(L.LightningModule):
                 self.log(f"test/edge_acc/{name}/none", none)
                 self.log(f"test/edge_acc/{name}/interaction", inter)
                 metric.reset()
+        self._exit_eval_rng()
 
     def _log_horizons(self, prefix: str, metric: HorizonMSE) -> None:
         for h, v in zip(metric.horizons, metric.compute(), strict=True):

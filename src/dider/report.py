@@ -1,0 +1,292 @@
+"""Aggregate a Hydra sweep into tables and plots: `python -m dider.report multirun/SWEEP [--out DIR]`.
+
+Reads every job's metrics.json, groups the jobs by model (and num_edges, or any other swept setting, when
+it varies), and writes to DIR (default: the sweep folder) report.md and report.csv (mean ± sample std over
+the seeds), horizons.png (forecast MSE by horizon with 95% confidence bands), edge_ablation.png (when
+num_edges varies) and one job's timeline figures per group. Failed jobs (a .hydra/ folder without a
+readable metrics.json) and missing ones (combinations that multirun.yaml's sweep expects but no folder
+holds) are listed, never dropped silently.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from hydra._internal.core_plugins.basic_sweeper import BasicSweeper  # noqa: E402
+from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
+
+from dider.data.cache import atomic_write_bytes, atomic_write_text  # noqa: E402
+
+SECTIONS = (("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
+            ("Edge accuracy", r"edge_acc/"), ("Segments", r"(segments_per_edge|switches_per_100|boundary_f1)$"),
+            ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration)$"), ("Other", r""))
+NOT_GROUPED = {"seed", "model", "model.num_edges"}  # model and num_edges are read from each job's record
+
+
+@dataclass
+class Group:
+    key: dict[str, Any]
+    jobs: list[dict[str, Any]] = field(default_factory=list)  # metrics.json records, with "dir" added
+
+    @property
+    def label(self) -> str:
+        return " ".join([str(self.key["model"])] + [f"{k}={v}" for k, v in self.key.items() if k != "model"])
+
+    def stats(self, metric: str) -> tuple[float, float, int]:
+        """Mean, sample std (n-1; nan for one job) and count over the jobs that logged the metric."""
+        v = np.array([j["metrics"][metric] for j in self.jobs if metric in j["metrics"]], dtype=float)
+        if len(v) == 0:
+            return float("nan"), float("nan"), 0
+        return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else float("nan"), len(v)
+
+
+@dataclass
+class Summary:
+    groups: list[Group]
+    metrics: list[str]
+    failed: list[str]
+    missing: list[str]
+    expected: int | None
+
+
+def _canon(overrides: Sequence[str]) -> frozenset[str]:
+    """Overrides as the sweeper renders them (key=value), order-free, to match jobs against the sweep."""
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    return frozenset(f"{o.get_key_element()}={o.get_value_element_as_str()}" for o in parsed)
+
+
+def expected_jobs(sweep: Path) -> list[frozenset[str]] | None:
+    """The override sets the basic sweeper launches for multirun.yaml (None: no file or another sweeper)."""
+    path = sweep / "multirun.yaml"
+    if not path.exists():
+        return None
+    hydra_cfg = OmegaConf.load(path).hydra
+    if "BasicSweeper" not in str(hydra_cfg.sweeper.get("_target_", "")):
+        return None
+    lines = [f"{k}={v}" for k, v in (hydra_cfg.sweeper.get("params") or {}).items()] + list(hydra_cfg.overrides.task)
+    batches = BasicSweeper.split_arguments(OverridesParser.create().parse_overrides(lines), None)[0]
+    return [_canon(b) for b in batches]
+
+
+def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], int | None]:
+    """(records of finished jobs in sweep order, failed job folders, missing override sets, expected count)."""
+    dirs = {p.parent for p in sweep.rglob(".hydra") if p.is_dir()} | {p.parent for p in sweep.rglob("metrics.json")}
+    records, failed, found = [], [], set()
+    for d in sorted(dirs):
+        overrides_file = d / ".hydra" / "overrides.yaml"
+        overrides = list(OmegaConf.load(overrides_file)) if overrides_file.exists() else None
+        try:
+            record = json.loads((d / "metrics.json").read_text())
+            if not isinstance(record.get("metrics"), dict):
+                raise ValueError("metrics.json without a 'metrics' table")
+        except (OSError, ValueError) as err:
+            failed.append(f"{d.relative_to(sweep)} ({'no metrics.json' if isinstance(err, OSError) else err})")
+            found.add(_canon(overrides or []))
+            continue
+        record["dir"], record["_key"] = d, _canon(overrides if overrides is not None else record.get("overrides", []))
+        records.append(record)
+        found.add(record["_key"])
+    expected = expected_jobs(sweep)
+    if expected is None:
+        return records, failed, [], None
+    swept = set.union(set(), *(e - expected[0] for e in expected))  # the key=value pairs that vary
+    swept_keys = {kv.split("=", 1)[0] for kv in swept}
+    missing = [",".join(sorted(kv for kv in e if kv.split("=", 1)[0] in swept_keys or not swept_keys))
+               for e in expected if e not in found]
+    order = {e: i for i, e in enumerate(expected)}  # the sweep's order (models as listed, num_edges ascending)
+    records.sort(key=lambda r: order.get(r["_key"], len(order)))
+    return records, failed, missing, len(expected)
+
+
+def group_jobs(records: list[dict[str, Any]], sweep: Path) -> list[Group]:
+    """Group by model, num_edges when it varies, and any other swept override that varies (never seed)."""
+    exclude = set(NOT_GROUPED)
+    if (sweep / "multirun.yaml").exists():
+        exclude |= set(OmegaConf.select(OmegaConf.load(sweep / "multirun.yaml"),
+                                        "hydra.job.config.override_dirname.exclude_keys", default=[]) or [])
+    settings = [{k: v for k, v in (kv.split("=", 1) for kv in r["_key"])
+                 if k.lstrip("+~") not in exclude and not k.startswith("hydra.")} for r in records]
+    edges = [r.get("config", {}).get("model", {}).get("num_edges") for r in records]
+    varying = sorted({k for s in settings for k in s if len({s.get(k) for s in settings}) > 1})
+    groups: dict[tuple, Group] = {}
+    for record, setting, e in zip(records, settings, edges, strict=True):
+        key = {"model": record.get("model", "?")}
+        if len(set(edges)) > 1:
+            key["num_edges"] = e
+        key |= {k: setting.get(k) for k in varying}
+        groups.setdefault(tuple(key.items()), Group(key)).jobs.append(record)
+    return list(groups.values())
+
+
+def _section(metric: str) -> int:
+    name = metric.removeprefix("test/")
+    return next(i for i, (_, pattern) in enumerate(SECTIONS) if re.match(pattern, name))
+
+
+def _order(metric: str) -> tuple:
+    horizon = re.search(r"/h(\d+)$", metric)
+    return _section(metric), int(horizon.group(1)) if horizon else 0, metric
+
+
+def summarise(sweep: Path) -> Summary:
+    records, failed, missing, expected = collect(sweep)
+    metrics = sorted({k for r in records for k, v in r["metrics"].items()
+                      if k.startswith("test/") and isinstance(v, (int, float))}, key=_order)
+    return Summary(group_jobs(records, sweep), metrics, failed, missing, expected)
+
+
+def _fmt(mean: float, std: float) -> str:
+    return "–" if np.isnan(mean) else f"{mean:.3g}" + ("" if np.isnan(std) else f" ± {std:.2g}")
+
+
+def _save(fig: plt.Figure, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def horizons_figure(s: Summary, path: Path) -> bool:
+    """Forecast MSE against horizon per group: mean with a 95% band (mean ± 1.96 std / sqrt(n))."""
+    mse = [m for m in s.metrics if re.fullmatch(r"test/mse/h\d+", m)]
+    if not mse:
+        return False
+    fig, ax = plt.subplots(figsize=(6, 4))
+    hs = np.array([int(m.rsplit("h", 1)[1]) for m in mse])
+    for g in s.groups:
+        mean, std, n = (np.array(v, dtype=float) for v in zip(*(g.stats(m) for m in mse), strict=True))
+        half = 1.96 * np.nan_to_num(std) / np.sqrt(np.maximum(n, 1))
+        ax.plot(hs, mean, marker="o", label=f"{g.label} (n={int(n.max())})")
+        ax.fill_between(hs, np.maximum(mean - half, mean * 1e-3), mean + half, alpha=0.2)  # log axis: clip > 0
+    ax.set(xlabel="forecast horizon (steps after burn-in)", ylabel="MSE (normalised)", yscale="log",
+           title="Forecast error by horizon, 95% confidence bands")
+    ax.legend(fontsize=7)
+    _save(fig, path)
+    return True
+
+
+def ablation_figure(s: Summary, path: Path) -> list[str]:
+    """MSE against num_edges per horizon (error bars: std over seeds), drawn only when some model was run
+    with several num_edges (not for tables whose models merely differ in it). Returns the best-e lines."""
+    mse = [m for m in s.metrics if re.fullmatch(r"test/mse/h\d+", m)]
+    rows: dict[str, list[Group]] = {}
+    for g in s.groups:
+        if "num_edges" in g.key:
+            rows.setdefault(" ".join(f"{k}={v}" for k, v in g.key.items() if k != "num_edges"), []).append(g)
+    rows = {name: sorted(gs, key=lambda g: g.key["num_edges"]) for name, gs in rows.items() if len(gs) > 1}
+    if not mse or not rows:
+        return []
+    fig, axes = plt.subplots(1, len(mse), figsize=(4 * len(mse), 3.5), squeeze=False)
+    best = []
+    for ax, m in zip(axes[0], mse, strict=True):
+        for name, gs in rows.items():
+            e = [g.key["num_edges"] for g in gs]
+            mean, std = np.array([g.stats(m)[:2] for g in gs]).T
+            ax.errorbar(e, mean, yerr=np.nan_to_num(std), marker="o", capsize=3, label=name)
+            best.append(f"{name}, {m.removeprefix('test/')}: lowest mean MSE at num_edges={e[int(np.nanargmin(mean))]}")
+        ax.set(xlabel="num_edges", ylabel="MSE (normalised)", title=m.removeprefix("test/"), yscale="log")
+        ax.set_xticks(sorted({g.key["num_edges"] for gs in rows.values() for g in gs}))
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    _save(fig, path)
+    return best
+
+
+def copy_timelines(s: Summary, out: Path) -> list[tuple[str, str, list[str]]]:
+    """One job's timeline figures per group (its lowest seed): (group, job folder, copied paths rel. to out)."""
+    shown = []
+    for g in s.groups:
+        for job in sorted(g.jobs, key=lambda j: j.get("seed", 0)):
+            pngs = sorted((Path(job["dir"]) / "figures").glob("timeline_*.png"))
+            if pngs:
+                slug = re.sub(r"[^A-Za-z0-9_.=-]+", "_", g.label)
+                for p in pngs:
+                    atomic_write_bytes(out / "timelines" / slug / p.name, p.read_bytes())
+                shown.append((g.label, Path(job["dir"]).name, [f"timelines/{slug}/{p.name}" for p in pngs]))
+                break
+    return shown
+
+
+def write_csv(s: Summary, path: Path) -> None:
+    keys = list(dict.fromkeys(k for g in s.groups for k in g.key))
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow([*keys, "n", "seeds", *(f"{m}_{x}" for m in s.metrics for x in ("mean", "std"))])
+    for g in s.groups:
+        stats = [g.stats(m) for m in s.metrics]
+        seeds = ";".join(str(j.get("seed")) for j in g.jobs)
+        w.writerow([*(g.key.get(k) for k in keys), len(g.jobs), seeds, *(repr(v) for st in stats for v in st[:2])])
+    atomic_write_text(path, buf.getvalue())
+
+
+def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timelines: list) -> str:
+    n_ok = sum(len(g.jobs) for g in s.groups)
+    lines = [f"# Sweep report: `{sweep}`", "",
+             f"{n_ok} finished jobs, {len(s.failed)} failed, {len(s.missing)} missing"
+             + (f" (the sweep expects {s.expected})." if s.expected is not None else "."),
+             "Cells: mean ± sample std (n-1) over the seeds of a row; n = jobs in the row.", ""]
+    keys = list(dict.fromkeys(k for g in s.groups for k in g.key))
+    for i, (title, _) in enumerate(SECTIONS):
+        cols = [m for m in s.metrics if _section(m) == i]
+        if not cols:
+            continue
+        names = [m.removeprefix("test/").split("/")[-1] if i < 2 else m.removeprefix("test/") for m in cols]
+        lines += [f"## {title}", "", "| " + " | ".join([*keys, "n", *names]) + " |",
+                  "|" + "---|" * (len(keys) + 1 + len(cols))]
+        for g in s.groups:
+            cells = [_fmt(*g.stats(m)[:2]) for m in cols]
+            lines.append("| " + " | ".join([*(str(g.key.get(k)) for k in keys), str(len(g.jobs)), *cells]) + " |")
+        lines.append("")
+    if figures:
+        lines += ["## Figures", "", *(f"![{f}]({f})" for f in figures), ""]
+        lines += [*(f"- {b}" for b in best), ""] if best else []
+    if timelines:
+        lines += ["## Interaction timelines (one job per row)", ""]
+        for label, job, paths in timelines:
+            lines += [f"**{label}** (`{job}`)", "", *(f"![{label}]({p})" for p in paths), ""]
+    lines += ["## Failed or missing jobs", "", "(failed: a job folder without metrics.json, also while it still runs; "
+              "missing: swept values that no job folder holds)", ""]
+    lines += [f"- failed: `{f}`" for f in s.failed] + [f"- missing: `{m}`" for m in s.missing] or ["none"]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> Summary:
+    parser = argparse.ArgumentParser(prog="python -m dider.report", description=__doc__.splitlines()[0])
+    parser.add_argument("sweep", type=Path, help="a multirun folder (multirun/<date>/<time>)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: the sweep folder)")
+    args = parser.parse_args(argv)
+    sweep: Path = args.sweep
+    if not sweep.is_dir():
+        parser.error(f"{sweep}: not a folder")
+    out: Path = args.out or sweep
+    out.mkdir(parents=True, exist_ok=True)
+    s = summarise(sweep)
+    figures = ["horizons.png"] if horizons_figure(s, out / "horizons.png") else []
+    best = ablation_figure(s, out / "edge_ablation.png")
+    figures += ["edge_ablation.png"] if best else []
+    text = markdown(s, sweep, figures, best, copy_timelines(s, out))
+    atomic_write_text(out / "report.md", text)
+    write_csv(s, out / "report.csv")
+    print(text)
+    print(f"report: {out / 'report.md'}  table: {out / 'report.csv'}")
+    if s.failed or s.missing:
+        print(f"warning: {len(s.failed)} failed and {len(s.missing)} missing jobs (listed in the report)")
+    return s
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,238 @@
+"""Reliability: atomic checkpoints, kill + resume, determinism, non-finite guards, config validation, eval."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+import dider.models.module as module_mod
+from dider.checkpoint import AtomicCheckpointIO
+from dider.models.module import NonFiniteError, RelationalVAE
+from dider.run import ConfigError, train, trainer_plugins, validate_config
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small runs on a busy 2-core machine; and `threads=1` in a config must not leak into other tests."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def metrics_of(folder: Path) -> dict[str, float]:
+    return json.loads((folder / "metrics.json").read_text())["metrics"]
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+
+
+def test_checkpoint_writes_are_atomic(tmp_path, monkeypatch):
+    io = AtomicCheckpointIO()
+    path = tmp_path / "checkpoints" / "last.ckpt"
+    io.save_checkpoint({"epoch": 1, "w": torch.ones(3)}, path)
+    before = path.read_bytes()
+    assert torch.load(path, weights_only=True)["epoch"] == 1
+    assert oct(path.stat().st_mode & 0o777) == oct(0o666 & ~_umask())  # like an ordinary open()
+
+    real_save = torch.save
+
+    def dies_halfway(obj, f, *a, **k):
+        f.write(b"PK\x03\x04 half a checkpoint")
+        raise KeyboardInterrupt  # what a kill between two writes looks like from the writer's side
+
+    monkeypatch.setattr(torch, "save", dies_halfway)
+    with pytest.raises(KeyboardInterrupt):
+        io.save_checkpoint({"epoch": 2, "w": torch.zeros(3)}, path)
+    monkeypatch.setattr(torch, "save", real_save)
+    assert path.read_bytes() == before  # the old checkpoint is intact...
+    assert [p.name for p in path.parent.iterdir()] == ["last.ckpt"]  # ...and no temporary file is left
+    io.save_checkpoint({"epoch": 3, "w": torch.zeros(3)}, path)
+    assert torch.load(path, weights_only=True)["epoch"] == 3
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def test_trainer_gets_the_atomic_checkpoint_io(make_cfg):
+    plugins = trainer_plugins(make_cfg([]))
+    assert any(isinstance(p, AtomicCheckpointIO) for p in plugins)
+
+
+def _run_args(out: Path, cache: Path, *extra: str) -> list[str]:
+    # 10 training batches per epoch so that an epoch takes long enough to be interrupted in.
+    return [sys.executable, "-m", "dider.run", "experiment=smoke", "logger=none", "threads=1", "seed=3",
+            "data.num_train=160", "trainer.max_epochs=4", "trainer.enable_progress_bar=false",
+            f"data.cache_dir={cache}", f"hydra.run.dir={out}", *extra]
+
+
+def test_killed_run_resumes_to_the_same_metrics(tmp_path, cache_dir):
+    """SIGKILL a real training process during its third epoch (after epoch 1's last.ckpt), resume it with
+    ckpt_path=last in the same folder: metrics.json equals the uninterrupted run's with the same seed."""
+    env = dict(os.environ, HYDRA_FULL_ERROR="1")
+    killed, whole = tmp_path / "killed", tmp_path / "whole"
+    logs = {name: (tmp_path / f"{name}.log").open("w") for name in ("killed", "whole")}
+    run = subprocess.Popen(_run_args(killed, cache_dir), cwd=tmp_path, env=env, stdout=logs["killed"],
+                           stderr=subprocess.STDOUT)
+    # the uninterrupted reference runs alongside (one thread each)
+    ref = subprocess.Popen(_run_args(whole, cache_dir), cwd=tmp_path, env=env, stdout=logs["whole"],
+                           stderr=subprocess.STDOUT)
+    try:
+        last = killed / "checkpoints" / "last.ckpt"
+        deadline = time.monotonic() + 300
+        while True:
+            if run.poll() is not None:
+                pytest.fail(f"the run ended (rc {run.returncode}) before it could be killed:\n"
+                            f"{(tmp_path / 'killed.log').read_text()[-3000:]}")
+            # writes are atomic, so whatever last.ckpt holds is a whole checkpoint
+            if last.exists() and torch.load(last, map_location="cpu", weights_only=True)["epoch"] >= 1:
+                run.send_signal(signal.SIGKILL)
+                break
+            assert time.monotonic() < deadline, "no epoch-1 checkpoint within 5 minutes"
+            time.sleep(0.02)
+        run.wait()
+        assert run.returncode == -signal.SIGKILL
+        assert not (killed / "metrics.json").exists()  # it really died mid-run
+        assert torch.load(last, map_location="cpu", weights_only=True)["epoch"] < 3
+        for ckpt in (killed / "checkpoints").iterdir():  # nothing half-written
+            assert ckpt.suffix == ".ckpt", ckpt.name
+            torch.load(ckpt, map_location="cpu", weights_only=True)
+
+        resumed = subprocess.run(_run_args(killed, cache_dir, "ckpt_path=last"), cwd=tmp_path, env=env,
+                                 capture_output=True, text=True, timeout=600)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+        assert ref.wait(timeout=600) == 0, (tmp_path / "whole.log").read_text()[-3000:]
+    finally:
+        for p in (run, ref):
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        for f in logs.values():
+            f.close()
+    assert torch.load(last, map_location="cpu", weights_only=True)["epoch"] == 3
+    resumed_metrics, reference = metrics_of(killed), metrics_of(whole)
+    assert resumed_metrics.keys() == reference.keys() and "test/mse/h01" in reference
+    assert resumed_metrics == reference
+
+
+# ------------------------------------------------------------------------------------------ determinism
+
+
+def test_same_seed_same_metrics_other_seed_differs(make_cfg, tmp_path):
+    runs = {}
+    for name, seed in (("a", 4), ("b", 4), ("c", 5)):
+        cfg = make_cfg([f"seed={seed}", "logger=none", "trainer.max_epochs=2"], out=tmp_path / name)
+        train(cfg)
+        runs[name] = metrics_of(tmp_path / name)
+    assert runs["a"] == runs["b"]
+    assert runs["a"]["test/mse/h01"] != runs["c"]["test/mse/h01"]
+    assert runs["a"]["test/nll"] != runs["c"]["test/nll"]
+
+
+def test_eval_mode_recomputes_the_test_metrics(make_cfg, tmp_path):
+    """mode=eval ckpt_path=PATH reproduces the metrics written at the end of training and writes its own."""
+    cfg = make_cfg(["seed=6", "logger=none", "trainer.max_epochs=2"], out=tmp_path / "train")
+    trained = train(cfg)
+    record = json.loads((tmp_path / "train" / "metrics.json").read_text())
+    ckpt = record["checkpoint"]
+    assert ckpt and Path(ckpt).is_file() and record["metrics"] == trained
+    torch.manual_seed(123)  # a different random state going in: evaluation must not depend on it
+    cfg = make_cfg(["seed=6", "logger=none", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval")
+    evaluated = train(cfg)
+    own = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert own["checkpoint"] == ckpt and "mode=eval" in own["overrides"]
+    assert own["metrics"] == evaluated == record["metrics"]
+
+
+# ------------------------------------------------------------------------------------------ guards
+
+
+def test_non_finite_loss_stops_naming_step_batch_and_term(make_cfg, tmp_path, monkeypatch):
+    calls = []
+    real = module_mod.gaussian_nll
+
+    def nan_on_third_call(*args, **kwargs):
+        calls.append(1)
+        out = real(*args, **kwargs)
+        return out * float("nan") if len(calls) == 3 else out
+
+    monkeypatch.setattr(module_mod, "gaussian_nll", nan_on_third_call)
+    cfg = make_cfg(["logger=none", "model=dnri"], out=tmp_path / "run")  # 4 batches per epoch
+    with pytest.raises(NonFiniteError, match=r"non-finite loss at step 2, batch 2 of epoch 0: term nll \(nll=nan"):
+        train(cfg)
+    assert not (tmp_path / "run" / "metrics.json").exists()
+
+
+def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypatch):
+    real = RelationalVAE.infer
+
+    def infer(self, batch, hard):
+        out = real(self, batch, hard)
+        if self.training and self.global_step >= 1:
+            # finite value (0), NaN gradient (d sqrt(u)/du at 0 is inf, times du/dw = 0)
+            w = next(self.decoder.parameters())
+            out.kl_duration = out.kl_duration + (w.sum() * 0).sqrt()
+        return out
+
+    monkeypatch.setattr(RelationalVAE, "infer", infer)
+    cfg = make_cfg(["logger=none", "model=dider"], out=tmp_path / "run")
+    with pytest.raises(NonFiniteError, match=r"non-finite gradient at step 1, batch 1 of epoch 0: from loss term "
+                                             r"kl_duration;"):
+        train(cfg)
+
+
+# ------------------------------------------------------------------------------------------ config checks
+
+BAD_CONFIGS = [
+    (["model.num_edges=1"], r"model.num_edges=1: must be >= 2"),
+    (["data.burn_in=50"], r"data.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
+    (["data.num_steps=20", "data.horizons=[1,5,16]"], r"data.horizons=\[1, 5, 16\]: each must lie in 1..15"),
+    (["data.horizons=[0,5]"], r"data.horizons=\[0, 5\]"),
+    (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
+    (["model=dider", "model.duration.max_segments=0"], r"model.duration.max_segments=0: must be >= 1"),
+    (["model.capacity_edge=-0.5"], r"model.capacity_edge=-0.5: must be >= 0"),
+    (["model.capacity_duration=-1"], r"model.capacity_duration=-1: must be >= 0"),
+    (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
+    (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
+    (["data=ind", "data.seq_len=20", "data.burn_in=20"], r"data.burn_in=20: must be shorter .*data.seq_len=20"),
+    (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
+    (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
+    (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
+]
+
+
+@pytest.mark.parametrize("overrides, match", BAD_CONFIGS, ids=[b[1][:30] for b in BAD_CONFIGS])
+def test_config_errors_name_the_key(make_cfg, overrides, match):
+    with pytest.raises(ConfigError, match=match):
+        validate_config(make_cfg(overrides))
+
+
+def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
+    def boom(*a, **k):
+        raise AssertionError("work started")
+
+    monkeypatch.setattr("dider.run.instantiate", boom)
+    cfg = make_cfg(["model.num_edges=1", "model.capacity_edge=-1", "data.burn_in=60"], out=tmp_path / "run")
+    with pytest.raises(ConfigError) as info:
+        train(cfg)
+    message = str(info.value)  # every problem at once
+    assert "model.num_edges=1" in message and "model.capacity_edge=-1" in message and "data.burn_in=60" in message
+    assert not (tmp_path / "run").exists()
+
+
+def test_valid_configs_pass(make_cfg, tmp_path):
+    for overrides in ([], ["model=dnri"], ["model=nri"], ["data=ind"], ["data=basketball"], ["data=trajectories"],
+                      ["data=ind", f"data.root={tmp_path}"], ["model.duration.max_segments=1"]):
+        validate_config(make_cfg(overrides))
+    npz = tmp_path / "t.npz"
+    npz.write_bytes(b"")
+    validate_config(make_cfg(["data=trajectories", f"data.path={npz}"]))

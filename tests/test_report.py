@@ -1,0 +1,143 @@
+"""The experiment sweeps compose, and `dider.report` aggregates a real sweep faithfully."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import dider.conf
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.types import RunMode
+from omegaconf import OmegaConf
+
+from dider import report
+
+EXPERIMENTS = ["synth_table", "synth_cpu_table", "bball_table", "ind50_table", "ind200_table", "edge_ablation"]
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory: pytest.TempPathFactory, cache_dir: Path) -> Path:
+    """A real 2 models x 2 seeds multirun (smoke-sized: tens of seconds)."""
+    out = tmp_path_factory.mktemp("sweep")
+    cmd = [sys.executable, "-m", "dider.run", "-m", "experiment=smoke", "model=dnri,dider", "seed=1,2",
+           f"hydra.sweep.dir={out}", f"data.cache_dir={cache_dir}", "logger=csv", "trainer.enable_progress_bar=false",
+           "data.num_train=32", "data.num_val=8", "data.num_test=8", "data.eval_batch_size=8"]
+    proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
+def job_dirs(sweep: Path) -> dict[tuple[str, int], Path]:
+    """(model, seed) -> job folder (job folders are named by all their overrides, sizes included)."""
+    records = {p.parent: json.loads(p.read_text()) for p in sweep.glob("*/metrics.json")}
+    return {(r["model"], r["seed"]): d for d, r in records.items()}
+
+
+def read_csv(path: Path) -> dict[str, dict[str, str]]:
+    with path.open() as f:
+        return {row["model"]: row for row in csv.DictReader(f)}
+
+
+def test_report_matches_jobs(sweep: Path, tmp_path: Path):
+    summary = report.main([str(sweep), "--out", str(tmp_path)])
+    assert not summary.failed and not summary.missing and summary.expected == 4
+    rows = read_csv(tmp_path / "report.csv")
+    assert list(rows) == ["dnri", "dider"]  # the sweep's order
+    for model, row in rows.items():
+        jobs = [json.loads((job_dirs(sweep)[model, seed] / "metrics.json").read_text())["metrics"] for seed in (1, 2)]
+        assert len(jobs) == 2 and row["n"] == "2" and row["seeds"] == "1;2"
+        for metric in ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/interaction"):
+            values = np.array([m[metric] for m in jobs])
+            assert float(row[f"{metric}_mean"]) == pytest.approx(values.mean(), rel=1e-12)
+            assert float(row[f"{metric}_std"]) == pytest.approx(values.std(ddof=1), rel=1e-12)
+    md = (tmp_path / "report.md").read_text()
+    h01 = np.array([json.loads((job_dirs(sweep)["dnri", s] / "metrics.json").read_text())["metrics"]["test/mse/h01"]
+                    for s in (1, 2)])
+    assert f"| dnri | 2 | {h01.mean():.3g} ± {h01.std(ddof=1):.2g} |" in md
+    assert (tmp_path / "horizons.png").stat().st_size > 0
+    assert sorted(p.parent.name for p in tmp_path.glob("timelines/*/timeline_00.png")) == ["dider", "dnri"]
+    assert md.rstrip().endswith("## Failed or missing jobs\n\n(failed: a job folder without metrics.json, also while "
+                                "it still runs; missing: swept values that no job folder holds)\n\nnone")
+
+
+def test_failed_and_missing_jobs_listed(sweep: Path, tmp_path: Path):
+    broken = tmp_path / "sweep"
+    shutil.copytree(sweep, broken, ignore=shutil.ignore_patterns("checkpoints", "*.png", "csv"))
+    crashed, killed = (job_dirs(sweep)[key].name for key in (("dider", 2), ("dnri", 2)))
+    (broken / crashed / "metrics.json").unlink()  # crashed: .hydra/ but no metrics.json
+    shutil.rmtree(broken / killed)  # never launched (a sweep killed part-way)
+    summary = report.main([str(broken)])
+    assert summary.failed == [f"{crashed} (no metrics.json)"]
+    assert summary.missing == ["model=dnri,seed=2"]  # the swept values of the combination no folder holds
+    assert [len(g.jobs) for g in summary.groups] == [1, 1]
+    md = (broken / "report.md").read_text()
+    assert f"- failed: `{crashed} (no metrics.json)`" in md and "- missing: `model=dnri,seed=2`" in md
+    assert "2 finished jobs, 1 failed, 1 missing (the sweep expects 4)" in md
+
+
+def fake_sweep(root: Path, params: dict[str, str], jobs: list[tuple[str, int, int]]) -> Path:
+    """A sweep folder with multirun.yaml and hand-written metrics.json records: (model, num_edges, seed) jobs."""
+    hydra_cfg = {"sweeper": {"_target_": "hydra._internal.core_plugins.basic_sweeper.BasicSweeper", "params": params},
+                 "overrides": {"task": ["experiment=x"]},
+                 "job": {"config": {"override_dirname": {"exclude_keys": ["experiment"]}}}}
+    OmegaConf.save(OmegaConf.create({"hydra": hydra_cfg}), root / "multirun.yaml")
+    for model, e, seed in jobs:
+        job = root / f"model={model},e={e},seed={seed}"
+        overrides = ["experiment=x", f"model={model}", f"seed={seed}"]
+        overrides += [f"model.num_edges={e}"] if "model.num_edges" in params else []
+        (job / ".hydra").mkdir(parents=True)
+        OmegaConf.save(OmegaConf.create(overrides), job / ".hydra" / "overrides.yaml")
+        metrics = {"test/mse/h01": 1e-5 * (e + seed), "test/mse/h20": 1e-3 * (7 - e) * seed}
+        record = {"metrics": metrics, "overrides": overrides, "seed": seed, "model": model,
+                  "config": {"model": {"num_edges": e}}}
+        (job / "metrics.json").write_text(json.dumps(record))
+    return root
+
+
+def test_edge_ablation_plot(tmp_path: Path):
+    """num_edges swept: one row per num_edges and the MSE-vs-num_edges plot (fake job records)."""
+    jobs = [("dider", e, seed) for e in (2, 4) for seed in (1, 2)]
+    sweep = fake_sweep(tmp_path, {"model": "dider", "model.num_edges": "2,4", "seed": "1,2"}, jobs)
+    summary = report.main([str(sweep), "--out", str(tmp_path / "out")])
+    assert [g.key for g in summary.groups] == [{"model": "dider", "num_edges": 2}, {"model": "dider", "num_edges": 4}]
+    assert summary.groups[1].stats("test/mse/h20") == pytest.approx((4.5e-3, np.std([3e-3, 6e-3], ddof=1), 2))
+    assert (tmp_path / "out" / "edge_ablation.png").stat().st_size > 0
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "mse/h01: lowest mean MSE at num_edges=2" in md and "mse/h20: lowest mean MSE at num_edges=4" in md
+
+
+def test_num_edges_per_model_no_ablation(tmp_path: Path):
+    """inD tables: num_edges differs between models (DNRI 4, DIDER 6) but is not swept: no ablation plot."""
+    jobs = [(m, e, seed) for m, e in (("dnri", 4), ("dider", 6)) for seed in (1, 2)]
+    summary = report.main([str(fake_sweep(tmp_path, {"model": "dnri,dider", "seed": "1,2"}, jobs))])
+    assert [g.key for g in summary.groups] == [{"model": "dnri", "num_edges": 4}, {"model": "dider", "num_edges": 6}]
+    assert not summary.missing and not (tmp_path / "edge_ablation.png").exists()
+    assert (tmp_path / "horizons.png").exists()
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiment_sweeps_compose(experiment: str):
+    path = Path(dider.conf.__file__).parent / "experiment" / f"{experiment}.yaml"
+    assert path.read_text().splitlines()[0] == "# @package _global_"  # otherwise Hydra nests it: no sweep
+    GlobalHydra.instance().clear()
+    with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+        cfg = compose("config", overrides=[f"experiment={experiment}"], return_hydra_config=True)
+        assert cfg.hydra.mode == RunMode.MULTIRUN
+        params = cfg.hydra.sweeper.params
+        assert "seed" in params and ("model" in params or "model.num_edges" in params)
+        assert experiment in cfg.hydra.sweep.dir
+        if experiment.startswith("ind"):  # DNRI 4 edge types, the DIDER variants 6
+            edges = {m: compose("config", overrides=[f"experiment={experiment}", f"model={m}"]).model.num_edges
+                     for m in ("dnri", "dider_skid", "dider")}
+            assert edges == {"dnri": 4, "dider_skid": 6, "dider": 6}
+            assert cfg.model.decoder._target_.endswith("RecurrentDecoder") and cfg.model.sparsity_mix == 0
+    GlobalHydra.instance().clear()
