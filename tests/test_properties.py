@@ -291,3 +291,40 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
         dm.prepare_data()
         dm.setup()
         assert len(list(Path(tmp).iterdir())) == 3 and len(dm.datasets["train"]) == num_train
+
+
+@st.composite
+def zhan_files(draw) -> dict:
+    """A Zhan-format npz that may be malformed: wrong key, shape or dtype, NaN/inf, or damaged bytes."""
+    shape = draw(st.sampled_from([(4, 50, 22), (4, 50, 22), (3, 6, 22), (4, 50, 20), (4, 1, 22), (4, 50)]))
+    return {"key": draw(st.sampled_from(["data", "data", "positions"])), "array": draw(array_like(shape, "float")),
+            "damage": draw(st.sampled_from(["none", "none", "cut", "garbage", "npy"]))}
+
+
+@FAST
+@given(spec=zhan_files(), split=st.sampled_from(["train", "test"]))
+def test_basketball_reader_fails_cleanly(spec, split):
+    from dider.data.basketball import BasketballDataModule
+
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        good = np.random.default_rng(0).uniform(0, 50, (6, 50, 22)).astype(np.float32)
+        for name in ("train", "test"):
+            content = {spec["key"]: spec["array"]} if name == split else {"data": good}
+            np.savez(root / f"{name}.npz", **content)
+        path = root / f"{split}.npz"
+        if spec["damage"] == "cut":
+            path.write_bytes(path.read_bytes()[: len(path.read_bytes()) // 2])
+        elif spec["damage"] == "garbage":
+            path.write_bytes(bytes(range(256)) * 3)
+        elif spec["damage"] == "npy":
+            with path.open("wb") as f:
+                np.save(f, spec["array"])
+        dm = BasketballDataModule(root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
+        try:
+            dm.prepare_data()
+            dm.setup()
+        except (ValueError, FileNotFoundError) as err:
+            assert_clean(err, str(path), "data.", "basketball")
+        else:
+            assert torch.isfinite(dm.datasets["train"].states).all()

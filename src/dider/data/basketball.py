@@ -60,16 +60,37 @@ def detect_format(root: Path) -> str:
     return "zhan" if zhan else "dnri"
 
 
+def _read(path: Path, key: str | None = None) -> np.ndarray:
+    """One numeric array from an npz (``key``) or a npy file (``key=None``). Unreadable, pickled or
+    non-numeric content raises a ValueError naming the file and key, never an error from inside numpy."""
+    what = f"{path}" + (f" key {key!r}" if key else "")
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        files = None
+        if isinstance(loaded, np.lib.npyio.NpzFile):
+            with loaded:
+                files = loaded.files
+                arr = loaded[key] if key in files else None
+        else:
+            arr = None if key is not None else loaded
+    except Exception as err:  # corrupt archives raise zipfile, OSError, EOFError, NotImplementedError, ...
+        raise ValueError(f"{what}: unreadable ({type(err).__name__}: {err})") from err
+    if arr is None:
+        if key is None:
+            raise ValueError(f"{path}: an .npz archive (keys {files}); expected a .npy array")
+        held = f"keys: {files}" if files is not None else "a single .npy array"
+        raise ValueError(f"{path}: no key {key!r} ({held}); expected Zhan et al.'s (S, 50, 22) array")
+    if not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool) or np.iscomplexobj(arr):
+        raise ValueError(f"{what}: dtype {arr.dtype} is not real-valued numeric")
+    return arr
+
+
 def load_zhan(path: Path, agents: str, frame_rate: float) -> torch.Tensor:
     """One Zhan npz -> states [S, T-1, N, 4] float32 (x, y, vx, vy): positions in feet from step 1 on,
     velocities (pos[t] - pos[t-1]) * frame_rate (feet / second when frame_rate is the 6.25 Hz rate)."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing")
-    with np.load(path) as z:
-        if "data" not in z.files:
-            raise ValueError(f"{path}: no key 'data' (keys: {z.files}); expected Zhan et al.'s (S, 50, 22) "
-                             f"array")
-        arr = z["data"]
+    arr = _read(path, "data")
     if arr.ndim != 3 or arr.shape[2] != 22 or arr.shape[1] < 2:
         raise ValueError(f"{path}: key 'data' has shape {arr.shape}; expected (S, T, 22) = ball + 5 offence "
                          f"+ 5 defence (x, y) per step, T >= 2")
@@ -88,7 +109,7 @@ def load_dnri(root: Path, split: str) -> torch.Tensor:
         path = _dnri_path(root, kind, split)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: missing (DNRI basketball format needs loc_* and vel_* files)")
-        arr = np.load(path)
+        arr = _read(path)
         if arr.ndim != 4 or arr.shape[-1] != 2:
             raise ValueError(f"{path}: shape {arr.shape}; expected [S, T, N, 2]")
         parts.append(torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32)))
@@ -208,7 +229,10 @@ class BasketballDataModule(ClipDataModule):
             raw["train"] = raw["train"][:, : h.train_len]
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
         raw = {s: x[spread_indices(x.shape[0], caps[s])] for s, x in raw.items()}
-        self.normalizer = Normalizer.fit(raw["train"])
+        try:
+            self.normalizer = Normalizer.fit(raw["train"])
+        except ValueError as err:  # e.g. constant positions: nothing to scale by
+            raise ValueError(f"basketball training clips in data.root={self.hparams.root}: {err}") from err
         for split, x in raw.items():
             mask = torch.ones(x.shape[:3], dtype=torch.bool)
             self.datasets[split] = ClipDataset(self.normalizer.normalize(x).contiguous(), mask)
