@@ -25,6 +25,16 @@ TINY = [
 ]
 
 
+@pytest.fixture
+def one_thread() -> Iterator[None]:
+    """Tiny networks on a busy 2-core machine: one thread avoids hand-off costs; and `threads=1` in a
+    config must not leak into other tests."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.fixture(scope="session")
 def cache_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("cache")

@@ -280,7 +280,7 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
         def dying_save(obj, f, *args, **kwargs):
             calls.append(f)
             if len(calls) - 1 == fail_at:
-                Path(f).write_bytes(bytes(written))
+                f.write(bytes(written))  # a partial write into the temporary file
                 raise error
             return real_save(obj, f, *args, **kwargs)
 

@@ -16,14 +16,7 @@ from dider.checkpoint import AtomicCheckpointIO
 from dider.models.module import NonFiniteError, RelationalVAE
 from dider.run import ConfigError, train, trainer_plugins, validate_config
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small runs on a busy 2-core machine; and `threads=1` in a config must not leak into other tests."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def metrics_of(folder: Path) -> dict[str, float]:

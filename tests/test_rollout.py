@@ -9,14 +9,7 @@ from dider.data.common import agent_horizons, burn_in_mask
 from dider.graph import edge_mask
 from dider.metrics import HorizonMSE
 
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny networks step by step: one thread avoids thread hand-off costs on a busy 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def build(make_cfg, *overrides):

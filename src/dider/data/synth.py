@@ -7,13 +7,11 @@ import math
 import numbers
 from pathlib import Path
 
-import lightning as L
 import torch
-from torch.utils.data import DataLoader
 
 from dider.data.batch import Normalizer
 from dider.data.cache import atomic_torch_save, cache_key
-from dider.data.common import SPLITS, ClipDataset, check_burn_in_mode, default_cache_dir
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_burn_in_mode, default_cache_dir
 from dider.data.simulate import simulate_push
 
 log = logging.getLogger(__name__)
@@ -22,7 +20,7 @@ log = logging.getLogger(__name__)
 __all__ = ["SPLITS", "ClipDataset", "SynthDataModule", "default_cache_dir"]
 
 
-class SynthDataModule(L.LightningDataModule):
+class SynthDataModule(ClipDataModule):
     """Push-system clips with ground-truth per-step directed edges.
 
     Each split has its own generator seed derived from ``seed``, so changing ``num_test`` never changes
@@ -72,13 +70,6 @@ class SynthDataModule(L.LightningDataModule):
             )
         self.save_hyperparameters(logger=False)
         self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
-        self.normalizer: Normalizer | None = None
-        self.datasets: dict[str, ClipDataset] = {}
-
-    @property
-    def burn_in_mode(self) -> str:
-        """How forecasts are observed before the roll-out (see dider.data.common.check_burn_in_mode)."""
-        return self.hparams.burn_in_mode
 
     def _split_params(self, split: str) -> dict:
         h = self.hparams
@@ -109,24 +100,3 @@ class SynthDataModule(L.LightningDataModule):
             mask = torch.ones(states.shape[:3], dtype=torch.bool)
             # edges[t] produced state t from t-1, so the transition t -> t+1 is labelled by edges[t+1].
             self.datasets[split] = ClipDataset(states, mask, blob["edges"][:, 1:])
-
-    def _loader(self, split: str, train: bool) -> DataLoader:
-        h = self.hparams
-        return DataLoader(
-            self.datasets[split],
-            batch_size=h.batch_size if train else h.eval_batch_size,
-            shuffle=train,
-            drop_last=False,
-            num_workers=h.num_workers,
-            pin_memory=h.pin_memory,
-            persistent_workers=h.num_workers > 0,
-        )
-
-    def train_dataloader(self) -> DataLoader:
-        return self._loader("train", train=True)
-
-    def val_dataloader(self) -> DataLoader:
-        return self._loader("val", train=False)
-
-    def test_dataloader(self) -> DataLoader:
-        return self._loader("test", train=False)
