@@ -30,6 +30,15 @@ def write_ind_root(root: Path, num_recordings: int = 4, num_frames: int = 600, n
     return root
 
 
+def write_background(root: Path, recording: str, rows: int = 90, cols: int = 120) -> Path:
+    """A stand-in ``XX_background.png`` (a gradient; the real images are licensed)."""
+    import matplotlib.image
+
+    path = root / f"{recording}_background.png"
+    matplotlib.image.imsave(path, np.linspace(0, 1, rows * cols).reshape(rows, cols), cmap="gray")
+    return path
+
+
 def edit_csv(path: Path, fn) -> None:
     """Rewrite a CSV through ``fn(DataFrame) -> DataFrame`` (to corrupt fixtures in tests)."""
     fn(pd.read_csv(path)).to_csv(path, index=False)

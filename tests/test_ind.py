@@ -16,7 +16,7 @@ from dider.data.fakes import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META
 from dider.data.ind import InDDataModule, discover_recordings, split_counts
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import edit_csv, write_ind_root  # noqa: E402
+from fixtures import edit_csv, write_background, write_ind_root  # noqa: E402
 
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
 SMALL = dict(split=(2, 1, 1), seq_len=20, burn_in=5, horizons=(1, 5, 15), batch_size=4, eval_batch_size=4)
@@ -333,3 +333,13 @@ def test_too_short_and_bad_config(root, tmp_path):
                     ({"split": (1, 1)}, "data.split")]:
         with pytest.raises(ValueError, match=key):
             InDDataModule(**{**SMALL, **kw})
+
+
+def test_background_image_and_extent(root, tmp_path):
+    dm = make_dm(root, tmp_path / "cache")
+    assert dm.background("test", 0) is None  # no XX_background.png: no image
+    write_background(root, "03", rows=90, cols=120)
+    image, extent = dm.background("test", 0)
+    meters = 0.0081464 * 12  # the fixture's orthoPxToMeter x the default background_scale
+    assert image.shape[:2] == (90, 120)
+    assert extent == pytest.approx((0.0, 120 * meters, -90 * meters, 0.0))

@@ -11,7 +11,7 @@ import pytest
 from dider.run import train
 
 sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_ind_root, write_trajectories, write_zhan  # noqa: E402
+from fixtures import write_background, write_ind_root, write_trajectories, write_zhan  # noqa: E402
 
 SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", "model.sparsity_mix=0",
          "model/decoder=recurrent", "data.batch_size=4", "data.eval_batch_size=4"]
@@ -21,6 +21,7 @@ SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false",
 def roots(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     base = tmp_path_factory.mktemp("real")
     ind = write_ind_root(base / "ind", num_recordings=3, num_frames=600, num_tracks=5)
+    write_background(ind, "02")  # the test recording with data.split=[1,1,1]
     write_zhan(base / "bball", num_train=24, num_test=8)
     write_trajectories(base / "traj.npz", num=30, steps=20, agents=4, mask=True)
     return {"ind": ind, "bball": base / "bball", "traj": base / "traj.npz"}
@@ -59,3 +60,9 @@ def test_ind_command_line(roots, tmp_path, cache_dir):
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((tmp_path / "metrics.json").read_text())
     assert record["config"]["model"]["num_edges"] == 6 and "test/mse/h01" in record["metrics"]
+    # The consistency check: the fixture's two parked cars form one pair in every test window.
+    m = record["metrics"]
+    assert m["test/consistency/parked/edge_steps"] > 0 and 0.5 <= m["test/consistency/parked/share"] <= 1.0
+    assert m["test/consistency/parked/type"] in range(6)
+    figures = sorted(p.name for p in (tmp_path / "figures").glob("*.png"))
+    assert "trajectories_00.png" in figures and "timeline_00.png" in figures

@@ -77,3 +77,24 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     balanced = (metrics["test/edge_acc/posterior/none"] + metrics["test/edge_acc/posterior/interaction"]) / 2
     assert balanced > 0.55, metrics
     assert torch.isfinite(torch.tensor(list(metrics.values()))).all()
+
+
+def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
+    """A short CPU run of DIDER infers the interactions from whole clips clearly above chance.
+
+    Chance: types drawn independently of the truth give interaction recall = 1 - none recall (Youden's
+    J = 0, balanced accuracy 0.5), whatever their rate. Edges mislabelled, shifted in time or collapsed
+    onto the prior (the failure of the paper's start-of-segment readout in our runs) give J <= 0.
+    Measured with this config: seed 2 J = 0.61, seed 3 J = 0.52; seed 1 has not left the prior after 6
+    epochs (J = -0.02; it reaches J = 0.36 after 12): short runs are seed-sensitive, see docs/results.md.
+    """
+    cfg = make_cfg(
+        ["model=dider", "seed=2", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
+         "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "trainer.max_epochs=6",
+         "model.optimizer.lr=1e-3", "logger=none", "callbacks=none"],
+        tiny=False, out=tmp_path / "run",
+    )  # fmt: skip
+    metrics = train(cfg)
+    none, inter = metrics["test/edge_acc/posterior/none"], metrics["test/edge_acc/posterior/interaction"]
+    assert inter - (1 - none) > 0.3, metrics
+    assert metrics["test/segments_per_edge"] < 3.0, metrics  # readable: few segments per 49-step edge

@@ -1,7 +1,11 @@
-"""Benchmarks: training throughput and peak memory, written as JSON records.
+"""Benchmarks: throughput and peak memory, written as JSON records (and a scaling plot).
 
-`python -m dider.bench --out bench/results.json [--only NAME ...]`. Every case runs in a fresh
-subprocess so its peak memory (ru_maxrss on CPU, max allocated on CUDA) is its own.
+`python -m dider.bench --out bench/results.json [--only NAME ...] [--plot bench/scaling.png]`. Every case
+runs in a fresh subprocess so its peak memory (ru_maxrss on CPU, max allocated on CUDA) is its own.
+
+Cases: training steps of each model (Markovian and recurrent decoders, bf16, torch.compile), roll-out
+(evaluation) throughput, generating the 40k synthetic clips, preprocessing an inD-size recording, loading
+batches with DataLoader workers, and a training step as the agents (N) and the clip length (T) grow.
 """
 
 from __future__ import annotations
@@ -9,13 +13,18 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing as mp
+import os
 import platform
 import resource
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from queue import Empty
 from typing import Any
 
+import numpy as np
 import torch
 from hydra import compose, initialize_config_module
 from hydra.utils import instantiate
@@ -34,6 +43,14 @@ class Case:
     iters: int = 5
     warmup: int = 2
     settings: dict[str, Any] = field(default_factory=dict)
+    kind: str = "train"  # train | rollout | generate | preprocess | load
+
+
+SCALE_AGENTS = (3, 5, 10, 20, 50)
+SCALE_STEPS = (50, 100, 200)
+# The scaling series: DNRI's step with narrower networks (N = 50 has 2450 edges; full width would need
+# tens of GB), so the growth in N and T shows, not the constant.
+SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", "model.sparsity_mix=0"]
 
 
 def cases() -> list[Case]:
@@ -44,6 +61,18 @@ def cases() -> list[Case]:
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
     for model in ("dnri", "dider"):
         out.append(Case(f"train/{model}/synth/bf16", [f"model={model}"], 128, 3, 50, settings={"autocast": "bf16"}))
+        out.append(Case(f"train/{model}/synth/compile", [f"model={model}"], 128, 3, 50, warmup=3,
+                        settings={"compile": True}))
+        out.append(Case(f"rollout/{model}/synth", [f"model={model}"], 256, 3, 50, kind="rollout"))
+    out.append(Case("generate/synth/40k", [], 40000, 3, 50, iters=1, warmup=0, kind="generate"))
+    out.append(Case("preprocess/ind/20min_300tracks", [], 1, 300, 30000, iters=1, warmup=0, kind="preprocess"))
+    for workers in (0, 2):
+        out.append(Case(f"load/synth/workers{workers}", [], 128, 3, 50, iters=1, warmup=0, kind="load",
+                        settings={"num_workers": workers}))
+    for n in SCALE_AGENTS:
+        out.append(Case(f"scale/agents/N{n:02d}", SCALE_MODEL, 8, n, 50, iters=3, warmup=1))
+    for t in SCALE_STEPS:
+        out.append(Case(f"scale/steps/T{t:03d}", SCALE_MODEL, 8, 5, t, iters=3, warmup=1))
     return out
 
 
@@ -51,6 +80,13 @@ def build_model(overrides: list[str]) -> torch.nn.Module:
     with initialize_config_module(version_base="1.3", config_module="dider.conf"):
         cfg = compose(config_name="config", overrides=overrides)
     return instantiate(cfg.model, _convert_="all")
+
+
+def compile_modules(model: torch.nn.Module) -> None:
+    """``torch.compile`` the hot plugins in place (encoder and decoder: the GNN and its element-wise
+    chains); the segment logic stays eager, its shapes change with the durations."""
+    for name in ("encoder", "decoder"):
+        getattr(model, name).compile(dynamic=False)
 
 
 def _train_step(
@@ -64,60 +100,195 @@ def _train_step(
     opt.step()
 
 
-def run_case(case: Case, device: str) -> dict[str, Any]:
-    torch.manual_seed(0)
-    model = build_model(case.overrides).to(device).train()
-    opt = torch.optim.Adam(model.parameters(), lr=5e-4)
-    states = torch.rand(case.batch, case.steps, case.agents, 4, device=device) * 2 - 1
-    batch = {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
-    autocast = case.settings.get("autocast")
-    for _ in range(case.warmup):
-        _train_step(model, opt, batch, autocast)
+def _timed(fn: Callable[[], Any], iters: int, warmup: int, device: str) -> float:
+    """Seconds per call of ``fn`` after ``warmup`` untimed calls (CUDA synchronised)."""
     sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    for _ in range(warmup):
+        fn()
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
     sync()
     start = time.perf_counter()
-    for _ in range(case.iters):
-        _train_step(model, opt, batch, autocast)
+    for _ in range(iters):
+        fn()
     sync()
-    step_s = (time.perf_counter() - start) / case.iters
-    peak = (torch.cuda.max_memory_allocated() if device == "cuda"
+    return (time.perf_counter() - start) / iters
+
+
+def _random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
+    states = torch.rand(case.batch, case.steps, case.agents, 4, device=device) * 2 - 1
+    return {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
+
+
+def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
+    """A training step (forward, backward, Adam) or an evaluation roll-out on random clips."""
+    torch.manual_seed(0)
+    model = build_model(case.overrides).to(device)
+    batch = _random_batch(case, device)
+    extra: dict[str, Any] = {}
+    if case.kind == "rollout":
+        model.eval()
+        burn_in = model.hparams.burn_in
+
+        def step() -> None:
+            with torch.no_grad():
+                model.rollout(batch["states"], batch["mask"], burn_in, case.steps - burn_in, "global")
+
+        return _timed(step, case.iters, case.warmup, device), extra
+    model.train()
+    if case.settings.get("compile"):
+        compile_modules(model)
+    opt = torch.optim.Adam(model.parameters(), lr=5e-4)
+    autocast = case.settings.get("autocast")
+    if case.settings.get("compile"):  # the first steps compile: report that cost on its own
+        t0 = time.perf_counter()
+        _train_step(model, opt, batch, autocast)
+        extra["compile_s"] = time.perf_counter() - t0
+    return _timed(lambda: _train_step(model, opt, batch, autocast), case.iters, case.warmup, device), extra
+
+
+def _data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[str, Any]]:
+    if case.kind == "generate":
+        from dider.data.simulate import simulate_push
+
+        return _timed(lambda: simulate_push(case.batch, case.steps, seed=0), case.iters, case.warmup, device), {}
+    if case.kind == "preprocess":
+        from dider.data.ind import benchmark_preprocess
+
+        return benchmark_preprocess(tmpdir, minutes=20.0, num_tracks=case.agents), {"unit": "recordings"}
+    # load: one epoch of the synthetic training loader (2000 clips) with the given workers
+    from dider.data.synth import SynthDataModule
+
+    with tempfile.TemporaryDirectory(dir=tmpdir) as cache:
+        dm = SynthDataModule(num_train=2000, num_val=16, num_test=16, batch_size=case.batch, cache_dir=cache,
+                             num_workers=case.settings["num_workers"], pin_memory=device == "cuda")
+        dm.prepare_data()
+        dm.setup()
+        loader = dm.train_dataloader()
+        t0 = time.perf_counter()
+        clips = sum(b["states"].shape[0] for b in loader)
+        seconds = time.perf_counter() - t0
+    return seconds * case.batch / clips, {"pin_memory": device == "cuda"}
+
+
+def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, Any]:
+    if case.kind in ("train", "rollout"):
+        step_s, extra = _model_case(case, device)
+    else:
+        step_s, extra = _data_case(case, device, tmpdir)
+    peak = (torch.cuda.max_memory_allocated() if device == "cuda" and case.kind in ("train", "rollout")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
     return {
-        "name": case.name, "samples_per_s": case.batch / step_s, "step_s": step_s, "peak_memory_mb": peak / 2**20,
-        "device": device, "threads": torch.get_num_threads(), "torch": torch.__version__,
+        "name": case.name, "kind": case.kind, "samples_per_s": case.batch / step_s, "step_s": step_s,
+        "peak_memory_mb": peak / 2**20, "device": device, "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
         "settings": {"batch": case.batch, "agents": case.agents, "steps": case.steps, "iters": case.iters,
-                     "overrides": case.overrides, **case.settings},
+                     "overrides": case.overrides, **case.settings, **extra},
     }  # fmt: skip
 
 
 def _worker(case: Case, device: str, queue: mp.Queue) -> None:
     tune_allocator()
-    queue.put(run_case(case, device))
+    try:
+        queue.put(run_case(case, device))
+    except Exception as e:  # noqa: BLE001 - a failed case is reported as such and the others still run
+        queue.put({"name": case.name, "kind": case.kind, "error": f"{type(e).__name__}: {e}"})
+
+
+def _run_isolated(case: Case, device: str) -> dict[str, Any]:
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_worker, args=(case, device, queue))
+    proc.start()
+    while True:
+        try:
+            return queue.get(timeout=5)
+        except Empty:
+            if not proc.is_alive():  # killed (e.g. out of memory) before it could report
+                return {"name": case.name, "kind": case.kind, "error": f"worker exited with code {proc.exitcode}"}
+        finally:
+            if not proc.is_alive():
+                proc.join()
+
+
+def summary(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Derived figures: DIDER's step time over DNRI's (same run), and the growth exponents of the step
+    time in N and T (least-squares slope on log-log axes; 2 and 1 are the budgets)."""
+    by = {r["name"]: r for r in records if "error" not in r}
+    out: dict[str, Any] = {}
+    for setting in ("synth", "recurrent"):
+        for model in ("dider", "dider_skid"):
+            a, b = by.get(f"train/{model}/{setting}"), by.get(f"train/dnri/{setting}")
+            if a and b:
+                out[f"step_ratio/{model}_over_dnri/{setting}"] = a["step_s"] / b["step_s"]
+    for axis, key in (("agents", "agents"), ("steps", "steps")):
+        pts = [(r["settings"][key], r["step_s"]) for r in by.values() if r["name"].startswith(f"scale/{axis}/")]
+        if len(pts) >= 2:
+            x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+            out[f"growth_exponent/{axis}"] = float(np.polyfit(x, y, 1)[0])
+            if axis == "agents" and len(pts) >= 3:  # the large-N end, where fixed costs no longer hide the growth
+                top = sorted(pts)[-2:]
+                out["growth_exponent/agents_last_pair"] = float(
+                    np.log(top[1][1] / top[0][1]) / np.log(top[1][0] / top[0][0]))
+    return out
+
+
+def plot(records: list[dict[str, Any]], path: Path) -> None:
+    """Step time against N and T on log-log axes, with N^2 and T^1 guides through the first point."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.8))
+    for ax, axis, key, power in ((axes[0], "agents", "agents", 2), (axes[1], "steps", "steps", 1)):
+        pts = sorted((r["settings"][key], r["step_s"]) for r in records
+                     if "error" not in r and r["name"].startswith(f"scale/{axis}/"))
+        if not pts:
+            continue
+        x, y = np.array(pts).T
+        ax.loglog(x, y, "o-", label="measured")
+        ax.loglog(x, y[0] * (x / x[0]) ** power, "--", color="grey", label=f"{key[0].upper()}^{power}")
+        ax.set_xlabel("agents N" if axis == "agents" else "steps T")
+        ax.set_ylabel("training step (s)")
+        ax.legend(fontsize=8)
+    fig.suptitle("DNRI training step, batch 8 (narrow networks)", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix, delete=False) as tmp:
+        fig.savefig(tmp.name, dpi=100)
+    Path(tmp.name).replace(path)
+    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
+    parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
     parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     args = parser.parse_args(argv)
-    ctx = mp.get_context("spawn")
-    records = []
+    meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+            "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None}
+    records: list[dict[str, Any]] = []
     for case in cases():
         if args.only and not any(s in case.name for s in args.only):
             continue
-        queue = ctx.Queue()
-        proc = ctx.Process(target=_worker, args=(case, args.device, queue))
-        proc.start()
-        record = queue.get()
-        proc.join()
+        record = _run_isolated(case, args.device)
         records.append(record)
-        print(f"{record['name']:<32} {record['samples_per_s']:9.1f} samples/s  "
-              f"{record['step_s'] * 1000:8.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
-    meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version()}
-    atomic_write_text(args.out, json.dumps({"meta": meta, "records": records}, indent=2))
+        if "error" in record:
+            print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
+        else:
+            print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
+                  f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
+        # Written after every case: an interrupted benchmark keeps what it measured.
+        atomic_write_text(args.out, json.dumps({"meta": meta, "summary": summary(records), "records": records},
+                                               indent=2))
+    derived = summary(records)
+    for key, value in derived.items():
+        print(f"{key:<44} {value:.2f}")
+    if any(r["name"].startswith("scale/") for r in records):
+        plot(records, args.plot or args.out.with_suffix(".png"))
     print(f"wrote {args.out}")
     return records
 

@@ -32,16 +32,29 @@ def segment_table(types: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
                         types.flatten()[starts].double(), prob_sum / (ends - starts).double()], dim=1)  # fmt: skip
 
 
-def segments_json(types: torch.Tensor, probs: torch.Tensor, num_agents: int) -> dict[str, Any]:
-    """{"edges": [[sender, receiver], ...], "clips": [[ [ {start, end, type, prob}, ...] per edge ] per clip]}."""
-    table = segment_table(types, probs).tolist()
-    clips: list[list[list[dict[str, Any]]]] = [[[] for _ in range(types.shape[1])] for _ in range(types.shape[0])]
-    for clip, edge, start, end, typ, prob in table:
-        row = {"start": int(start), "end": int(end), "type": int(typ), "prob": round(prob, 4)}
-        clips[int(clip)][int(edge)].append(row)
-    send, recv = edge_index(num_agents)
-    return {"note": "steps are transitions t -> t+1; end is exclusive",
-            "edges": [[int(a), int(b)] for a, b in zip(send, recv, strict=True)], "clips": clips}
+def segments_json(batches: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str, Any]:
+    """The segments of every test clip, in test-set order.
+
+    batches: (types [B, E, T] long with -1 where the edge is absent, probs [B, E, T]) per test batch; E may
+    differ between batches (real data: padded to each batch's largest agent count). ->
+    {"clips": [{"clip": i, "edges": [{"sender", "receiver", "segments": [{start, end, type, prob}]}]}]}
+    listing only edges present at some step, and only the steps where they are present.
+    """
+    clips: list[dict[str, Any]] = []
+    for types, probs in batches:
+        b, e, _ = types.shape
+        n = int(round((1 + (1 + 4 * e) ** 0.5) / 2))
+        send, recv = edge_index(n)
+        edges: list[dict[int, list[dict[str, Any]]]] = [{} for _ in range(b)]
+        for clip, edge, start, end, typ, prob in segment_table(types, probs).tolist():
+            if typ >= 0:  # runs of -1 are steps where the edge does not exist
+                row = {"start": int(start), "end": int(end), "type": int(typ), "prob": round(prob, 4)}
+                edges[int(clip)].setdefault(int(edge), []).append(row)
+        for per_edge in edges:
+            clips.append({"clip": len(clips), "edges": [
+                {"sender": int(send[k]), "receiver": int(recv[k]), "segments": rows} for k, rows in per_edge.items()]})
+    return {"note": "steps are transitions t -> t+1 of the clip; end is exclusive; agents in the data set's order",
+            "clips": clips}
 
 
 class SegmentExport(L.Callback):
@@ -54,10 +67,5 @@ class SegmentExport(L.Callback):
         types = getattr(pl_module, "test_types", None)
         if not types or not trainer.is_global_zero:
             return
-        # clips of different batches may hold different agent counts (real data): export per batch shape
-        if len({t.shape[1] for t in types}) != 1:
-            return
-        e = types[0].shape[1]
-        n = int(round((1 + (1 + 4 * e) ** 0.5) / 2))
-        blob = segments_json(torch.cat(types), torch.cat(pl_module.test_probs), n)
+        blob = segments_json(list(zip(types, pl_module.test_probs, strict=True)))
         atomic_write_text(self.path, json.dumps(blob))

@@ -152,3 +152,32 @@ class BoundaryF1(Metric):
         precision = self.pred_hit / self.pred_all.clamp_min(1)
         recall = self.true_hit / self.true_all.clamp_min(1)
         return (2 * precision * recall / (precision + recall).clamp_min(1e-12)).float()
+
+
+class PairConsistency(Metric):
+    """The inD consistency check: for each kind of pair (parked, opposite-direction non-crossing; see
+    :mod:`dider.data.pairs`), the share of its edge-steps that fall in its most frequent edge type, and that type.
+
+    update(types [B, E, T] long, pair_kind [B, E] long (0: not checked), present [B, E, T] bool);
+    compute() -> (share [kinds], dominant type [kinds], edge-steps [kinds]); share is NaN for a kind never seen.
+    """
+
+    is_differentiable = False
+    full_state_update = False
+
+    def __init__(self, num_types: int, num_kinds: int = 2, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.num_types, self.num_kinds = num_types, num_kinds
+        self.add_state("counts", torch.zeros(num_kinds, num_types, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, types: torch.Tensor, pair_kind: torch.Tensor, present: torch.Tensor) -> None:
+        kind = pair_kind.unsqueeze(-1).expand_as(types)
+        keep = present & (kind > 0)
+        cell = (kind[keep] - 1) * self.num_types + types[keep]
+        self.counts += torch.bincount(cell, minlength=self.num_kinds * self.num_types).view_as(self.counts).double()
+
+    def compute(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        total = self.counts.sum(1)
+        top, dominant = self.counts.max(1)
+        share = torch.where(total > 0, top / total.clamp_min(1), torch.full_like(total, float("nan")))
+        return share.float(), dominant, total

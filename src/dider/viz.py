@@ -1,4 +1,5 @@
-"""Figures: per-edge interaction timelines (ground truth against inferred), for TensorBoard and PNG."""
+"""Figures for TensorBoard and PNG: per-edge interaction timelines (ground truth against inferred) and a
+clip's trajectories with its interaction segments drawn between the agents (over the scene image if any)."""
 
 from __future__ import annotations
 
@@ -41,8 +42,57 @@ def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = 
     return fig
 
 
+def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.Tensor, num_types: int,
+                      background: tuple[object, tuple[float, float, float, float]] | None = None,
+                      title: str = "") -> plt.Figure:
+    """A clip's paths with a line from sender to receiver at every step an edge holds an interaction type,
+    coloured by that type, so segments show where along the paths they happened.
+
+    positions: [T, N, 2] raw units; mask: [T, N] bool; types: [E, T-1] long (transition t -> t+1 drawn at
+    frame t + 1); background: (image, extent) as from ``ClipDataModule.background``.
+    """
+    t, n = mask.shape
+    send, recv = edge_index(n)
+    cmap = plt.get_cmap("tab10", max(num_types, 2))
+    fig, ax = plt.subplots(figsize=(6, 6))
+    if background is not None:
+        image, extent = background
+        ax.imshow(image, extent=extent, zorder=0)
+    pos, present = positions.numpy(), mask.numpy()
+    both = (present[1:, send.numpy()] & present[1:, recv.numpy()]).T  # [E, T-1]
+    e_idx, step = np.nonzero((types.numpy() > 0) & both)
+    frame = step + 1
+    for c in range(1, num_types):  # one collection per type: few artists however long the clip
+        keep = types.numpy()[e_idx, step] == c
+        if keep.any():
+            a, b = pos[frame[keep], send[e_idx[keep]].numpy()], pos[frame[keep], recv[e_idx[keep]].numpy()]
+            ax.plot(np.stack([a[:, 0], b[:, 0]]), np.stack([a[:, 1], b[:, 1]]), color=cmap(c), alpha=0.35,
+                    lw=1.0, zorder=1)
+    for i in range(n):
+        xy = pos[present[:, i], i]
+        if len(xy):
+            ax.plot(xy[:, 0], xy[:, 1], color="k", lw=1.2, zorder=2)
+            ax.scatter(xy[:1, 0], xy[:1, 1], s=12, color="k", zorder=3)
+            ax.annotate(str(i), xy[-1], fontsize=7, zorder=3)
+    handles = [plt.Line2D([], [], color=cmap(c), lw=2) for c in range(1, num_types)]
+    ax.legend(handles, [f"type {c}" for c in range(1, num_types)], fontsize=7, loc="best")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> None:
+    fig.savefig(path, dpi=100)
+    tb = next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
+    if tb is not None:
+        tb.experiment.add_figure(tag, fig, global_step=trainer.global_step, close=False)
+    plt.close(fig)
+
+
 class TimelineFigures(L.Callback):
-    """After testing, draws the timelines of the first test clips into TensorBoard and ``output_dir``."""
+    """After testing, draws the timelines and the trajectories of the first test clips into TensorBoard and
+    ``output_dir`` (the test loader is not shuffled, so these are the test set's first clips)."""
 
     def __init__(self, output_dir: str) -> None:
         self.output_dir = Path(output_dir)
@@ -52,12 +102,16 @@ class TimelineFigures(L.Callback):
         if not data or not trainer.is_global_zero:
             return
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        tb = next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
         labels = {"truth": "truth", "per_step": "per step", "segments": "segments", "prior": "prior (online)"}
+        dm = getattr(trainer, "datamodule", None)
+        norm = getattr(dm, "normalizer", None)
         for i in range(data["segments"].shape[0]):
+            index = int(data["index"][i]) if "index" in data else i
             rows = {label: data[key][i] for key, label in labels.items() if key in data}
-            fig = timeline_figure(rows, pl_module.num_types, title=f"test clip {i}")
-            fig.savefig(self.output_dir / f"timeline_{i:02d}.png", dpi=100)
-            if tb is not None:
-                tb.experiment.add_figure(f"test/timeline/{i:02d}", fig, global_step=trainer.global_step, close=False)
-            plt.close(fig)
+            fig = timeline_figure(rows, pl_module.num_types, title=f"test clip {index}")
+            _add(trainer, f"test/timeline/{i:02d}", fig, self.output_dir / f"timeline_{i:02d}.png")
+            states = norm.denormalize(data["states"][i]) if norm is not None else data["states"][i]
+            background = dm.background("test", index) if dm is not None and hasattr(dm, "background") else None
+            fig = trajectory_figure(states[..., :2], data["mask"][i], data["segments"][i], pl_module.num_types,
+                                    background, title=f"test clip {index}: interaction segments")
+            _add(trainer, f"test/trajectories/{i:02d}", fig, self.output_dir / f"trajectories_{i:02d}.png")

@@ -5,6 +5,8 @@ A batch is a plain dict (collates and moves between devices for free):
 - ``mask``:   [B, T, N] bool, agent present at that step.
 - ``edges``:  [B, T-1, E] long (optional, synthetic data only): ground-truth type of each directed edge
   for the *transition* t -> t+1, i.e. the force that produced state t+1 from state t.
+- ``pair_kind``: [B, E] long (optional, inD): 1 parked pair, 2 opposite-direction non-crossing pair, 0 other
+  (:mod:`dider.data.pairs`), for the consistency check.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ class Batch(TypedDict):
     states: torch.Tensor
     mask: torch.Tensor
     edges: NotRequired[torch.Tensor]
+    pair_kind: NotRequired[torch.Tensor]
 
 
 class Normalizer:

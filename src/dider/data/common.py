@@ -14,6 +14,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from dider.data.batch import Batch, Normalizer
+from dider.data.pairs import pair_kind_matrix
 
 SPLITS = ("train", "val", "test")
 
@@ -47,11 +48,17 @@ class PackedClipDataset(Dataset):
     to the largest agent count in the batch; padded agents have mask False and zero states.
     """
 
-    def __init__(self, states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor) -> None:
+    def __init__(self, states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor,
+                 pairs: dict[str, torch.Tensor] | None = None) -> None:
+        """pairs: optional packed agent pairs of each clip (:func:`dider.data.pairs.find_pairs`); batches then
+        carry ``pair_kind`` [B, E] for the consistency check."""
         if states.shape[0] != mask.shape[0] or int(offsets[-1]) != states.shape[0]:
             raise ValueError(f"PackedClipDataset: {states.shape[0]} rows, mask {mask.shape[0]}, offsets end "
                              f"{int(offsets[-1])}: these must agree")
-        self.states, self.mask, self.offsets = states, mask, offsets
+        if pairs is not None and len(pairs["pair_offsets"]) != len(offsets):
+            raise ValueError(f"PackedClipDataset: pair_offsets has {len(pairs['pair_offsets'])} entries, "
+                             f"offsets {len(offsets)}: these must agree")
+        self.states, self.mask, self.offsets, self.pairs = states, mask, offsets, pairs
 
     def __len__(self) -> int:
         return self.offsets.shape[0] - 1
@@ -76,7 +83,10 @@ class PackedClipDataset(Dataset):
         rows = torch.where(valid, start[:, None] + slot[None, :], 0)
         states = self.states[rows] * valid[:, :, None, None].to(self.states.dtype)  # [B, N, T, 4]
         mask = self.mask[rows] & valid[:, :, None]  # [B, N, T]
-        return {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
+        batch: Batch = {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
+        if self.pairs is not None:
+            batch["pair_kind"] = pair_kind_matrix(**self.pairs, windows=idx, n=n_max)
+        return batch
 
 
 def pad_collate(items: Batch | list[Batch]) -> Batch:
@@ -200,6 +210,11 @@ class ClipDataModule(L.LightningDataModule):
     def burn_in_mode(self) -> str:
         """How forecasts are observed before the roll-out: ``global`` or ``per_agent`` (check_burn_in_mode)."""
         return self.hparams.get("burn_in_mode", "global")
+
+    def background(self, split: str, index: int) -> tuple[object, tuple[float, float, float, float]] | None:
+        """An image to draw clip ``index`` of ``split`` on, with its extent in the data's raw units (for
+        ``imshow``), or None (the default: no scene image)."""
+        return None
 
     def _loader(self, split: str, train: bool) -> DataLoader:
         if split not in self.datasets:

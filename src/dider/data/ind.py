@@ -33,6 +33,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import matplotlib.image as plt_image
 import numpy as np
 import pandas as pd
 import torch
@@ -52,6 +53,7 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
+from dider.data.pairs import PairRules, find_pairs
 
 log = logging.getLogger(__name__)
 
@@ -466,9 +468,19 @@ class InDDataModule(ClipDataModule):
         pin_memory: bool = False,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
+        pairs: dict[str, Any] | None = None,
+        background_pattern: str = "{id}_background.png",
+        background_scale: float = 12.0,
     ) -> None:
+        """pairs: the consistency check's rules (:class:`dider.data.pairs.PairRules` fields); test batches
+        carry ``pair_kind``."""
         super().__init__()
         check_burn_in_mode(burn_in_mode)
+        try:
+            self.pair_rules = PairRules(**{k: tuple(v) if isinstance(v, list | tuple) else v
+                                           for k, v in dict(pairs or {}).items()})
+        except TypeError as e:
+            raise ValueError(f"data.pairs: {e} (fields: {list(PairRules.__dataclass_fields__)})") from None
         check_counts(
             downsample=(downsample, 1), seq_len=(seq_len, 2), stride=(stride, 1),
             eval_stride=(eval_stride, 1), min_agent_steps=(min_agent_steps, 1), min_agents=(min_agents, 1),
@@ -586,12 +598,35 @@ class InDDataModule(ClipDataModule):
                              f"the normalisation: {e}") from None
         for split, data in raw.items():
             states = fill_absent(self.normalizer.normalize(data["states"]), data["mask"])
-            ds = PackedClipDataset(states, data["mask"], data["offsets"])
+            pairs = None
+            if split == "test":  # the consistency check reads raw speeds and paths
+                vehicle = torch.tensor([c in self.pair_rules.vehicle_classes for c in data["class_names"]])
+                pairs = find_pairs(data["states"], data["mask"], data["offsets"],
+                                   vehicle[data["agent_class"]], self.pair_rules)
+            ds = PackedClipDataset(states, data["mask"], data["offsets"], pairs)
             for key in ("track_id", "agent_class", "class_names", "window_start", "window_recording",
                         "recordings"):
                 setattr(ds, key, data[key])
             self.datasets[split] = ds
         log.info("%s windows: %s", h.name, {s: len(d) for s, d in self.datasets.items()})
+
+    def background(self, split: str, index: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
+        """The background image of clip ``index`` of ``split`` and its extent (left, right, bottom, top) in
+        the tracks' metres, for ``imshow``; None without the image or the recording's ``orthoPxToMeter``.
+
+        A pixel is orthoPxToMeter * background_scale metres (the released images are downscaled) and the
+        image's y axis points down while the tracks' points up."""
+        h, ds = self.hparams, self.datasets[split]
+        files = self.split_recordings()[split][int(ds.window_recording[index])]
+        image = files.tracks.parent / h.background_pattern.format(id=files.id)
+        if not image.is_file() or "orthoPxToMeter" not in _header(files.recording_meta):
+            return None
+        meters = float(_read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * h.background_scale
+        if not (np.isfinite(meters) and meters > 0):
+            return None
+        pixels = plt_image.imread(image)
+        rows, cols = pixels.shape[:2]
+        return pixels, (0.0, cols * meters, -rows * meters, 0.0)
 
 
 LevelXDataModule = InDDataModule  # the same reader serves rounD and uniD

@@ -25,9 +25,10 @@ from torch import nn
 
 from dider.data.batch import Batch
 from dider.data.common import BURN_IN_MODES, agent_horizons, burn_in_mask, fill_absent
+from dider.data.pairs import KIND_NAMES
 from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, gaussian_nll
-from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, SegmentStats
+from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation
 
@@ -111,6 +112,7 @@ class RelationalVAE(L.LightningModule):
         capacity_edge: float = 0.0,
         capacity_duration: float = 0.0,
         capacity_ramp: float = 0.5,
+        kl_warmup: float = 0.0,
         sparsity_mix: float = 0.0,
         no_edge_prob: float = 0.9,
         rollout_edges: str = "sample",
@@ -144,6 +146,8 @@ class RelationalVAE(L.LightningModule):
                 raise ValueError(f"{key}={value}: must be >= 0")
         if not 0.0 <= capacity_ramp <= 1.0:
             raise ValueError(f"model.capacity_ramp={capacity_ramp}: a fraction of training, in [0, 1]")
+        if not 0.0 <= kl_warmup <= 1.0:
+            raise ValueError(f"model.kl_warmup={kl_warmup}: a fraction of training, in [0, 1]")
         if not 0.0 <= sparsity_mix <= 1.0:
             raise ValueError(f"model.sparsity_mix={sparsity_mix}: must lie in [0, 1]")
         if burn_in_mode is not None and burn_in_mode not in BURN_IN_MODES:
@@ -163,6 +167,7 @@ class RelationalVAE(L.LightningModule):
         self.test_acc_prior = EdgeAccuracy()
         self.test_segments = SegmentStats()
         self.test_boundary = BoundaryF1(tolerance=2)
+        self.test_pairs = PairConsistency(num_edges, num_kinds=len(KIND_NAMES))
         self.test_types: list[torch.Tensor] = []  # per-step posterior types and probabilities, for export
         self.test_probs: list[torch.Tensor] = []
         self.figure_data: dict[str, torch.Tensor] = {}
@@ -208,14 +213,17 @@ class RelationalVAE(L.LightningModule):
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl)
 
     def loss(self, out: Inference) -> dict[str, torch.Tensor]:
-        """NLL + beta_e |KL_e - C_e| + beta_d |KL_d - C_d|, capacities ramped linearly (beta-VAE, Burgess et al.)."""
+        """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
+        et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
+        al.), so the posterior carries information before the prior may pull it in."""
         h = self.hparams
         total = self._trainer.estimated_stepping_batches if self._trainer is not None else 0
-        ramp = int(h.capacity_ramp * total) if total and total != float("inf") else 0
-        c_e = capacity(self.global_step, h.capacity_edge, ramp)
-        c_d = capacity(self.global_step, h.capacity_duration, ramp)
+        known = bool(total) and total != float("inf")
+        c_e = capacity(self.global_step, h.capacity_edge, int(h.capacity_ramp * total) if known else 0)
+        c_d = capacity(self.global_step, h.capacity_duration, int(h.capacity_ramp * total) if known else 0)
+        w = capacity(self.global_step, 1.0, int(h.kl_warmup * total) if known else 0)
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
-        loss = nll + h.beta_edge * (kl_e - c_e).abs() + h.beta_duration * (kl_d - c_d).abs()
+        loss = nll + w * (h.beta_edge * (kl_e - c_e).abs() + h.beta_duration * (kl_d - c_d).abs())
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d}
 
     def _advance_edges(
@@ -432,7 +440,7 @@ class RelationalVAE(L.LightningModule):
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         bs = batch["states"].shape[0]
         terms = self.loss(self.infer(batch, hard=True))
-        self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=bs)
+        self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=bs, sync_dist=True)
         pred, target, tmask, _, horizon = self._forecast(batch)
         self.val_mse.update(pred, target, tmask, horizon)
 
@@ -444,7 +452,7 @@ class RelationalVAE(L.LightningModule):
         bs = batch["states"].shape[0]
         out = self.infer(batch, hard=True)
         terms = self.loss(out)
-        self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs)
+        self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs, sync_dist=True)
         pred, target, tmask, roll_types, horizon = self._forecast(batch)
         self.test_mse.update(pred, target, tmask, horizon)
         norm = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
@@ -458,12 +466,17 @@ class RelationalVAE(L.LightningModule):
             self.test_acc_post.update(post_types.transpose(1, 2), batch["edges"], present)
             self.test_acc_prior.update(prior_types.transpose(1, 2), batch["edges"], present)
             self.test_boundary.update(post_types, batch["edges"].transpose(1, 2))
-        self.test_types.append(post_types.cpu())
+        if "pair_kind" in batch:
+            self.test_pairs.update(post_types, batch["pair_kind"], present.transpose(1, 2))
+        self.test_types.append(post_types.masked_fill(~present.transpose(1, 2), -1).cpu())  # -1: edge absent
         self.test_probs.append(out.probs.gather(-1, post_types.unsqueeze(-1)).squeeze(-1).cpu())
         if batch_idx == 0:
             k = self.hparams.num_figure_clips
             self.figure_data = {"segments": post_types[:k].cpu(), "prior": prior_types[:k].cpu(),
-                                "per_step": out.step_logits[:k].argmax(-1).cpu(), "states": batch["states"][:k].cpu()}
+                                "per_step": out.step_logits[:k].argmax(-1).cpu(), "states": batch["states"][:k].cpu(),
+                                "mask": batch["mask"][:k].cpu(),
+                                # test-set index of each clip: rank r of W holds clips r, r + W, ... under DDP
+                                "index": torch.arange(min(k, bs)) * self.trainer.world_size + self.global_rank}
             if "edges" in batch:
                 self.figure_data["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
 
@@ -471,7 +484,24 @@ class RelationalVAE(L.LightningModule):
         self.test_types, self.test_probs = [], []
         self._enter_eval_rng()
 
+    def _gather_test_clips(self) -> None:
+        """Under DDP each rank tested every world_size-th clip (DistributedSampler without shuffling): put
+        the per-clip outputs of all ranks back in test-set order, dropping the sampler's padding."""
+        world = self.trainer.world_size
+        if world == 1:
+            return
+        clips = [(t, p) for tb, pb in zip(self.test_types, self.test_probs, strict=True)
+                 for t, p in zip(tb, pb, strict=True)]
+        per_rank: list[Any] = [None] * world
+        torch.distributed.all_gather_object(per_rank, clips)
+        ordered = [per_rank[r][j] for j in range(max(map(len, per_rank))) for r in range(world)
+                   if j < len(per_rank[r])]
+        ordered = ordered[: len(self.trainer.test_dataloaders.dataset)]
+        self.test_types = [t[None] for t, _ in ordered]
+        self.test_probs = [p[None] for _, p in ordered]
+
     def on_test_epoch_end(self) -> None:
+        self._gather_test_clips()
         self._log_horizons("test/mse", self.test_mse)
         if self.test_mse_raw.update_count:
             self._log_horizons("test/mse_raw", self.test_mse_raw)
@@ -488,7 +518,22 @@ class RelationalVAE(L.LightningModule):
                 self.log(f"test/edge_acc/{name}/none", none)
                 self.log(f"test/edge_acc/{name}/interaction", inter)
                 metric.reset()
+        if self.test_pairs.update_count:
+            self._log_consistency()
         self._exit_eval_rng()
+
+    def _log_consistency(self) -> None:
+        """test/consistency/{parked,opposite}/{share,type,edge_steps}; a kind with no edge-steps in the test
+        split logs only its (zero) count, with a warning, rather than a made-up share."""
+        share, dominant, total = self.test_pairs.compute()
+        for k, name in KIND_NAMES.items():
+            self.log(f"test/consistency/{name}/edge_steps", total[k - 1].float())
+            if total[k - 1] > 0:
+                self.log(f"test/consistency/{name}/share", share[k - 1])
+                self.log(f"test/consistency/{name}/type", dominant[k - 1].float())
+            else:
+                log.warning("consistency check: no %s pairs in the test split (data.pairs sets the rules)", name)
+        self.test_pairs.reset()
 
     def _log_horizons(self, prefix: str, metric: HorizonMSE) -> None:
         for h, v in zip(metric.horizons, metric.compute(), strict=True):
