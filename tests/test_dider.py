@@ -140,3 +140,14 @@ def test_bad_duration_values_name_the_key():
         LearnedDuration(max_segments=0)
     with pytest.raises(ValueError, match="model.duration.source"):
         LearnedDuration(source="sideways")
+
+
+def test_duration_head_starts_at_the_prior_mean_with_sigma_init():
+    dur = LearnedDuration(rnn_hidden=8, hidden=8, prior_mu=-0.6, sigma_init=0.2)
+    with torch.no_grad():
+        dur.head[-1].weight.zero_()  # the bias alone: what the head says before it has seen anything
+    mu, sigma = dur.gaussian(torch.randn(3, 8))
+    assert torch.allclose(mu, torch.full_like(mu, -0.6), atol=1e-6)
+    assert torch.allclose(sigma, torch.full_like(sigma, 0.2), atol=1e-6)
+    with pytest.raises(ValueError, match="model.duration.sigma_init"):
+        LearnedDuration(sigma_init=0.005)

@@ -200,6 +200,7 @@ BAD_CONFIGS = [
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
     (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
+    (["compile=maybe"], r"compile='maybe': expected true or false"),
 ]
 
 

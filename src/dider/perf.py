@@ -14,6 +14,8 @@ import ctypes.util
 import os
 import sys
 
+import torch
+
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
 _applied = False
 
@@ -34,3 +36,11 @@ def tune_allocator() -> bool:
         return False
     _applied = bool(ok)
     return _applied
+
+
+def compile_modules(model: torch.nn.Module) -> None:
+    """``torch.compile`` a RelationalVAE's hot plugins in place: the encoder and decoder (the GNN and its
+    element-wise chains). The segment logic stays eager: its slot boundaries change every step. Shapes are
+    static at first and marked dynamic when they change (real data: the agent count varies per batch)."""
+    for name in ("encoder", "decoder"):
+        getattr(model, name).compile()

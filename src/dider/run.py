@@ -22,7 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 from dider.checkpoint import AtomicCheckpointIO
 from dider.data.cache import atomic_write_text
 from dider.data.common import BURN_IN_MODES
-from dider.perf import tune_allocator
+from dider.perf import compile_modules, tune_allocator
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +104,8 @@ def validate_config(cfg: DictConfig) -> None:
             problems.append(f"{key}={value}: must be >= {low}{what}")
         return value
 
+    if not isinstance(get("compile") or False, bool):
+        problems.append(f"compile={get('compile')!r}: expected true or false")
     mode = get("mode")
     if mode not in ("train", "eval"):
         problems.append(f"mode={mode!r}: expected 'train' or 'eval'")
@@ -194,6 +196,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
     model = instantiate(cfg.model, _convert_="all")
+    if cfg.get("compile"):
+        compile_modules(model)
     callbacks = _build_list(cfg.get("callbacks"))
     loggers: list[Logger] = _build_list(cfg.get("logger"))
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,

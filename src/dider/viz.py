@@ -59,7 +59,10 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
         image, extent = background
         ax.imshow(image, extent=extent, zorder=0)
     pos, present = positions.numpy(), mask.numpy()
-    both = (present[1:, send.numpy()] & present[1:, recv.numpy()]).T  # [E, T-1]
+    # an edge exists for transition t -> t+1 when both agents are present at t (the model's edge mask) and
+    # is drawn at frame t + 1, which needs them there too
+    alive = present[:-1] & present[1:]
+    both = (alive[:, send.numpy()] & alive[:, recv.numpy()]).T  # [E, T-1]
     e_idx, step = np.nonzero((types.numpy() > 0) & both)
     frame = step + 1
     for c in range(1, num_types):  # one collection per type: few artists however long the clip

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import lightning as L
 import torch
+import torch.distributed as dist
+from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from torch.utils.data import DataLoader, Dataset
 
 from dider.data.batch import Batch, Normalizer
@@ -73,7 +75,8 @@ class PackedClipDataset(Dataset):
         return {"states": self.states[lo:hi].transpose(0, 1), "mask": self.mask[lo:hi].transpose(0, 1)}
 
     def __getitems__(self, indices: Sequence[int]) -> Batch:
-        """A padded batch: states [B, T, N_max, 4], mask [B, T, N_max]."""
+        """A padded batch: states [B, T, N_max, 4], mask [B, T, N_max] and, with pairs, pair_kind [B, E_max]
+        (E_max = N_max (N_max - 1), sender-major)."""
         idx = torch.as_tensor(indices, dtype=torch.long)
         start, count = self.offsets[idx], self.num_agents[idx]
         n_max = max(int(count.max()), 1) if len(idx) else 1
@@ -220,10 +223,16 @@ class ClipDataModule(L.LightningDataModule):
         if split not in self.datasets:
             raise RuntimeError(f"{type(self).__name__}: call setup() before asking for the {split} loader")
         h = self.hparams
+        sampler = None
+        if not train and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+            # DDP evaluation: each clip exactly once (Lightning's default sampler pads the shards by
+            # repeating clips, which the metrics would count twice); rank r holds clips r, r + W, ...
+            sampler = UnrepeatedDistributedSampler(self.datasets[split], shuffle=False)
         return DataLoader(
             self.datasets[split],
             batch_size=h.batch_size if train else h.eval_batch_size,
             shuffle=train,
+            sampler=sampler,
             drop_last=False,
             num_workers=h.num_workers,
             pin_memory=h.pin_memory,

@@ -1,6 +1,6 @@
 """Agent pairs whose interaction should look the same all along: the inD consistency check (design.md §5).
 
-Two kinds of pairs, found once per window in raw units (metres, m/s) at preprocessing time:
+Two kinds of pairs, found per window in raw units (metres, m/s) when the test split is set up:
 - ``PARKED``: two vehicles that never move in the window (speed below ``parked_speed`` at every present step);
 - ``OPPOSITE``: two moving vehicles heading in opposite directions whose paths in the window never cross.
 
@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 
 OTHER, PARKED, OPPOSITE = 0, 1, 2
+CROSSING_CHUNK = 256
 KIND_NAMES = {PARKED: "parked", OPPOSITE: "opposite"}
 
 
@@ -85,13 +86,21 @@ def find_pairs(states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor, 
     exists = j < count[window]
     window, i, j = window[exists], i[exists], j[exists]
     ra, rb = offsets[window] + i, offsets[window] + j
-
-    both_parked = parked[ra] & parked[rb] & (mask[ra] & mask[rb]).any(1)
+    # Only pairs that can qualify go on (most pairs involve a pedestrian or a slow car): [Q'] from here.
+    both_parked = parked[ra] & parked[rb]
     candidate = moving[ra] & moving[rb] & ((heading[ra] * heading[rb]).sum(-1) < rules.opposite_cos)
-    candidate &= (mask[ra] & mask[rb]).any(1)
+    keep = both_parked | candidate
+    window, i, j, ra, rb = window[keep], i[keep], j[keep], ra[keep], rb[keep]
+    together = (mask[ra] & mask[rb]).any(1)  # edges exist only at steps where both are present
+    both_parked, candidate = both_parked[keep] & together, candidate[keep] & together
     opposite = candidate.clone()
-    if bool(candidate.any()):
-        c = candidate.nonzero().squeeze(1)
+    # Paths whose bounding boxes are apart cannot cross; the others get the full segment test, in chunks:
+    # it holds [C, T-1, T-1] tensors, a few hundred MB at T = 200.
+    xy = states[..., :2]
+    lo = torch.where(mask[..., None], xy, torch.inf).amin(1)  # [P, 2]
+    hi = torch.where(mask[..., None], xy, -torch.inf).amax(1)
+    boxes_meet = ((lo[ra] <= hi[rb]) & (lo[rb] <= hi[ra])).all(-1)
+    for c in (candidate & boxes_meet).nonzero().squeeze(1).split(CROSSING_CHUNK):
         opposite[c] = ~_crossing(states[ra[c], :, :2], mask[ra[c]], states[rb[c], :, :2], mask[rb[c]])
     kind = torch.where(both_parked, PARKED, torch.where(opposite, OPPOSITE, OTHER))
     keep = kind != OTHER

@@ -87,7 +87,6 @@ class LearnedDuration(nn.Module):
         tau_anneal_steps: int = 10000,
         fixed_duration: int | None = None,
         sigma_init: float = 0.5,
-        warmup_steps: int = 0,
     ) -> None:
         super().__init__()
         checks = {
@@ -100,7 +99,6 @@ class LearnedDuration(nn.Module):
             "model.duration.tau_start": (tau_start > 0 and tau_end > 0, "tau_start and tau_end must be > 0"),
             "model.duration.fixed_duration": (fixed_duration is None or fixed_duration >= 1, "must be >= 1 or null"),
             "model.duration.sigma_init": (sigma_min < sigma_init < 1, "must lie in (sigma_min, 1)"),
-            "model.duration.warmup_steps": (warmup_steps >= 0, "must be >= 0"),
         }
         for key, (ok, why) in checks.items():
             if not ok:
@@ -109,12 +107,11 @@ class LearnedDuration(nn.Module):
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
         self.tau_start, self.tau_end, self.tau_anneal_steps = tau_start, tau_end, tau_anneal_steps
-        self.warmup_steps = warmup_steps
         self.head = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 2))
         with torch.no_grad():  # start at the prior's mean fraction, with a small spread, not at rho = 0.5 +- 0.25
             self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
-        self.step = 0  # optimiser step, set by the module; drives the tau_s annealing and the warm-up
+        self.step = 0  # optimiser step, set by the module; drives the tau_s annealing
 
     @property
     def tau(self) -> float:
@@ -129,16 +126,10 @@ class LearnedDuration(nn.Module):
     def fraction(self, z: torch.Tensor) -> torch.Tensor:
         return ((z + 1) / 2).clamp(self.rho_min, 1.0)
 
-    @property
-    def warming_up(self) -> bool:
-        """During the first ``warmup_steps`` optimiser steps training runs with one-step segments (DNRI),
-        so the edge posterior learns what the types mean before segments hold them."""
-        return self.training and self.step < self.warmup_steps
-
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = h_fwd if self.source == "past" else h_rev
-        fixed = 1 if self.warming_up else self.fixed_duration
+        fixed = self.fixed_duration
         slots = min(self.max_segments, t) if fixed is None else -(-t // fixed)
         s = h_fwd.new_zeros(b, e)  # continuous start of the current slot
         bounds, starts, kls = [s], [], []

@@ -485,18 +485,20 @@ class RelationalVAE(L.LightningModule):
         self._enter_eval_rng()
 
     def _gather_test_clips(self) -> None:
-        """Under DDP each rank tested every world_size-th clip (DistributedSampler without shuffling): put
-        the per-clip outputs of all ranks back in test-set order, dropping the sampler's padding."""
+        """Under DDP rank r of W tested clips r, r + W, ... (``ClipDataModule``'s unrepeated sampler): put
+        the per-clip outputs of all ranks back in test-set order on rank 0."""
         world = self.trainer.world_size
         if world == 1:
             return
         clips = [(t, p) for tb, pb in zip(self.test_types, self.test_probs, strict=True)
                  for t, p in zip(tb, pb, strict=True)]
-        per_rank: list[Any] = [None] * world
-        torch.distributed.all_gather_object(per_rank, clips)
+        per_rank: list[Any] = [None] * world if self.global_rank == 0 else None
+        torch.distributed.gather_object(clips, per_rank, dst=0)  # the export runs on rank 0 only
+        if self.global_rank != 0:
+            self.test_types, self.test_probs = [], []
+            return
         ordered = [per_rank[r][j] for j in range(max(map(len, per_rank))) for r in range(world)
                    if j < len(per_rank[r])]
-        ordered = ordered[: len(self.trainer.test_dataloaders.dataset)]
         self.test_types = [t[None] for t, _ in ordered]
         self.test_probs = [p[None] for _, p in ordered]
 
@@ -531,7 +533,7 @@ class RelationalVAE(L.LightningModule):
             if total[k - 1] > 0:
                 self.log(f"test/consistency/{name}/share", share[k - 1])
                 self.log(f"test/consistency/{name}/type", dominant[k - 1].float())
-            else:
+            elif self.trainer.is_global_zero:
                 log.warning("consistency check: no %s pairs in the test split (data.pairs sets the rules)", name)
         self.test_pairs.reset()
 
