@@ -3,13 +3,17 @@
 import torch
 from torch import nn
 
-from dider.graph import aggregate_to_receivers, edge_index, edge_mask
+from dider.graph import aggregate_to_receivers, edge_id, edge_index, edge_mask, num_agents, num_edges
 from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
 
 
 def test_edge_order_is_sender_major():
     send, recv = edge_index(3)
     assert list(zip(send.tolist(), recv.tolist(), strict=True)) == [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)]
+    for n in (2, 3, 7, 50):  # edge_id and num_agents invert edge_index and num_edges
+        send, recv = edge_index(n)
+        assert torch.equal(edge_id(send, recv, n), torch.arange(n * (n - 1)))
+        assert num_agents(num_edges(n)) == n
 
 
 def test_pair_linear_equals_linear_on_concat():

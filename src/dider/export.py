@@ -10,7 +10,7 @@ import lightning as L
 import torch
 
 from dider.data.cache import atomic_write_text
-from dider.graph import edge_index
+from dider.graph import edge_index, num_agents
 
 
 def segment_table(types: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
@@ -43,7 +43,7 @@ def segments_json(batches: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str,
     clips: list[dict[str, Any]] = []
     for types, probs in batches:
         b, e, _ = types.shape
-        n = int(round((1 + (1 + 4 * e) ** 0.5) / 2))
+        n = num_agents(e)
         send, recv = edge_index(n)
         edges: list[dict[int, list[dict[str, Any]]]] = [{} for _ in range(b)]
         for clip, edge, start, end, typ, prob in segment_table(types, probs).tolist():

@@ -27,6 +27,16 @@ def num_edges(num_agents: int) -> int:
     return num_agents * (num_agents - 1)
 
 
+def num_agents(num_edges: int) -> int:
+    """The N with N(N-1) = ``num_edges`` (the inverse of :func:`num_edges`)."""
+    return int(round((1 + (1 + 4 * num_edges) ** 0.5) / 2))
+
+
+def edge_id(send: torch.Tensor, recv: torch.Tensor, num_agents: int) -> torch.Tensor:
+    """Position of the directed edges send -> recv (long tensors, send != recv) in :func:`edge_index`'s order."""
+    return send * (num_agents - 1) + recv - (recv > send).long()
+
+
 def edge_mask(agent_mask: torch.Tensor) -> torch.Tensor:
     """Edges whose sender and receiver are both present.
 

@@ -14,7 +14,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from lightning.pytorch.loggers import TensorBoardLogger  # noqa: E402
 
-from dider.graph import edge_index  # noqa: E402
+from dider.graph import edge_index, num_agents  # noqa: E402
 
 
 def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = "") -> plt.Figure:
@@ -24,7 +24,7 @@ def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = 
     """
     names = list(rows)
     e, t = next(iter(rows.values())).shape
-    n = int(round((1 + (1 + 4 * e) ** 0.5) / 2))
+    n = num_agents(e)
     send, recv = edge_index(n)
     cmap = plt.get_cmap("tab10", max(num_types, 2))
     fig, axes = plt.subplots(e, 1, figsize=(8, 0.35 * len(names) * e + 1), sharex=True, squeeze=False)

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import torch
 
+from dider.graph import edge_id
+
 OTHER, PARKED, OPPOSITE = 0, 1, 2
 CROSSING_CHUNK = 256
 KIND_NAMES = {PARKED: "parked", OPPOSITE: "opposite"}
@@ -110,11 +112,6 @@ def find_pairs(states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor, 
             "pair_kind": kind[keep]}
 
 
-def sender_major_edge(i: torch.Tensor, j: torch.Tensor, n: int) -> torch.Tensor:
-    """Index of the directed edge i -> j among n agents in sender-major order (dider.graph.edge_index)."""
-    return i * (n - 1) + j - (j > i).long()
-
-
 def pair_kind_matrix(pair_offsets: torch.Tensor, pair_agents: torch.Tensor, pair_kind: torch.Tensor,
                      windows: torch.Tensor, n: int) -> torch.Tensor:
     """The kinds of a batch of windows as [B, n(n-1)] long (both directions of a pair share its kind)."""
@@ -125,6 +122,6 @@ def pair_kind_matrix(pair_offsets: torch.Tensor, pair_agents: torch.Tensor, pair
     a, b = pair_agents[q, 0], pair_agents[q, 1]
     out = torch.zeros(len(windows), n * (n - 1), dtype=torch.long)
     kind = pair_kind[q]
-    out[row, sender_major_edge(a, b, n)] = kind
-    out[row, sender_major_edge(b, a, n)] = kind
+    out[row, edge_id(a, b, n)] = kind
+    out[row, edge_id(b, a, n)] = kind
     return out
