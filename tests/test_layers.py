@@ -1,10 +1,12 @@
 """The fast building blocks equal the straightforward maths they replace."""
 
+import pytest
 import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_id, edge_index, edge_mask, num_agents, num_edges
 from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
+from dider.models.rnn import bidirectional_lstm
 
 
 def test_edge_order_is_sender_major():
@@ -54,3 +56,35 @@ def test_flat_batchnorm_matches_torch():
     torch.testing.assert_close(ours.running_mean, ref.running_mean)
     ours.eval(), ref.eval()
     torch.testing.assert_close(ours(x), ref(x.reshape(-1, 8)).view(x.shape))
+
+
+def test_flat_batchnorm_gradient_through_a_transposed_view():
+    torch.manual_seed(0)
+    ours, ref = FlatBatchNorm(8), nn.BatchNorm1d(8)
+    x = torch.randn(5, 7, 8)
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    w = torch.randn(7, 5, 8)  # the loss reads the output transposed, so its gradient arrives transposed
+    (ours(a).transpose(0, 1) * w).sum().backward()
+    (ref(b.reshape(-1, 8)).view(x.shape).transpose(0, 1) * w).sum().backward()
+    torch.testing.assert_close(a.grad, b.grad)
+    torch.testing.assert_close(ours.weight.grad, ref.weight.grad)
+
+
+def test_bidirectional_lstm_equals_two_torch_lstms():
+    torch.manual_seed(0)
+    fwd, rev = nn.LSTM(6, 5), nn.LSTM(6, 5)
+    seq = torch.randn(9, 4, 6)  # [T, M, H]
+    ours = bidirectional_lstm(seq.requires_grad_(), fwd, rev)
+    ref = fwd(seq)[0].transpose(0, 1), rev(seq.flip(0))[0].flip(0).transpose(0, 1)
+    for a, b in zip(ours, ref, strict=True):
+        torch.testing.assert_close(a, b)
+    w = torch.randn(2, 4, 9, 5)
+    grads = [torch.autograd.grad((torch.stack(out) * w).sum(), [seq, *fwd.parameters(), *rev.parameters()])
+             for out in (ours, ref)]
+    for a, b in zip(*grads, strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_bidirectional_lstm_rejects_other_lstms():
+    with pytest.raises(ValueError, match="single-layer"):
+        bidirectional_lstm(torch.zeros(3, 2, 4), nn.LSTM(4, 5, num_layers=2), nn.LSTM(4, 5))

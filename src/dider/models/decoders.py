@@ -32,6 +32,8 @@ class _MessagePassing(nn.Module):
     def forward(self, nodes: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         pre = self.act(self.fc1(nodes))  # [..., E, K'*H]: every type's first layer in one matmul
         msg = self.act(self.fc2(self.drop(pre.unflatten(-1, (self.num_msg, self.hidden)))))  # [..., E, K', H]
+        if self.num_msg == 1:  # one pass instead of a product and a sum over a size-1 axis
+            return msg.squeeze(-2) * z[..., self.first :]
         return (msg * z[..., self.first :, None]).sum(-2)
 
 

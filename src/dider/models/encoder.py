@@ -13,6 +13,7 @@ from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_mask
 from dider.models.layers import MLP, PairLinear, head
+from dider.models.rnn import bidirectional_lstm
 
 LSTMState = tuple[torch.Tensor, torch.Tensor]
 
@@ -24,11 +25,10 @@ class EncoderOutput:
     h_fwd: torch.Tensor  # [B, E, T-1, R] forward LSTM: transition t has seen x_0..x_t (the prior's input)
     h_rev: torch.Tensor  # [B, E, T-1, R] reverse LSTM: transition t has seen x_{t+1}..x_{T-1}
     posterior_logits: torch.Tensor  # [B, E, T-1, K] from [h_rev, h_fwd]
-    state: LSTMState  # forward LSTM state after x_{T-2}, each [1, B*E, R]
 
 
 class GNNEdgeEmbedding(nn.Module):
-    """NRI/DNRI factor-graph embedding, node -> edge -> node -> edge, at every step independently.
+    """NRI/DNRI factor-graph embedding, node -> edge -> node -> edge, at every frame independently.
 
     x: [..., N, D], mask: [..., N] bool or None -> [..., E, H].
     """
@@ -79,6 +79,14 @@ class GNNLSTMEncoder(nn.Module):
         self.posterior_head = head(2 * rnn_hidden, head_hidden, num_types, head_layers)
         self.rnn_hidden = rnn_hidden
 
+    def _embed(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """x [B, T, N, D], mask [B, T, N] or None -> one sequence per edge, time-major: [T, B*E, H].
+
+        The GNN runs time-major so that every frame's edge rows are contiguous for the LSTMs: no transposed
+        copy forwards, and no transposed gradient into the batch norms backwards."""
+        emb = self.embed(x.transpose(0, 1), None if mask is None else mask.transpose(0, 1))  # [T, B, E, H]
+        return emb.flatten(1, 2)
+
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> EncoderOutput:
         """Features of the T-1 transitions of a clip. x: [B, T, N, D], mask: [B, T, N] bool or None.
 
@@ -86,29 +94,23 @@ class GNNLSTMEncoder(nn.Module):
         [h_rev, h_fwd] where h_rev has seen x_{t+1}..x_{T-1}: unlike DNRI's released code, the
         posterior sees the state the transition produced.
         """
-        b, t, n, _ = x.shape
-        emb = self.embed(x, mask)  # [B, T, E, H]
-        e = emb.shape[2]
-        seq = emb.transpose(1, 2).reshape(b * e, t, -1)  # one sequence per edge
-        h_fwd, state = self.forward_rnn(seq[:, :-1])
-        h_rev = self.reverse_rnn(seq[:, 1:].flip(1))[0].flip(1)
-        h_fwd, h_rev = h_fwd.view(b, e, t - 1, -1), h_rev.view(b, e, t - 1, -1)
+        b = x.shape[0]
+        # Both LSTMs over all T frames: the forward output at frame t has seen x_0..x_t, the reverse output
+        # at frame t+1 has seen x_{t+1}..x_{T-1}.
+        h_fwd, h_rev = bidirectional_lstm(self._embed(x, mask), self.forward_rnn, self.reverse_rnn)
+        h_fwd, h_rev = h_fwd[:, :-1].unflatten(0, (b, -1)), h_rev[:, 1:].unflatten(0, (b, -1))
         logits = self.posterior_head(torch.cat([h_rev, h_fwd], dim=-1))
-        return EncoderOutput(h_fwd, h_rev, logits, state)
+        return EncoderOutput(h_fwd, h_rev, logits)
 
     def past(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, LSTMState]:
         """Forward LSTM only, over every given frame: x [B, T, N, D] -> h_fwd [B, E, T, R] and its state."""
-        b, t, n, _ = x.shape
-        emb = self.embed(x, mask)
-        e = emb.shape[2]
-        h_fwd, state = self.forward_rnn(emb.transpose(1, 2).reshape(b * e, t, -1))
-        return h_fwd.view(b, e, t, -1), state
+        h_fwd, state = self.forward_rnn(self._embed(x, mask).transpose(0, 1))
+        return h_fwd.unflatten(0, (x.shape[0], -1)), state
 
     def step(
         self, x_t: torch.Tensor, state: LSTMState | None, mask_t: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, LSTMState]:
         """Advance the forward LSTM by one frame. x_t: [B, N, D] -> h_fwd_t [B, E, R] and the new state."""
-        b = x_t.shape[0]
-        emb = self.embed(x_t, mask_t)  # [B, E, H]
-        out, state = self.forward_rnn(emb.reshape(-1, 1, emb.shape[-1]), state)
-        return out.view(b, -1, self.rnn_hidden), state
+        seq = self._embed(x_t.unsqueeze(1), None if mask_t is None else mask_t.unsqueeze(1))  # [1, B*E, H]
+        out, state = self.forward_rnn(seq.transpose(0, 1), state)
+        return out.view(x_t.shape[0], -1, self.rnn_hidden), state

@@ -186,7 +186,9 @@ class RelationalVAE(L.LightningModule):
     def infer(self, batch: Batch, hard: bool) -> Inference:
         """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame."""
         x, mask = batch["states"], batch["mask"]
-        enc = self.encoder(x, mask)
+        # With every agent present (the synthetic sets) the plugins skip their masking passes.
+        plugin_mask = None if bool(mask.all()) else mask
+        enc = self.encoder(x, plugin_mask)
         seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x)
         # The posterior reads a segment's type at its first step (the paper) or pools the per-step
         # logits over the segment; the prior always reads the first step, so it stays online.
@@ -194,7 +196,7 @@ class RelationalVAE(L.LightningModule):
         q_seg = seg.pool(enc.posterior_logits) if pooled else seg.gather(enc.posterior_logits)
         p_seg = seg.gather(self.prior(enc.h_fwd))
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.hparams.gumbel_tau, hard=hard))  # [B, E, T-1, K]
-        pred = self.decoder(x[:, :-1], z.transpose(1, 2), mask[:, :-1])
+        pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.hparams.nll_variance)
 
         # Edge KL per segment, summed over an edge's segments and divided by its steps, so that with
