@@ -6,6 +6,12 @@ runs in a fresh subprocess so its peak memory (ru_maxrss on CPU, max allocated o
 Cases: training steps of each model (Markovian and recurrent decoders, bf16, torch.compile), roll-out
 (evaluation) throughput, generating the 40k synthetic clips, preprocessing an inD-size recording, loading
 batches with DataLoader workers, and a training step as the agents (N) and the clip length (T) grow.
+
+The roofline: every training record carries the step's matmul arithmetic (``gflop_per_step``, counted by
+``torch.utils.flop_counter``) and the rate it achieved (``gflops``); the ``gemm/*`` cases measure the device's
+matmul rate on the model's dominant shape. The summary divides the two into the most samples/s a step could
+reach if it did nothing but its matmuls at that rate, and relates the measured rates to the public DNRI
+implementation's (``REFERENCE_SAMPLES_PER_S``).
 """
 
 from __future__ import annotations
@@ -43,8 +49,13 @@ class Case:
     iters: int = 5
     warmup: int = 2
     settings: dict[str, Any] = field(default_factory=dict)
-    kind: str = "train"  # train | rollout | generate | preprocess | load
+    kind: str = "train"  # train | rollout | generate | preprocess | load | gemm
 
+
+# The public DNRI implementation's training throughput on the 2-core CPU (the performance issue's figures).
+REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 51.0, "train/dnri/recurrent": 15.0}
+# The encoder's edge-MLP matmul at batch 128, N = 3, T = 50: [B*T*E, 256] x [256, 256].
+GEMM_SHAPE = (128 * 50 * 6, 256, 256)
 
 SCALE_AGENTS = (3, 5, 10, 20, 50)
 SCALE_STEPS = (50, 100, 200)
@@ -55,7 +66,8 @@ SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64
 
 def cases() -> list[Case]:
     recurrent = ["model/decoder=recurrent", "model.sparsity_mix=0"]
-    out = []
+    out = [Case(f"gemm/{dtype}", [], 1, 0, 0, iters=20, warmup=3, kind="gemm", settings={"dtype": dtype})
+           for dtype in ("fp32", "bf16")]
     for model in ("dnri", "dider", "dider_skid"):
         out.append(Case(f"train/{model}/synth", [f"model={model}"], 128, 3, 50))
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
@@ -108,6 +120,29 @@ def _timed(fn: Callable[[], Any], iters: int, warmup: int, device: str) -> float
     return (time.perf_counter() - start) / iters
 
 
+def step_gflop(model: Any, batch: dict[str, torch.Tensor], autocast: str | None = None) -> float:
+    """Matmul arithmetic (GFLOP, multiply-add = 2) of one training step, counted on a throw-away copy."""
+    from copy import deepcopy
+
+    from torch.utils.flop_counter import FlopCounterMode
+
+    model = deepcopy(model)
+    with FlopCounterMode(display=False) as counter:
+        _train_step(model, torch.optim.SGD(model.parameters(), lr=0.0), batch, autocast)
+    return counter.get_total_flops() / 1e9
+
+
+def _gemm_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
+    """The device's matmul rate on :data:`GEMM_SHAPE`, into a preallocated output (the compute ceiling)."""
+    m, k, n = GEMM_SHAPE
+    dtype = {"fp32": torch.float32, "bf16": torch.bfloat16}[case.settings["dtype"]]
+    a, b = torch.randn(m, k, device=device, dtype=dtype), torch.randn(k, n, device=device, dtype=dtype)
+    out = torch.empty(m, n, device=device, dtype=dtype)
+    seconds = _timed(lambda: torch.mm(a, b, out=out), case.iters, case.warmup, device)
+    gflop = 2 * m * k * n / 1e9
+    return seconds, {"unit": "matmuls", "gflop_per_step": gflop, "shape": [m, k, n]}
+
+
 def _random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
     states = torch.rand(case.batch, case.steps, case.agents, 4, device=device) * 2 - 1
     return {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
@@ -129,10 +164,11 @@ def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
 
         return _timed(step, case.iters, case.warmup, device), extra
     model.train()
+    autocast = case.settings.get("autocast")
+    extra["gflop_per_step"] = step_gflop(model, batch, autocast)
     if case.settings.get("compile"):
         compile_modules(model)
     opt = torch.optim.Adam(model.parameters(), lr=5e-4)
-    autocast = case.settings.get("autocast")
     if case.settings.get("compile"):  # the first steps compile: report that cost on its own
         t0 = time.perf_counter()
         _train_step(model, opt, batch, autocast)
@@ -168,12 +204,15 @@ def _data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict
 def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, Any]:
     if case.kind in ("train", "rollout"):
         step_s, extra = _model_case(case, device)
+    elif case.kind == "gemm":
+        step_s, extra = _gemm_case(case, device)
     else:
         step_s, extra = _data_case(case, device, tmpdir)
     peak = (torch.cuda.max_memory_allocated() if device == "cuda" and case.kind in ("train", "rollout")
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    rate = {"gflops": extra["gflop_per_step"] / step_s} if "gflop_per_step" in extra else {}
     return {
-        "name": case.name, "kind": case.kind, "samples_per_s": case.batch / step_s, "step_s": step_s,
+        "name": case.name, "kind": case.kind, "samples_per_s": case.batch / step_s, "step_s": step_s, **rate,
         "peak_memory_mb": peak / 2**20, "device": device, "threads": torch.get_num_threads(),
         "torch": torch.__version__,
         "settings": {"batch": case.batch, "agents": case.agents, "steps": case.steps, "iters": case.iters,
@@ -207,11 +246,25 @@ def _run_isolated(case: Case, device: str) -> dict[str, Any]:
 
 
 def summary(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Derived figures: DIDER's step time over DNRI's (same run), and the growth exponents of the step
-    time in N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets: N^2,
-    i.e. 1 in edges, and 1 in T)."""
+    """Derived figures: DIDER's step time over DNRI's (same run); the growth exponents of the step time in
+    N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets: N^2, i.e. 1 in
+    edges, and 1 in T); speed-ups over the reference implementation; and the roofline, the samples/s a
+    step would reach doing only its matmuls at the measured ``gemm/*`` rate."""
     by = {r["name"]: r for r in records if "error" not in r}
     out: dict[str, Any] = {}
+    for name, ref in REFERENCE_SAMPLES_PER_S.items():
+        for variant in ("", "/bf16"):
+            if name + variant in by:
+                out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
+    for dtype in ("fp32", "bf16"):
+        if f"gemm/{dtype}" not in by:
+            continue
+        peak = by[f"gemm/{dtype}"]["gflops"]
+        for name in REFERENCE_SAMPLES_PER_S:
+            settings = by[name]["settings"] if name in by else {}
+            if "gflop_per_step" in settings:
+                ceiling = settings["batch"] * peak / settings["gflop_per_step"]
+                out[f"roofline/{dtype}/{name}/max_samples_per_s"] = ceiling
     for setting in ("synth", "recurrent"):
         for model in ("dider", "dider_skid"):
             a, b = by.get(f"train/{model}/{setting}"), by.get(f"train/dnri/{setting}")

@@ -32,9 +32,10 @@ class _MessagePassing(nn.Module):
     def forward(self, nodes: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         pre = self.act(self.fc1(nodes))  # [..., E, K'*H]: every type's first layer in one matmul
         msg = self.act(self.fc2(self.drop(pre.unflatten(-1, (self.num_msg, self.hidden)))))  # [..., E, K', H]
+        z = z[..., self.first :].to(msg.dtype)  # under autocast, keep the edge tensors in bf16
         if self.num_msg == 1:  # one pass instead of a product and a sum over a size-1 axis
-            return msg.squeeze(-2) * z[..., self.first :]
-        return (msg * z[..., self.first :, None]).sum(-2)
+            return msg.squeeze(-2) * z
+        return (msg * z[..., None]).sum(-2)
 
 
 class MarkovDecoder(nn.Module):
@@ -121,11 +122,14 @@ class RecurrentDecoder(nn.Module):
     def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """Teacher-forced: x [B, T, N, D], z [B, T, E, K] -> predictions of x_{t+1}, [B, T, N, D]."""
         b, t, n, _ = x.shape
-        gates_x = self.input_gates(x)  # all steps at once; only the message path is recurrent
         h = self.init_state(b, n, x)
+        # All steps' input projections at once (only the message path is recurrent), split by unbind: the
+        # backward of indexing [:, s] would allocate a zero gradient of the whole tensor at every step.
+        gates_x, z_steps = self.input_gates(x).unbind(1), z.unbind(1)
+        mask_steps = [None] * t if mask is None else mask.unbind(1)
         hs = []
         for s in range(t):
-            h = self._update(gates_x[:, s], z[:, s], h, None if mask is None else mask[:, s])
+            h = self._update(gates_x[s], z_steps[s], h, mask_steps[s])
             hs.append(h)
         return x + self.out(torch.stack(hs, dim=1))
 

@@ -91,10 +91,13 @@ class PairLinear(nn.Module):
         nn.init.xavier_normal_(self.weight)
 
     def forward(self, nodes: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
-        f = self.node_dim
-        # One matmul for both halves on the node rows, then a broadcast sum onto the edges.
-        both = nodes @ torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]], dim=0).T
-        out = pair_sum(both[..., : self.out_dim] + self.bias, both[..., self.out_dim :])
+        f, o = self.node_dim, self.out_dim
+        # One matmul for both halves on the node rows, then a broadcast sum onto the edges. The bias rides
+        # inside the matmul on the sender half: added afterwards, an fp32 bias would promote the bf16
+        # output of an autocast matmul to an fp32 edge tensor.
+        w = torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]])
+        both = nn.functional.linear(nodes, w, torch.cat([self.bias, torch.zeros_like(self.bias)]))
+        out = pair_sum(both[..., :o], both[..., o:])
         if extra is not None:
             out = out + extra @ self.weight[:, 2 * f :].T
         return out
