@@ -70,11 +70,12 @@ def test_flat_batchnorm_gradient_through_a_transposed_view():
     torch.testing.assert_close(ours.weight.grad, ref.weight.grad)
 
 
-def test_bidirectional_lstm_equals_two_torch_lstms():
+@pytest.mark.parametrize("fused", [True, False, None])
+def test_bidirectional_lstm_equals_two_torch_lstms(fused):
     torch.manual_seed(0)
     fwd, rev = nn.LSTM(6, 5), nn.LSTM(6, 5)
     seq = torch.randn(9, 4, 6)  # [T, M, H]
-    ours = bidirectional_lstm(seq.requires_grad_(), fwd, rev)
+    ours = bidirectional_lstm(seq.requires_grad_(), fwd, rev, fused)
     ref = fwd(seq)[0].transpose(0, 1), rev(seq.flip(0))[0].flip(0).transpose(0, 1)
     for a, b in zip(ours, ref, strict=True):
         torch.testing.assert_close(a, b)

@@ -71,6 +71,8 @@ def cases() -> list[Case]:
     for model in ("dnri", "dider", "dider_skid"):
         out.append(Case(f"train/{model}/synth", [f"model={model}"], 128, 3, 50))
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
+    out.append(Case("train/dnri/recurrent/bf16", ["model=dnri", *recurrent], 128, 5, 40, iters=3,
+                    settings={"autocast": "bf16"}))
     for model in ("dnri", "dider"):
         out.append(Case(f"train/{model}/synth/bf16", [f"model={model}"], 128, 3, 50, settings={"autocast": "bf16"}))
         out.append(Case(f"train/{model}/synth/compile", [f"model={model}"], 128, 3, 50, warmup=3,
