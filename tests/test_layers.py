@@ -6,6 +6,7 @@ from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_id, edge_index, edge_mask, num_agents, num_edges
 from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
+from dider.models import rnn
 from dider.models.rnn import bidirectional_lstm
 
 
@@ -89,3 +90,16 @@ def test_bidirectional_lstm_equals_two_torch_lstms(fused):
 def test_bidirectional_lstm_rejects_other_lstms():
     with pytest.raises(ValueError, match="single-layer"):
         bidirectional_lstm(torch.zeros(3, 2, 4), nn.LSTM(4, 5, num_layers=2), nn.LSTM(4, 5))
+
+
+def test_bidirectional_lstm_fuses_only_large_cpu_inputs(monkeypatch):
+    calls = []
+    fused = rnn._fused
+    monkeypatch.setattr(rnn, "_fused", lambda *args: calls.append(args[0].shape) or fused(*args))
+    fwd, rev, seq = nn.LSTM(6, 5), nn.LSTM(6, 5), torch.randn(9, 4, 6)
+    monkeypatch.setattr(rnn, "FUSED_MIN_WORK", 4 * 6 + 1)
+    bidirectional_lstm(seq, fwd, rev)
+    assert calls == []  # 4 sequences x width 6: ATen's LSTM
+    monkeypatch.setattr(rnn, "FUSED_MIN_WORK", 4 * 6)
+    bidirectional_lstm(seq, fwd, rev)
+    assert calls == [seq.shape]

@@ -37,7 +37,7 @@ class FlatBatchNorm(nn.BatchNorm1d):
     """BatchNorm1d over every leading dimension: [..., F] -> [..., F].
 
     ATen's CPU batch-norm backward is fast on a contiguous gradient (~25 ms fwd + bwd over 38k rows x 256)
-    and five to eight times slower on a transposed one, which a layout change downstream hands back
+    and about five times slower on a transposed one, which a layout change downstream hands back
     silently; so the gradient is made contiguous first.
     """
 
@@ -91,13 +91,11 @@ class PairLinear(nn.Module):
         nn.init.xavier_normal_(self.weight)
 
     def forward(self, nodes: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
-        f, o = self.node_dim, self.out_dim
-        # One matmul for both halves on the node rows, then a broadcast sum onto the edges. The bias rides
-        # inside the matmul on the sender half: added afterwards, an fp32 bias would promote the bf16
-        # output of an autocast matmul to an fp32 edge tensor.
-        w = torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]])
-        both = nn.functional.linear(nodes, w, torch.cat([self.bias, torch.zeros_like(self.bias)]))
-        out = pair_sum(both[..., :o], both[..., o:])
+        f = self.node_dim
+        # One matmul for both halves on the node rows, then a broadcast sum onto the edges. The bias takes
+        # the matmul's dtype: an fp32 bias would promote an autocast matmul's bf16 output to fp32.
+        both = nodes @ torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]], dim=0).T
+        out = pair_sum(both[..., : self.out_dim] + self.bias.to(both.dtype), both[..., self.out_dim :])
         if extra is not None:
             out = out + extra @ self.weight[:, 2 * f :].T
         return out
