@@ -21,7 +21,7 @@ TINY = [
     "data.num_train=64", "data.num_val=16", "data.num_test=16", "data.batch_size=16", "data.eval_batch_size=16",
     "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.encoder.head_hidden=16",
     "model.decoder.hidden=32", "trainer.max_epochs=1", "trainer.accelerator=cpu",
-    "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false", "model.num_figure_clips=2",
+    "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",
 ]
 
 
@@ -50,6 +50,8 @@ def make_cfg(tmp_path: Path, cache_dir: Path) -> Iterator[Callable[..., DictConf
             all_overrides = [*(TINY if tiny else []), f"data.cache_dir={cache_dir}", *overrides]
             cfg = compose(config_name="config", overrides=all_overrides, return_hydra_config=True)
         with open_dict(cfg):
+            if tiny and "timelines" in (cfg.get("callbacks") or {}):
+                cfg.callbacks.timelines.num_clips = 2
             cfg.hydra.runtime.output_dir = str(out or tmp_path / "run")
             cfg.hydra.job.num = 0
             cfg.hydra.job.id = "test"

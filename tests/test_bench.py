@@ -15,7 +15,7 @@ def test_gemm_case_reports_its_arithmetic():
 
 def test_step_gflop_counts_without_training_the_model():
     torch.manual_seed(0)
-    model = bench.build_model(["model=dnri", "model.encoder.hidden=16", "model.decoder.hidden=16"]).train()
+    model = bench.build_model(["model=dnri", "model.encoder.hidden=16", "model.decoder.hidden=16"])[0].train()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     states = torch.rand(2, 6, 3, 4)
     batch = {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool)}

@@ -7,6 +7,8 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
+from dider.models.vae import RelationalVAE
+
 CONF = Path(dider.conf.__file__).parent
 
 
@@ -24,7 +26,7 @@ def test_groups_exist():
 @pytest.mark.parametrize("decoder", options("model/decoder"))
 def test_models_instantiate(make_cfg, model, decoder):
     cfg = make_cfg([f"model={model}", f"model/decoder={decoder}"])
-    net = instantiate(cfg.model, _convert_="all")
+    net = RelationalVAE.from_config(cfg.model)
     assert sum(p.numel() for p in net.parameters()) > 0
     b = {"states": torch.rand(2, 10, 3, 4), "mask": torch.ones(2, 10, 3, dtype=torch.bool)}
     assert torch.isfinite(net.loss(net.infer(b, hard=False))["loss"])

@@ -10,10 +10,12 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
+from dider.bench import benchmark_preprocess
 from dider.data import ind as ind_mod
-from dider.data.common import burn_in_mask
 from dider.data.fakes import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
-from dider.data.ind import InDDataModule, discover_recordings, split_counts
+from dider.data.ind import InDDataModule
+from dider.data.levelx.recordings import discover_recordings, split_counts
+from dider.protocol import burn_in_mask
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fixtures import edit_csv, write_background, write_ind_root  # noqa: E402
@@ -250,7 +252,7 @@ def test_hydra_config_instantiates(root, make_cfg):
 
 
 def test_benchmark_runs_small(tmp_path):
-    assert ind_mod.benchmark_preprocess(tmp_path, minutes=0.5, num_tracks=10, num_parked=2) > 0
+    assert benchmark_preprocess(tmp_path, minutes=0.5, num_tracks=10, num_parked=2) > 0
 
 
 # ------------------------------------------------------------------------------------------ bad input

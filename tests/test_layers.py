@@ -5,8 +5,8 @@ import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_id, edge_index, edge_mask, num_agents, num_edges
-from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
 from dider.models import rnn
+from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
 from dider.models.rnn import bidirectional_lstm
 
 

@@ -1,13 +1,13 @@
 import pytest
 import torch
-from hydra.utils import instantiate
 
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
+from dider.models.vae import RelationalVAE
 
 
 def build(make_cfg, *overrides):
     torch.manual_seed(0)
-    return instantiate(make_cfg(list(overrides)).model, _convert_="all")
+    return RelationalVAE.from_config(make_cfg(list(overrides)).model)
 
 
 def clip(b=4, t=20, n=3, seed=0):

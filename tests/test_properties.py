@@ -21,11 +21,13 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from dider.data.ind import InDDataModule, discover_recordings
+from dider.data.ind import InDDataModule
+from dider.data.levelx.recordings import discover_recordings
 from dider.data.simulate import simulate_push
 from dider.data.synth import SynthDataModule
 from dider.data.trajectories import TrajectoryDataModule, load_trajectories
 from dider.graph import num_edges
+from dider.validation import ConfigError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fixtures import write_ind_root  # noqa: E402
@@ -112,7 +114,7 @@ def write_npz(spec: dict, path: Path) -> None:
 def assert_clean(error: BaseException, *names: str) -> None:
     """The project's own error, naming one of ``names`` (a file, a key)."""
     event("rejected: " + re.sub(r"(/[^/\s]+)+/", "", str(error))[:50])  # --hypothesis-show-statistics
-    assert type(error) in (ValueError, FileNotFoundError), f"{type(error).__name__}: {error}"
+    assert type(error) in (ValueError, ConfigError, FileNotFoundError), f"{type(error).__name__}: {error}"
     assert any(name in str(error) for name in names), f"{error!r} names none of {names}"
 
 

@@ -11,9 +11,11 @@ from pathlib import Path
 import pytest
 import torch
 
-import dider.models.module as module_mod
+import dider.models.vae as vae_mod
+from dider.callbacks import NonFiniteError
 from dider.checkpoint import AtomicCheckpointIO
-from dider.models.module import NonFiniteError, RelationalVAE
+from dider.models.plugins import Progress
+from dider.models.vae import RelationalVAE
 from dider.run import ConfigError, train, trainer_plugins, validate_config
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -151,14 +153,14 @@ def test_eval_mode_recomputes_the_test_metrics(make_cfg, tmp_path):
 
 def test_non_finite_loss_stops_naming_step_batch_and_term(make_cfg, tmp_path, monkeypatch):
     calls = []
-    real = module_mod.gaussian_nll
+    real = vae_mod.gaussian_nll
 
     def nan_on_third_call(*args, **kwargs):
         calls.append(1)
         out = real(*args, **kwargs)
         return out * float("nan") if len(calls) == 3 else out
 
-    monkeypatch.setattr(module_mod, "gaussian_nll", nan_on_third_call)
+    monkeypatch.setattr(vae_mod, "gaussian_nll", nan_on_third_call)
     cfg = make_cfg(["logger=none", "model=dnri"], out=tmp_path / "run")  # 4 batches per epoch
     with pytest.raises(NonFiniteError, match=r"non-finite loss at step 2, batch 2 of epoch 0: term nll \(nll=nan"):
         train(cfg)
@@ -168,9 +170,9 @@ def test_non_finite_loss_stops_naming_step_batch_and_term(make_cfg, tmp_path, mo
 def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypatch):
     real = RelationalVAE.infer
 
-    def infer(self, batch, hard):
-        out = real(self, batch, hard)
-        if self.training and self.global_step >= 1:
+    def infer(self, batch, hard, progress=Progress()):
+        out = real(self, batch, hard, progress)
+        if self.training and progress.step >= 1:
             # finite value (0), NaN gradient (d sqrt(u)/du at 0 is inf, times du/dw = 0)
             w = next(self.decoder.parameters())
             out.kl_duration = out.kl_duration + (w.sum() * 0).sqrt()

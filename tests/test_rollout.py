@@ -4,17 +4,20 @@ import pytest
 import torch
 import torch.nn.functional as F
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
-from dider.data.common import agent_horizons, burn_in_mask
 from dider.graph import edge_mask
 from dider.metrics import HorizonMSE
+from dider.models.module import RelationalVAEModule
+from dider.models.vae import RelationalVAE
+from dider.protocol import agent_horizons, burn_in_mask
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def build(make_cfg, *overrides):
     torch.manual_seed(0)
-    return instantiate(make_cfg(list(overrides)).model, _convert_="all")
+    return RelationalVAE.from_config(make_cfg(list(overrides)).model)
 
 
 def clip(b=3, t=30, n=4, seed=0):
@@ -27,7 +30,7 @@ def reference_rollout(net, x, mask, burn_in, num_pred):
     """The roll-out as it was before per-agent burn-in existed (one burn-in for the whole window)."""
     b, n = x.shape[0], x.shape[2]
     end = burn_in + num_pred - 1
-    sample = net.hparams.rollout_edges == "sample"
+    sample = net.rollout_edges == "sample"
     h_past, enc_state = net.encoder.past(x[:, :burn_in], mask[:, :burn_in])
     etype = torch.zeros(b, h_past.shape[1], dtype=torch.long)
     left = torch.zeros_like(etype)
@@ -40,7 +43,7 @@ def reference_rollout(net, x, mask, burn_in, num_pred):
             cur, h_t = x[:, t], h_past[:, :, t]
         else:
             h_t, enc_state = net.encoder.step(cur, enc_state, m_t)
-        etype, left = net._advance_edges(h_t, t, end, etype, left, sample)
+        etype, left = net.advance_edges(h_t, t, end, etype, left, sample)
         types.append(etype)
         if t < burn_in - 1 and net.decoder.stateless:
             continue
@@ -160,7 +163,7 @@ def test_first_scored_horizon_is_the_agents_first_own_prediction():
 
 
 def test_model_takes_the_mode_from_the_datamodule(make_cfg, tmp_path):
-    net = build(make_cfg, "model=dnri")
+    net = RelationalVAEModule.from_config(make_cfg(["model=dnri"]).model)
     assert net.burn_in_mode == "global"  # no datamodule: the window's burn-in
 
     class DM:
@@ -172,11 +175,12 @@ def test_model_takes_the_mode_from_the_datamodule(make_cfg, tmp_path):
     net._trainer = T()
     assert net.burn_in_mode == "per_agent"
     net._trainer = None
-    fixed = instantiate(make_cfg(["model=dnri"]).model, burn_in_mode="global", _convert_="all")
+    dnri = OmegaConf.to_container(make_cfg(["model=dnri"]).model, resolve=True)
+    fixed = RelationalVAEModule.from_config({**dnri, "burn_in_mode": "global"})
     fixed._trainer = T()
     assert fixed.burn_in_mode == "global"
     with pytest.raises(Exception, match="model.burn_in_mode"):  # Hydra wraps the ValueError
-        instantiate(make_cfg(["model=dnri"]).model, burn_in_mode="sideways", _convert_="all")
+        RelationalVAEModule.from_config({**dnri, "burn_in_mode": "sideways"})
     for data, mode in [("synth", "global"), ("basketball", "global"), ("ind", "per_agent"),
                        ("ind200", "per_agent"), ("round", "per_agent"), ("trajectories", "per_agent")]:
         cfg = make_cfg([f"data={data}"])

@@ -11,13 +11,14 @@ The roofline: every training record carries the step's matmul arithmetic (``gflo
 ``torch.utils.flop_counter``) and the rate it achieved (``gflops``); the ``gemm/*`` cases measure the device's
 matmul rate on the model's dominant shape. The summary divides the two into the most samples/s a step could
 reach if it did nothing but its matmuls at that rate, and relates the measured rates to the public DNRI
-implementation's (``REFERENCE_SAMPLES_PER_S``).
+implementation's (``dider.bench_summary.REFERENCE_SAMPLES_PER_S``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import multiprocessing as mp
 import os
 import platform
@@ -30,13 +31,16 @@ from pathlib import Path
 from queue import Empty
 from typing import Any
 
-import numpy as np
 import torch
 from hydra import compose, initialize_config_module
-from hydra.utils import instantiate
+from omegaconf import DictConfig
 
-from dider.data.cache import atomic_write_text
+from dider.bench_summary import plot, summary
+from dider.io import atomic_write_text
+from dider.models.vae import RelationalVAE
 from dider.perf import compile_modules, tune_allocator
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -52,8 +56,6 @@ class Case:
     kind: str = "train"  # train | rollout | generate | preprocess | load | gemm
 
 
-# The public DNRI implementation's training throughput on the 2-core CPU (the performance issue's figures).
-REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 51.0, "train/dnri/recurrent": 15.0}
 # The encoder's edge-MLP matmul at batch 128, N = 3, T = 50: [B*T*E, 256] x [256, 256].
 GEMM_SHAPE = (128 * 50 * 6, 256, 256)
 
@@ -90,10 +92,11 @@ def cases() -> list[Case]:
     return out
 
 
-def build_model(overrides: list[str]) -> torch.nn.Module:
+def build_model(overrides: list[str]) -> tuple[RelationalVAE, DictConfig]:
+    """The network of a config, and the config's model node (for its burn-in)."""
     with initialize_config_module(version_base="1.3", config_module="dider.conf"):
         cfg = compose(config_name="config", overrides=overrides)
-    return instantiate(cfg.model, _convert_="all")
+    return RelationalVAE.from_config(cfg.model), cfg.model
 
 
 def _train_step(
@@ -153,12 +156,13 @@ def _random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
 def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
     """A training step (forward, backward, Adam) or an evaluation roll-out on random clips."""
     torch.manual_seed(0)
-    model = build_model(case.overrides).to(device)
+    model, model_cfg = build_model(case.overrides)
+    model = model.to(device)
     batch = _random_batch(case, device)
     extra: dict[str, Any] = {}
     if case.kind == "rollout":
         model.eval()
-        burn_in = model.hparams.burn_in
+        burn_in = int(model_cfg.burn_in)
 
         def step() -> None:
             with torch.no_grad():
@@ -178,14 +182,38 @@ def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
     return _timed(lambda: _train_step(model, opt, batch, autocast), case.iters, case.warmup, device), extra
 
 
+def benchmark_preprocess(tmpdir: str | Path | None = None, minutes: float = 20.0, num_tracks: int = 300,
+                         num_parked: int = 20, seed: int = 0) -> float:
+    """Seconds to read, validate, downsample and window one synthetic recording of ``minutes`` at 25 Hz
+    with ``num_tracks`` tracks (the size of a real inD recording), with the default DNRI settings.
+
+    Writing the CSV files is not timed. No assertion: a measurement to report.
+    """
+    from dider.data.fakes import write_levelx_recording
+    from dider.data.levelx.recordings import discover_recordings
+    from dider.data.levelx.windows import WindowParams, preprocess_recording
+
+    with tempfile.TemporaryDirectory(dir=tmpdir) as tmp:
+        frames = int(minutes * 60 * 25)
+        # Moving road users stay 20 s to 2 min; parked vehicles the whole recording.
+        write_levelx_recording(tmp, 0, num_frames=frames, num_tracks=num_tracks, num_parked=num_parked,
+                               seed=seed, min_lifetime=25 * 20, max_lifetime=25 * 120)
+        files = discover_recordings(Path(tmp))[0]
+        log.info("benchmark: %s, %.0f MB", files.tracks.name, files.tracks.stat().st_size / 2**20)
+        t0 = time.perf_counter()
+        blob = preprocess_recording(files, WindowParams())
+        seconds = time.perf_counter() - t0
+        log.info("benchmark: %d tracks -> %d windows, %d agent rows in %.2f s", blob["num_tracks"],
+                 len(blob["window_start"]), len(blob["states"]), seconds)
+    return seconds
+
+
 def _data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[str, Any]]:
     if case.kind == "generate":
         from dider.data.simulate import simulate_push
 
         return _timed(lambda: simulate_push(case.batch, case.steps, seed=0), case.iters, case.warmup, device), {}
     if case.kind == "preprocess":
-        from dider.data.ind import benchmark_preprocess
-
         return benchmark_preprocess(tmpdir, minutes=20.0, num_tracks=case.agents), {"unit": "recordings"}
     # load: one epoch of the synthetic training loader (2000 clips) with the given workers
     from dider.data.synth import SynthDataModule
@@ -245,75 +273,6 @@ def _run_isolated(case: Case, device: str) -> dict[str, Any]:
                 break
     proc.join()
     return record
-
-
-def summary(records: list[dict[str, Any]]) -> dict[str, Any]:
-    """Derived figures: DIDER's step time over DNRI's (same run); the growth exponents of the step time in
-    N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets: N^2, i.e. 1 in
-    edges, and 1 in T); speed-ups over the reference implementation; and the roofline, the samples/s a
-    step would reach doing only its matmuls at the measured ``gemm/*`` rate."""
-    by = {r["name"]: r for r in records if "error" not in r}
-    out: dict[str, Any] = {}
-    for name, ref in REFERENCE_SAMPLES_PER_S.items():
-        for variant in ("", "/bf16"):
-            if name + variant in by:
-                out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
-    for dtype in ("fp32", "bf16"):
-        if f"gemm/{dtype}" not in by:
-            continue
-        peak = by[f"gemm/{dtype}"]["gflops"]
-        for name in REFERENCE_SAMPLES_PER_S:
-            settings = by[name]["settings"] if name in by else {}
-            if "gflop_per_step" in settings:
-                ceiling = settings["batch"] * peak / settings["gflop_per_step"]
-                out[f"roofline/{dtype}/{name}/max_samples_per_s"] = ceiling
-    for setting in ("synth", "recurrent"):
-        for model in ("dider", "dider_skid"):
-            a, b = by.get(f"train/{model}/{setting}"), by.get(f"train/dnri/{setting}")
-            if a and b:
-                out[f"step_ratio/{model}_over_dnri/{setting}"] = a["step_s"] / b["step_s"]
-    for axis, key in (("agents", "agents"), ("steps", "steps")):
-        pts = [(r["settings"][key], r["step_s"]) for r in by.values() if r["name"].startswith(f"scale/{axis}/")]
-        if len(pts) >= 2:
-            x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
-            out[f"growth_exponent/{axis}"] = float(np.polyfit(x, y, 1)[0])
-            if axis == "agents":  # against the edge count N(N-1): 1 means "as N^2 for large N"
-                edges = np.log([p[0] * (p[0] - 1) for p in pts])
-                out["growth_exponent/edges"] = float(np.polyfit(edges, y, 1)[0])
-    return out
-
-
-def plot(records: list[dict[str, Any]], path: Path) -> None:
-    """Step time against N and T on log-log axes, with N^2 and T^1 guides through the first point."""
-    import matplotlib
-    import matplotlib.ticker
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.8))
-    guides = {"agents": ("∝ N(N-1) edges", lambda n: n * (n - 1)), "steps": ("∝ T", lambda t: t)}
-    for ax, axis, key in ((axes[0], "agents", "agents"), (axes[1], "steps", "steps")):
-        pts = sorted((r["settings"][key], r["step_s"]) for r in records
-                     if "error" not in r and r["name"].startswith(f"scale/{axis}/"))
-        if not pts:
-            continue
-        x, y = np.array(pts).T
-        label, grow = guides[axis]
-        ax.loglog(x, y, "o-", label="measured")
-        ax.loglog(x, y[0] * grow(x) / grow(x[0]), "--", color="grey", label=label)
-        ax.set_xticks(x, [str(int(v)) for v in x])
-        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
-        ax.set_xlabel("agents N (T = 50)" if axis == "agents" else "steps T (N = 5)")
-        ax.set_ylabel("training step (s)")
-        ax.legend(fontsize=8)
-    fig.suptitle("DNRI training step, batch 8 (narrow networks)", fontsize=9)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=path.suffix, delete=False) as tmp:
-        fig.savefig(tmp.name, dpi=100)
-    Path(tmp.name).replace(path)
-    plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:

@@ -15,7 +15,7 @@ from typing import Any
 from lightning.fabric.plugins.io.torch_io import TorchCheckpointIO
 from lightning.fabric.utilities.types import _PATH
 
-from dider.data.cache import atomic_torch_save
+from dider.io import atomic_torch_save
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -9,8 +9,8 @@ from typing import Any
 import lightning as L
 import torch
 
-from dider.data.cache import atomic_write_text
 from dider.graph import edge_index, num_agents
+from dider.io import atomic_write_text
 
 
 def segment_table(types: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
@@ -58,14 +58,38 @@ def segments_json(batches: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str,
 
 
 class SegmentExport(L.Callback):
-    """After testing, writes the posterior segments of every test clip to ``path`` (JSON, atomic)."""
+    """After testing, writes the posterior segments of every test clip to ``path`` (JSON, atomic).
+
+    Collects the ``segments`` and ``probs`` that ``test_step`` returns per batch; under DDP rank r of W
+    tested clips r, r + W, ... (the data modules' unrepeated sampler), so rank 0 puts them back in
+    test-set order before writing."""
 
     def __init__(self, path: str) -> None:
         self.path = Path(path)
+        self.batches: list[tuple[torch.Tensor, torch.Tensor]] = []
+
+    def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.batches = []
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                          batch_idx: int, dataloader_idx: int = 0) -> None:
+        if isinstance(outputs, dict) and "segments" in outputs:
+            self.batches.append((outputs["segments"].cpu(), outputs["probs"].cpu()))
+
+    def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        world = trainer.world_size
+        if world == 1:
+            return
+        clips = [(t, p) for tb, pb in self.batches for t, p in zip(tb, pb, strict=True)]
+        per_rank: list[Any] | None = [None] * world if trainer.global_rank == 0 else None
+        torch.distributed.gather_object(clips, per_rank, dst=0)  # the export runs on rank 0 only
+        if trainer.global_rank != 0:
+            self.batches = []
+            return
+        ordered = [per_rank[r][j] for j in range(max(map(len, per_rank))) for r in range(world)
+                   if j < len(per_rank[r])]
+        self.batches = [(t[None], p[None]) for t, p in ordered]
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        types = getattr(pl_module, "test_types", None)
-        if not types or not trainer.is_global_zero:
-            return
-        blob = segments_json(list(zip(types, pl_module.test_probs, strict=True)))
-        atomic_write_text(self.path, json.dumps(blob))
+        if self.batches and trainer.is_global_zero:
+            atomic_write_text(self.path, json.dumps(segments_json(self.batches)))

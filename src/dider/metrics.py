@@ -14,7 +14,7 @@ class HorizonMSE(Metric):
     update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool, horizon [B, P, N] long or None);
     compute() -> [len(horizons)]. Without ``horizon`` frame p of the window is horizon p + 1 for every agent
     (one burn-in for the whole window). With it, each element carries its own horizon (e.g. the agent's
-    h-th own predicted step, dider.data.common.agent_horizons): horizon h scores, per agent, the present
+    h-th own predicted step, dider.protocol.agent_horizons): horizon h scores, per agent, the present
     frame whose horizon equals h (at most one per agent; <= 0 marks burn-in frames, never scored).
     """
 

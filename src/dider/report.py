@@ -29,7 +29,7 @@ from hydra._internal.core_plugins.basic_sweeper import BasicSweeper  # noqa: E40
 from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from dider.data.cache import atomic_write_bytes, atomic_write_text  # noqa: E402
+from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
 
 SECTIONS = (("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
             ("Edge accuracy", r"edge_acc/"), ("Segments", r"(segments_per_edge|switches_per_100|boundary_f1)$"),

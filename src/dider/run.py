@@ -20,9 +20,11 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from omegaconf import DictConfig, OmegaConf
 
 from dider.checkpoint import AtomicCheckpointIO
-from dider.data.cache import atomic_write_text
-from dider.data.common import BURN_IN_MODES
+from dider.io import atomic_write_text
+from dider.models.module import RelationalVAEModule
 from dider.perf import compile_modules, tune_allocator
+from dider.protocol import horizons_problem
+from dider.validation import RULES, ConfigError, problem
 
 log = logging.getLogger(__name__)
 
@@ -73,10 +75,6 @@ def _build_list(group: DictConfig | None) -> list[Any]:
     return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
 
 
-class ConfigError(ValueError):
-    """Invalid configuration values; the message lists each one by its key."""
-
-
 # The key holding the clip length of each data module that knows it from its config alone.
 CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
 
@@ -93,19 +91,10 @@ def validate_config(cfg: DictConfig) -> None:
             problems.append(f"{key}: cannot resolve ({e})")
             return None
 
-    def number(key: str, low: float, what: str = "") -> float | None:
+    for key in RULES:  # the rules every constructor applies too, here all at once before any work
         value = get(key)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            problems.append(f"{key}={value!r}: must be a number")
-            return None
-        if not value >= low:
-            problems.append(f"{key}={value}: must be >= {low}{what}")
-        return value
-
-    if not isinstance(get("compile") or False, bool):
-        problems.append(f"compile={get('compile')!r}: expected true or false")
+        if value is not None and (found := problem(key, value)) is not None:
+            problems.append(found)
     mode = get("mode")
     if mode not in ("train", "eval"):
         problems.append(f"mode={mode!r}: expected 'train' or 'eval'")
@@ -115,35 +104,21 @@ def validate_config(cfg: DictConfig) -> None:
     if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
         problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
 
-    number("model.num_edges", 2, " (type 0 is 'no interaction': a relation needs another type)")
-    for key in ("model.capacity_edge", "model.capacity_duration", "model.beta_edge", "model.beta_duration"):
-        number(key, 0)
-    if get("model.duration") is not None and "max_segments" in cfg.model.duration:
-        number("model.duration.max_segments", 1)
-    for key in ("data.burn_in_mode", "model.burn_in_mode"):
-        value = get(key)
-        if value is not None and value not in BURN_IN_MODES:
-            problems.append(f"{key}={value!r}: expected one of {list(BURN_IN_MODES)}")
-
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
     for section in ("data", "model"):
-        burn_in = number(f"{section}.burn_in", 1)
+        burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
+        burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
             problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
         horizons = get(f"{section}.horizons")
         if horizons is None:
             continue
-        try:
-            hs = [int(h) for h in horizons]
-        except (TypeError, ValueError):
-            problems.append(f"{section}.horizons={horizons!r}: expected a list of ints")
-            continue
         longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
-        if not hs or min(hs) < 1 or (longest is not None and longest >= 1 and max(hs) > longest):
-            span = f"1..{longest} (the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip})" \
-                if longest is not None else ">= 1"
-            problems.append(f"{section}.horizons={hs}: each must lie in {span}")
+        longest = longest if longest is not None and longest >= 1 else None  # else burn_in is reported above
+        context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
+        if (found := horizons_problem(horizons, longest, f"{section}.horizons", context)) is not None:
+            problems.append(found)
 
     for key, kind in (("data.root", "folder"), ("data.path", "file")):
         value = get(key)
@@ -195,9 +170,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
 
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
-    model = instantiate(cfg.model, _convert_="all")
+    model = RelationalVAEModule.from_config(cfg.model)
     if cfg.get("compile"):
-        compile_modules(model)
+        compile_modules(model.model)
     callbacks = _build_list(cfg.get("callbacks"))
     loggers: list[Logger] = _build_list(cfg.get("logger"))
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,

@@ -4,6 +4,7 @@ clip's trajectories with its interaction segments drawn between the agents (over
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import matplotlib
@@ -94,27 +95,46 @@ def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> None:
 
 
 class TimelineFigures(L.Callback):
-    """After testing, draws the timelines and the trajectories of the first test clips into TensorBoard and
-    ``output_dir`` (the test loader is not shuffled, so these are the test set's first clips)."""
+    """After testing, draws the timelines and the trajectories of the first ``num_clips`` test clips into
+    TensorBoard and ``output_dir`` (the test loader is not shuffled, so these are the test set's first
+    clips), from the per-clip outputs that ``test_step`` returns for the first batch."""
 
-    def __init__(self, output_dir: str) -> None:
-        self.output_dir = Path(output_dir)
+    LABELS = {"truth": "truth", "per_step": "per step", "segments": "segments", "prior": "prior (online)"}
+
+    def __init__(self, output_dir: str, num_clips: int = 4) -> None:
+        self.output_dir, self.num_clips = Path(output_dir), num_clips
+        self.clips: dict[str, torch.Tensor] = {}
+
+    def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clips = {}
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                          batch_idx: int, dataloader_idx: int = 0) -> None:
+        if batch_idx != 0 or not isinstance(outputs, dict) or self.num_clips < 1:
+            return
+        k = self.num_clips
+        self.clips = {key: outputs[key][:k].cpu() for key in ("segments", "prior", "per_step")}
+        self.clips |= {"states": batch["states"][:k].cpu(), "mask": batch["mask"][:k].cpu(),
+                       # test-set index of each clip: rank r of W holds clips r, r + W, ... under DDP
+                       "index": torch.arange(len(self.clips["segments"])) * trainer.world_size + trainer.global_rank}
+        if "edges" in batch:
+            self.clips["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        data = getattr(pl_module, "figure_data", None)
+        data = self.clips
         if not data or not trainer.is_global_zero:
             return
         self.output_dir.mkdir(parents=True, exist_ok=True)
-        labels = {"truth": "truth", "per_step": "per step", "segments": "segments", "prior": "prior (online)"}
+        num_types = pl_module.model.num_types
         dm = getattr(trainer, "datamodule", None)
         norm = getattr(dm, "normalizer", None)
         for i in range(data["segments"].shape[0]):
-            index = int(data["index"][i]) if "index" in data else i
-            rows = {label: data[key][i] for key, label in labels.items() if key in data}
-            fig = timeline_figure(rows, pl_module.num_types, title=f"test clip {index}")
+            index = int(data["index"][i])
+            rows = {label: data[key][i] for key, label in self.LABELS.items() if key in data}
+            fig = timeline_figure(rows, num_types, title=f"test clip {index}")
             _add(trainer, f"test/timeline/{i:02d}", fig, self.output_dir / f"timeline_{i:02d}.png")
             states = norm.denormalize(data["states"][i]) if norm is not None else data["states"][i]
             background = dm.background("test", index) if dm is not None and hasattr(dm, "background") else None
-            fig = trajectory_figure(states[..., :2], data["mask"][i], data["segments"][i], pl_module.num_types,
+            fig = trajectory_figure(states[..., :2], data["mask"][i], data["segments"][i], num_types,
                                     background, title=f"test clip {index}: interaction segments")
             _add(trainer, f"test/trajectories/{i:02d}", fig, self.output_dir / f"trajectories_{i:02d}.png")

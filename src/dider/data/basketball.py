@@ -23,16 +23,8 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.common import (
-    ClipDataModule,
-    ClipDataset,
-    check_burn_in_mode,
-    check_counts,
-    check_finite,
-    check_horizons,
-    default_cache_dir,
-    spread_indices,
-)
+from dider.data.common import ClipDataModule, ClipDataset, check_counts, check_finite, spread_indices
+from dider.protocol import check_horizons
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +150,6 @@ class BasketballDataModule(ClipDataModule):
         burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
-        check_burn_in_mode(burn_in_mode)
         if format not in ("auto", "zhan", "dnri"):
             raise ValueError(f"data.format={format!r}: expected 'auto', 'zhan' or 'dnri'")
         if agents not in AGENT_COLUMNS:
@@ -168,12 +159,9 @@ class BasketballDataModule(ClipDataModule):
         if not frame_rate > 0:
             raise ValueError(f"data.frame_rate={frame_rate}: must be > 0")
         check_counts(train_len=(train_len, 2), num_train=(num_train, 1), num_val=(num_val, 1),
-                     num_test=(num_test, 1), batch_size=(batch_size, 1), eval_batch_size=(eval_batch_size, 1),
-                     num_workers=(num_workers, 0), burn_in=(burn_in, 1))
-        if horizons is None or not len(horizons) or min(horizons) < 1:
-            raise ValueError(f"data.horizons={horizons}: need at least one horizon >= 1")
+                     num_test=(num_test, 1))
         self.save_hyperparameters(logger=False)
-        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+        self.init_shared()  # the clip length is known once the files are read: horizons checked in setup
         self.format: str | None = None
 
     def _root(self) -> Path:

@@ -17,6 +17,8 @@ from torch.utils.data import DataLoader, Dataset
 
 from dider.data.batch import Batch, Normalizer
 from dider.data.pairs import pair_kind_matrix
+from dider.protocol import check_horizons
+from dider.validation import at_least, require
 
 SPLITS = ("train", "val", "test")
 
@@ -126,63 +128,10 @@ def spread_indices(n: int, cap: int | None) -> torch.Tensor:
     return torch.linspace(0, n - 1, cap).round().long().unique()
 
 
-def burn_in_mask(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
-    """The steps that are each agent's own burn-in: its first ``burn_in`` present steps.
-
-    DNRI's inD protocol observes every agent for ``burn_in`` steps from its first appearance (agents enter
-    and leave mid-clip), so forecasting errors are only counted after that. mask: [B, T, N] bool ->
-    [B, T, N] bool.
-    """
-    return mask & (mask.long().cumsum(dim=1) <= burn_in)
-
-
-BURN_IN_MODES = ("global", "per_agent")
-
-
-def check_burn_in_mode(mode: str) -> None:
-    """``global``: every agent is observed for the window's first ``burn_in`` frames (synthetic, basketball);
-    ``per_agent``: each agent for its own first ``burn_in`` present frames (inD: agents enter mid-window)."""
-    if mode not in BURN_IN_MODES:
-        raise ValueError(f"data.burn_in_mode={mode!r}: expected one of {list(BURN_IN_MODES)}")
-
-
-def agent_horizons(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
-    """Per-agent forecast horizon of every frame: h >= 1 at an agent's h-th present frame after its own
-    burn-in (its first ``burn_in`` present frames, :func:`burn_in_mask`); <= 0 in its burn-in, 0 where absent.
-
-    With every agent present from frame 0 this is the global horizon t - burn_in + 1. mask: [B, T, N] bool
-    -> [B, T, N] long.
-    """
-    steps = mask.long().cumsum(dim=1) - burn_in
-    return torch.where(mask, steps, torch.zeros((), dtype=steps.dtype, device=steps.device))
-
-
-def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-    """Zero the states of absent agents (normalised space: the centre of the range), never NaN.
-
-    states: [..., N, 4], mask: [..., N] bool -> [..., N, 4].
-    """
-    return torch.where(mask[..., None], states, torch.zeros((), dtype=states.dtype))
-
-
 def check_counts(**values: tuple[int | None, int]) -> None:
-    """values: name -> (value, minimum); None values are skipped. Raises a ValueError naming the key."""
-    for key, (value, low) in values.items():
-        if value is not None and value < low:
-            raise ValueError(f"data.{key}={value}: must be >= {low}")
-
-
-def check_horizons(horizons: Sequence[int], seq_len: int, burn_in: int, where: str = "") -> None:
-    """Each horizon h is the h-th predicted step after the burn-in, so it must lie in 1..seq_len-burn_in."""
-    if burn_in < 1:
-        raise ValueError(f"data.burn_in={burn_in}: must be >= 1")
-    if burn_in >= seq_len:
-        raise ValueError(f"data.burn_in={burn_in} must be shorter than the clips ({seq_len} steps{where})")
-    if not horizons or min(horizons) < 1 or max(horizons) > seq_len - burn_in:
-        raise ValueError(
-            f"data.horizons={list(horizons)}: each must lie in 1..{seq_len - burn_in} "
-            f"(the predicted steps after data.burn_in={burn_in} of {seq_len}-step clips{where})"
-        )
+    """values: ``data.<name>`` -> (value, minimum); None values are skipped. Raises a
+    :class:`~dider.validation.ConfigError` (a ValueError) naming each key."""
+    require({}, {f"data.{key}": (value, at_least(low)) for key, (value, low) in values.items() if value is not None})
 
 
 def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = None) -> None:
@@ -199,8 +148,16 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
 
 
 class ClipDataModule(L.LightningDataModule):
-    """The loaders API every data module shares. Subclasses fill ``self.datasets`` and ``self.normalizer``
-    in ``setup`` and keep ``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory`` in hparams."""
+    """The loaders API and the arguments every data module shares.
+
+    Every subclass takes, with defaults of its own, ``batch_size`` / ``eval_batch_size`` (clips per
+    training / evaluation batch), ``num_workers``, ``pin_memory`` (the DataLoaders'), ``burn_in``,
+    ``horizons``, ``burn_in_mode`` (the forecast protocol, :mod:`dider.protocol`) and ``cache_dir``. Its
+    ``__init__`` calls ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments
+    of the ``__init__`` that calls it, so hparams, and the checkpoints, hold every argument of the
+    subclass) and then :meth:`init_shared`, which checks the shared ones from ``self.hparams``. Subclasses
+    fill ``self.datasets`` and ``self.normalizer`` in ``setup``.
+    """
 
     collate_fn = None  # None: torch's default collate (fixed agent count)
 
@@ -209,9 +166,24 @@ class ClipDataModule(L.LightningDataModule):
         self.normalizer: Normalizer | None = None
         self.datasets: dict[str, Dataset] = {}
 
+    def init_shared(self, clip_len: int | None = None, *, length_key: str | None = None,
+                    integer_horizons: bool = False) -> None:
+        """Check the shared arguments in ``self.hparams`` and set ``cache_dir``.
+
+        clip_len: the clip length in steps, which the horizons must fit in, or None when it is known only
+        once the data are read (the subclass then calls :func:`dider.protocol.check_horizons` in
+        ``setup``). length_key, integer_horizons: see :func:`dider.protocol.check_horizons`.
+        """
+        h = self.hparams
+        require({"data.burn_in_mode": h.burn_in_mode})
+        check_counts(burn_in=(h.burn_in, 1), batch_size=(h.batch_size, 1),
+                     eval_batch_size=(h.eval_batch_size, 1), num_workers=(h.num_workers, 0))
+        check_horizons(h.horizons, clip_len, h.burn_in, length_key=length_key, integers=integer_horizons)
+        self.cache_dir = Path(h.cache_dir) if h.cache_dir else default_cache_dir()
+
     @property
     def burn_in_mode(self) -> str:
-        """How forecasts are observed before the roll-out: ``global`` or ``per_agent`` (check_burn_in_mode)."""
+        """How forecasts are observed before the roll-out: ``global`` or ``per_agent`` (:mod:`dider.protocol`)."""
         return self.hparams.get("burn_in_mode", "global")
 
     def background(self, split: str, index: int) -> tuple[object, tuple[float, float, float, float]] | None:

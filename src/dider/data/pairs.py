@@ -1,4 +1,4 @@
-"""Agent pairs whose interaction should look the same all along: the inD consistency check (design.md §5).
+"""Agent pairs whose interaction should look the same all along: the inD consistency check of edge types.
 
 Two kinds of pairs, found per window in raw units (metres, m/s) when the test split is set up:
 - ``PARKED``: two vehicles that never move in the window (speed below ``parked_speed`` at every present step);

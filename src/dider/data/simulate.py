@@ -1,4 +1,4 @@
-"""Vectorised simulator of DNRI's 3-particle "push" system (design.md section 4).
+"""Vectorised simulator of the 3-particle "push" system, the synthetic data set of the DNRI paper.
 
 Particles 0 and 1 move at constant velocity; particle 2 is pushed away from particle i whenever it is
 within distance 1 of it: v2 += push * (1 - d) * unit(p2 - p_i). All samples advance together, so 40k

@@ -10,9 +10,10 @@ from pathlib import Path
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.cache import atomic_torch_save, cache_key
-from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_burn_in_mode, default_cache_dir
+from dider.data.cache import cache_key
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_counts, default_cache_dir
 from dider.data.simulate import simulate_push
+from dider.io import atomic_torch_save
 
 log = logging.getLogger(__name__)
 
@@ -46,30 +47,20 @@ class SynthDataModule(ClipDataModule):
         burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
-        check_burn_in_mode(burn_in_mode)
-        for key, value, low in [
-            ("data.num_train", num_train, 1), ("data.num_val", num_val, 1), ("data.num_test", num_test, 1),
-            ("data.num_steps", num_steps, 2), ("data.burn_in", burn_in, 1), ("data.batch_size", batch_size, 1),
-            ("data.eval_batch_size", eval_batch_size, 1), ("data.num_workers", num_workers, 0),
-        ]:
+        # Counts must be integers here, not only large enough (bools and floats such as 1.5 are rejected).
+        for key, value in [("num_train", num_train), ("num_val", num_val), ("num_test", num_test),
+                           ("num_steps", num_steps), ("burn_in", burn_in), ("batch_size", batch_size),
+                           ("eval_batch_size", eval_batch_size), ("num_workers", num_workers)]:
             if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-                raise ValueError(f"{key}={value!r}: must be an integer")
-            if value < low:
-                raise ValueError(f"{key}={value}: must be >= {low}")
+                raise ValueError(f"data.{key}={value!r}: must be an integer")
+        check_counts(num_train=(num_train, 1), num_val=(num_val, 1), num_test=(num_test, 1),
+                     num_steps=(num_steps, 2))
         if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not abs(seed) < 2**53:
             raise ValueError(f"data.seed={seed!r}: must be an integer of magnitude < 2**53")
         if isinstance(push_factor, bool) or not isinstance(push_factor, (int, float)) or not math.isfinite(push_factor):
             raise ValueError(f"data.push_factor={push_factor!r}: must be a finite number")
-        if burn_in >= num_steps:
-            raise ValueError(f"data.burn_in={burn_in} must be shorter than the clip (data.num_steps={num_steps})")
-        if (not horizons or not all(isinstance(h, numbers.Integral) and not isinstance(h, bool) for h in horizons)
-                or min(horizons) < 1 or max(horizons) > num_steps - burn_in):
-            raise ValueError(
-                f"data.horizons={list(horizons)}: each must lie in 1..{num_steps - burn_in} "
-                f"(the predicted steps after data.burn_in={burn_in} of data.num_steps={num_steps})"
-            )
         self.save_hyperparameters(logger=False)
-        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+        self.init_shared(num_steps, length_key="data.num_steps", integer_horizons=True)
 
     def _split_params(self, split: str) -> dict:
         h = self.hparams

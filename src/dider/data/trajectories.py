@@ -26,18 +26,9 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.common import (
-    ClipDataModule,
-    ClipDataset,
-    check_burn_in_mode,
-    check_counts,
-    check_finite,
-    check_horizons,
-    default_cache_dir,
-    fill_absent,
-    spread_indices,
-)
+from dider.data.common import ClipDataModule, ClipDataset, check_counts, check_finite, spread_indices
 from dider.graph import num_edges
+from dider.protocol import check_horizons, fill_absent
 
 log = logging.getLogger(__name__)
 
@@ -184,17 +175,12 @@ class TrajectoryDataModule(ClipDataModule):
         burn_in_mode: str = "per_agent",
     ) -> None:
         super().__init__()
-        check_burn_in_mode(burn_in_mode)
-        check_counts(burn_in=(burn_in, 1), num_train=(num_train, 1), num_val=(num_val, 1),
-                     num_test=(num_test, 1), batch_size=(batch_size, 1), eval_batch_size=(eval_batch_size, 1),
-                     num_workers=(num_workers, 0))
+        check_counts(num_train=(num_train, 1), num_val=(num_val, 1), num_test=(num_test, 1))
         if not frame_rate > 0:
             raise ValueError(f"data.frame_rate={frame_rate}: must be > 0")
-        if horizons is None or not len(horizons) or min(horizons) < 1:
-            raise ValueError(f"data.horizons={horizons}: need at least one horizon >= 1")
         split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup
         self.save_hyperparameters(logger=False)
-        self.cache_dir = Path(cache_dir) if cache_dir else default_cache_dir()
+        self.init_shared()  # the clip length is known once the file is read: horizons checked in setup
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:

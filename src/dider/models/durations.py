@@ -1,7 +1,8 @@
 """Duration plugins: how each edge's time axis is cut into segments of one interaction type.
 
 Every plugin offers
-- ``segment(h_fwd, h_rev, x) -> Segmentation`` for training and posterior inference over a whole clip,
+- ``segment(h_fwd, h_rev, x, progress) -> Segmentation`` for training and posterior inference over a whole
+  clip (``progress``: where training stands, for annealed schedules),
 - ``next_duration(h_t, t, end) -> [B, E] long`` for online inference and roll-outs: when an edge's
   segment ends at step t, how many steps its next segment lasts (read from the past only).
 
@@ -16,13 +17,16 @@ import torch
 from torch import nn
 
 from dider.losses import gaussian_kl
+from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
+from dider.validation import require, within_open
 
 
 class PerStepDuration(nn.Module):
     """DNRI: every step is its own segment (K = T slots of length 1)."""
 
-    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor) -> Segmentation:
+    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
+                progress: Progress = Progress()) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         start = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         valid = torch.ones(b, e, t, dtype=torch.bool, device=h_fwd.device)
@@ -35,7 +39,8 @@ class PerStepDuration(nn.Module):
 class StaticDuration(nn.Module):
     """NRI-style static graph: one segment per edge covering the whole clip."""
 
-    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor) -> Segmentation:
+    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
+                progress: Progress = Progress()) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         start = torch.zeros(b, e, 1, dtype=torch.long, device=h_fwd.device)
         valid = torch.ones(b, e, 1, dtype=torch.bool, device=h_fwd.device)
@@ -56,7 +61,7 @@ class LearnedDuration(nn.Module):
     d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
     the fixed prior N(prior_mu, prior_sigma^2).
 
-    Resolutions of what the paper leaves open (design.md section 3):
+    How this implementation settles what the paper leaves open:
     - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
     - sigma could collapse to 0: it is a std with a floor ``sigma_min``;
     - continuous d against discrete steps: step j belongs to slot k when s_k <= j < s_{k+1} (hard,
@@ -89,20 +94,13 @@ class LearnedDuration(nn.Module):
         sigma_init: float = 0.5,
     ) -> None:
         super().__init__()
-        checks = {
-            "model.duration.source": (source in ("past", "future"), "expected 'past' or 'future'"),
-            "model.duration.max_segments": (max_segments >= 1, "must be >= 1"),
-            "model.duration.min_duration": (min_duration >= 1, "must be >= 1 step"),
-            "model.duration.rho_min": (0 <= rho_min <= 1, "must lie in [0, 1]"),
-            "model.duration.sigma_min": (0 < sigma_min < 1, "must lie in (0, 1)"),
-            "model.duration.prior_sigma": (prior_sigma > 0, "must be > 0"),
-            "model.duration.tau_start": (tau_start > 0 and tau_end > 0, "tau_start and tau_end must be > 0"),
-            "model.duration.fixed_duration": (fixed_duration is None or fixed_duration >= 1, "must be >= 1 or null"),
-            "model.duration.sigma_init": (sigma_min < sigma_init < 1, "must lie in (sigma_min, 1)"),
-        }
-        for key, (ok, why) in checks.items():
-            if not ok:
-                raise ValueError(f"{key}: {why} (got {locals()[key.rsplit('.', 1)[1]]!r})")
+        require({
+            "model.duration.source": source, "model.duration.max_segments": max_segments,
+            "model.duration.min_duration": min_duration, "model.duration.rho_min": rho_min,
+            "model.duration.sigma_min": sigma_min, "model.duration.prior_sigma": prior_sigma,
+            "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
+            "model.duration.fixed_duration": fixed_duration,
+        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
@@ -111,11 +109,10 @@ class LearnedDuration(nn.Module):
         with torch.no_grad():  # start at the prior's mean fraction, with a small spread, not at rho = 0.5 +- 0.25
             self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
-        self.step = 0  # optimiser step, set by the module; drives the tau_s annealing
 
-    @property
-    def tau(self) -> float:
-        frac = min(1.0, self.step / self.tau_anneal_steps) if self.tau_anneal_steps > 0 else 1.0
+    def tau(self, step: int) -> float:
+        """The soft-step temperature after ``step`` optimiser steps."""
+        frac = min(1.0, step / self.tau_anneal_steps) if self.tau_anneal_steps > 0 else 1.0
         return self.tau_start + (self.tau_end - self.tau_start) * frac
 
     def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,7 +123,8 @@ class LearnedDuration(nn.Module):
     def fraction(self, z: torch.Tensor) -> torch.Tensor:
         return ((z + 1) / 2).clamp(self.rho_min, 1.0)
 
-    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor) -> Segmentation:
+    def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
+                progress: Progress = Progress()) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = h_fwd if self.source == "past" else h_rev
         fixed = self.fixed_duration
@@ -148,14 +146,14 @@ class LearnedDuration(nn.Module):
             d = remaining if k == slots - 1 else torch.minimum(d, remaining)
             s = s + d
             bounds.append(s)
-        assign, hard = self._assignment(torch.stack(bounds, dim=-1), t)
+        assign, hard = self._assignment(torch.stack(bounds, dim=-1), t, self.tau(progress.step))
         valid = hard.sum(2) > 0  # slots holding at least one step (a slot past the end holds none)
         kl = h_fwd.new_zeros(b)
         if kls:  # summed over an edge's segments, divided by its steps: the edge KL's convention
             kl = (torch.stack(kls, -1) * valid).flatten(1).sum(1) / (e * t)
         return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl)
 
-    def _assignment(self, bounds: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Continuous boundaries [B, E, S+1] -> step-to-slot assignment [B, E, T, S]: exactly one-hot in
         the forward pass, with the gradient of a soft step to every boundary (straight-through).
         Returns (assignment, its hard part)."""
@@ -164,7 +162,7 @@ class LearnedDuration(nn.Module):
         hard = ((j >= lo.detach()) & (j < hi.detach())).to(bounds.dtype)
         if not torch.is_grad_enabled() or not bounds.requires_grad:
             return hard, hard
-        above = torch.sigmoid((j + 0.5 - bounds[..., None, :]) / self.tau)  # [B, E, T, S+1]
+        above = torch.sigmoid((j + 0.5 - bounds[..., None, :]) / tau)  # [B, E, T, S+1]
         soft = above[..., :-1] - above[..., 1:]
         return hard + (soft - soft.detach()), hard  # soft - soft.detach() is exactly 0 forward
 

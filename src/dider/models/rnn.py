@@ -7,8 +7,8 @@ runs the two recurrences together, one batched [2, M, R] x [2, R, 4R] product pe
 gate ops stay in cache: 0.59 -> 0.46 s (fp32) and 0.29 -> 0.21 s (bf16) at that size on the 2-core CPU. Its
 per-frame Python ops cost a fixed overhead, so on small inputs (batch 8, or input width 64) ATen's
 bidirectional LSTM is up to 2.5x faster: the crossover was measured between M x H = 384 x 256 (ATen faster
-by 7%) and 768 x 256 (fused faster by 22%). ``FUSED_MIN_WORK`` selects ATen's below a size (off by default). On a GPU cuDNN's
-LSTM is used: the fused path's per-frame launches were never measured to pay there.
+by 7%) and 768 x 256 (fused faster by 22%). ``FUSED_MIN_WORK`` selects ATen's below a size (off by
+default). On a GPU cuDNN's LSTM is used: the fused path's per-frame launches were never measured to pay there.
 The weights stay two ``nn.LSTM`` modules, so checkpoints and the one-step evaluation path are unchanged.
 """
 

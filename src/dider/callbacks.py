@@ -1,0 +1,122 @@
+"""Callbacks every training of the relational VAE runs with (``RelationalVAEModule.configure_callbacks``):
+evaluation that depends on the weights only, and a guard that stops on NaN/inf naming where it came from."""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import lightning as L
+import torch
+
+from dider.models.vae import LOSS_TERMS
+from dider.rng import rng_state, set_rng_state
+
+log = logging.getLogger(__name__)
+
+
+class NonFiniteError(FloatingPointError):
+    """A NaN/inf loss term or gradient during training: the message names the step, batch and term."""
+
+
+class EvalRandomState(L.Callback):
+    """Validation and test draw (roll-out edge samples, hard Gumbel samples) from a generator seeded with
+    ``seed``; the training run's random state is put back afterwards. Metrics are then a function of the
+    weights, and checkpoints carry the training run's state, so a resumed run draws exactly what the
+    uninterrupted one would have drawn."""
+
+    CHECKPOINT_KEY = "dider_rng"
+
+    def __init__(self, seed: int = 0) -> None:
+        self.seed = seed
+        self._outside: dict[str, Any] | None = None  # the training run's random state during evaluation
+
+    def _enter(self, *_: Any) -> None:
+        if self._outside is None:
+            self._outside = rng_state()
+        torch.manual_seed(self.seed)
+
+    def _exit(self, *_: Any) -> None:
+        if self._outside is not None:
+            set_rng_state(self._outside)
+            self._outside = None
+
+    on_validation_epoch_start = on_test_epoch_start = _enter
+    on_validation_epoch_end = on_test_epoch_end = _exit
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        checkpoint[self.CHECKPOINT_KEY] = self._outside or rng_state()
+
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        if self.CHECKPOINT_KEY in checkpoint and trainer.state.fn == "fit":
+            set_rng_state(checkpoint[self.CHECKPOINT_KEY])
+
+
+class FiniteGuard(L.Callback):
+    """Stops training with :class:`NonFiniteError` on a NaN/inf loss term or gradient, naming the step, the
+    batch and the loss term: for a gradient, the step is replayed (same batch, same random state) and each
+    term differentiated on its own. Costs one device sync per step for the loss and one for the gradients.
+
+    The module's ``training_step`` returns its loss terms (:data:`LOSS_TERMS` and ``loss``) and offers
+    ``loss_terms(batch)``, which recomputes them."""
+
+    def __init__(self) -> None:
+        self._step: tuple[Any, int, dict[str, Any], str] | None = None  # batch, index, random state, where
+        self._loss_finite = True
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
+                             batch_idx: int) -> None:
+        where = f"step {trainer.global_step}, batch {batch_idx} of epoch {trainer.current_epoch}"
+        self._step = (batch, batch_idx, rng_state(full=False), where)
+
+    def on_before_backward(self, trainer: L.Trainer, pl_module: L.LightningModule, loss: torch.Tensor) -> None:
+        self._loss_finite = bool(torch.isfinite(loss.detach()).all())
+
+    def on_after_backward(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        # A non-finite loss is reported with its terms at the end of the batch; fp16 mixed precision skips
+        # steps with inf gradients on purpose.
+        if not self._loss_finite or getattr(trainer.precision_plugin, "scaler", None) is not None:
+            return
+        named = [(k, p.grad) for k, p in pl_module.named_parameters() if p.grad is not None]
+        if not named or bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
+            return
+        params = [k for k, g in named if not bool(torch.isfinite(g).all())]
+        msg = (f"non-finite gradient at {self._where()}: from loss term {', '.join(self._culprits(trainer, pl_module))}"
+               f"; {len(params)} parameter(s) hit, e.g. {params[:3]}; stopping the run")
+        log.error(msg)
+        raise NonFiniteError(msg)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        if self._loss_finite or not isinstance(outputs, dict):
+            return
+        names = [k for k in (*LOSS_TERMS, "loss") if k in outputs]
+        values = torch.stack([outputs[k].detach().float() for k in names]).tolist()
+        bad = {k: v for k, v in zip(names, values, strict=True) if not math.isfinite(v)}
+        culprits = [k for k in bad if k != "loss"] or ["loss"]
+        msg = (f"non-finite loss at {self._where()}: term {', '.join(culprits)} "
+               f"({', '.join(f'{k}={v}' for k, v in bad.items())}); stopping the run")
+        log.error(msg)
+        raise NonFiniteError(msg)
+
+    def _where(self) -> str:
+        return self._step[3] if self._step is not None else "unknown step"
+
+    def _culprits(self, trainer: L.Trainer, pl_module: L.LightningModule) -> list[str]:
+        """The loss terms whose own gradient is NaN/inf, from a replay of the last step."""
+        if self._step is None:
+            return ["unknown (no step to replay)"]
+        batch, _, state, _ = self._step
+        set_rng_state(state)
+        params = [p for p in pl_module.parameters() if p.requires_grad]
+        with torch.enable_grad(), trainer.precision_plugin.forward_context():
+            terms = pl_module.loss_terms(batch)
+        culprits = []
+        for name in LOSS_TERMS:
+            if not terms[name].requires_grad:
+                continue
+            grads = torch.autograd.grad(terms[name], params, retain_graph=True, allow_unused=True)
+            if any(g is not None and not bool(torch.isfinite(g).all()) for g in grads):
+                culprits.append(name)
+        return culprits or ["loss (no single term: their sum)"]

@@ -1,0 +1,157 @@
+"""Cutting one levelX recording into windows, and joining and selecting the windows of a split.
+
+A recording is downsampled on absolute frame numbers (every ``downsample``-th frame from frame 0) and cut
+into windows of ``seq_len`` downsampled steps, one every ``stride`` steps. A window keeps the tracks
+present in it (at least ``min_agent_steps`` of its steps), ordered by trackId, with a presence mask: agents
+enter and leave mid-window. Windows with fewer than ``min_agents`` agents (default 2: a relation needs
+two) are dropped. Windows have different agent counts, so they are stored packed: one row per agent per
+window, window w owning rows offsets[w]:offsets[w+1].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from dider.data.common import ragged_rows
+from dider.data.levelx.reading import _check_consistency, _frame_rate, _read_tracks, _read_tracks_meta
+from dider.data.levelx.recordings import RecordingFiles
+
+DEFAULT_FEATURES = ("xCenter", "yCenter", "xVelocity", "yVelocity")
+# Cap on the dense (steps x tracks) grid of one recording: a real one has ~4k steps x ~400 tracks.
+MAX_GRID_CELLS = 2**28
+
+
+@dataclass(frozen=True)
+class WindowParams:
+    """Everything that changes the windows cut from a recording (part of the cache key)."""
+
+    track_id_column: str = "trackId"
+    frame_column: str = "frame"
+    class_column: str = "class"
+    frame_rate_column: str = "frameRate"
+    features: tuple[str, ...] = DEFAULT_FEATURES
+    classes: tuple[str, ...] | None = None
+    downsample: int = 10
+    seq_len: int = 50
+    stride: int = 50
+    min_agent_steps: int = 1
+    min_agents: int = 2
+    max_agents: int | None = None
+
+
+def preprocess_recording(files: RecordingFiles, p: WindowParams) -> dict[str, Any]:
+    """Read and validate one recording and cut its windows (raw units, packed).
+
+    Returns a dict of: states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1]
+    long (window w owns rows offsets[w]:offsets[w+1], agents by trackId), track_id [P] long,
+    agent_class [P] long (index into class_names), class_names list[str], window_start [W] long
+    (downsampled step), frame_rate, location_id, recording, num_steps (downsampled), num_tracks.
+    """
+    tid, frame, feats = _read_tracks(files, p)
+    meta_ids, meta_frames, meta_class = _read_tracks_meta(files, p)
+    rate, location = _frame_rate(files, p)
+    _check_consistency(files, tid, frame, meta_ids, meta_frames)
+
+    # Downsample on absolute frame numbers (DNRI's feats[::10] from frame 0), then drop filtered classes.
+    keep = frame % p.downsample == 0
+    if p.classes is not None:
+        keep &= np.isin(tid, meta_ids[np.isin(meta_class, p.classes)])
+    tid, step, feats = tid[keep], frame[keep] // p.downsample, feats[keep]
+    class_names = sorted(set(meta_class.tolist()))
+    out = _empty_windows(p, class_names, rate, location, files.id)
+    if tid.size == 0:
+        return out
+
+    # Dense grid of the recording: [S steps, K tracks]. Column order = sorted trackId = agent order.
+    tracks, k = np.unique(tid, return_inverse=True)
+    num_steps = int(step.max()) + 1
+    if num_steps * tracks.size > MAX_GRID_CELLS:
+        raise ValueError(f"{files.tracks}: column {p.frame_column!r} reaches frame {int(frame.max())}: "
+                         f"{num_steps} steps x {tracks.size} tracks is implausibly large for one recording")
+    grid = np.zeros((num_steps, tracks.size, 4), np.float32)
+    present = np.zeros((num_steps, tracks.size), bool)
+    grid[step, k] = feats
+    present[step, k] = True
+    out["num_steps"], out["num_tracks"] = num_steps, int(tracks.size)
+
+    starts = np.arange(0, num_steps - p.seq_len + 1, p.stride)
+    if starts.size == 0:
+        return out
+    # Steps each track is present in each window, from a cumulative sum over time: [W, K].
+    csum = np.zeros((num_steps + 1, tracks.size), np.int32)
+    np.cumsum(present, axis=0, out=csum[1:])
+    steps_in = csum[starts + p.seq_len] - csum[starts]
+    kept = steps_in >= p.min_agent_steps
+    if p.max_agents is not None:
+        # Keep the agents seen longest in the window (ties: lower trackId): rank them per window.
+        k_all = tracks.size
+        score = np.where(kept, steps_in.astype(np.int64) * (k_all + 1) + (k_all - np.arange(k_all)), -1)
+        order = np.argsort(-score, axis=1, kind="stable")
+        rank = np.empty_like(order)
+        np.put_along_axis(rank, order, np.arange(k_all)[None, :].repeat(len(starts), 0), axis=1)
+        kept &= rank < p.max_agents
+    good = kept.sum(1) >= p.min_agents
+    starts, kept = starts[good], kept[good]
+    w, a = np.nonzero(kept)  # row-major: by window, then by trackId
+    t_idx = starts[w][:, None] + np.arange(p.seq_len)[None, :]  # [P, T]
+    offsets = np.zeros(len(starts) + 1, np.int64)
+    offsets[1:] = np.cumsum(kept.sum(1))
+    code = np.searchsorted(class_names, meta_class[np.searchsorted(meta_ids, tracks)])
+    out.update(
+        states=torch.from_numpy(grid[t_idx, a[:, None]]),
+        mask=torch.from_numpy(present[t_idx, a[:, None]]),
+        offsets=torch.from_numpy(offsets),
+        track_id=torch.from_numpy(tracks[a]),
+        agent_class=torch.from_numpy(code[a].astype(np.int64)),
+        window_start=torch.from_numpy(starts.astype(np.int64)),
+    )
+    return out
+
+
+def _empty_windows(p: WindowParams, class_names: list[str], rate: float, location: int | None,
+                   rec: str) -> dict[str, Any]:
+    return {
+        "states": torch.zeros(0, p.seq_len, 4), "mask": torch.zeros(0, p.seq_len, dtype=torch.bool),
+        "offsets": torch.zeros(1, dtype=torch.long), "track_id": torch.zeros(0, dtype=torch.long),
+        "agent_class": torch.zeros(0, dtype=torch.long), "class_names": class_names,
+        "window_start": torch.zeros(0, dtype=torch.long), "frame_rate": rate, "location_id": location,
+        "recording": rec, "num_steps": 0, "num_tracks": 0,
+    }
+
+
+def concat_windows(blobs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Join the packed windows of several recordings (offsets shifted, class codes remapped to one
+    sorted vocabulary). Adds window_recording [W] (index into ``recordings``)."""
+    names = sorted(set().union(*(b["class_names"] for b in blobs)))
+    offsets = [torch.zeros(1, dtype=torch.long)]
+    shift = 0
+    for b in blobs:
+        offsets.append(b["offsets"][1:] + shift)
+        shift += int(b["offsets"][-1])
+    lut = [torch.tensor([names.index(c) for c in b["class_names"]] or [0], dtype=torch.long) for b in blobs]
+    return {
+        "states": torch.cat([b["states"] for b in blobs]),
+        "mask": torch.cat([b["mask"] for b in blobs]),
+        "offsets": torch.cat(offsets),
+        "track_id": torch.cat([b["track_id"] for b in blobs]),
+        "agent_class": torch.cat([m[b["agent_class"]] for m, b in zip(lut, blobs, strict=True)]),
+        "class_names": names,
+        "window_start": torch.cat([b["window_start"] for b in blobs]),
+        "window_recording": torch.cat([torch.full((len(b["window_start"]),), i, dtype=torch.long)
+                                       for i, b in enumerate(blobs)]),
+        "recordings": [b["recording"] for b in blobs],
+    }
+
+
+def select_windows(data: dict[str, Any], idx: torch.Tensor) -> dict[str, Any]:
+    """The windows ``idx`` [K] long of a packed split (as made by :func:`concat_windows`)."""
+    rows, offsets = ragged_rows(data["offsets"], idx)
+    out = dict(data, offsets=offsets, window_start=data["window_start"][idx],
+               window_recording=data["window_recording"][idx])
+    for key in ("states", "mask", "track_id", "agent_class"):
+        out[key] = data[key][rows]
+    return out

@@ -1,0 +1,96 @@
+"""What a test run scores: forecast MSE per horizon, edge accuracy, segment statistics, switch-time F1
+and the inD consistency check, as one collection of torchmetrics (reduced over ranks under DDP).
+
+Shapes: B batch, P predicted steps, N agents, D features, E edges, T-1 transitions.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from dider.data.batch import Batch, Normalizer
+from dider.data.pairs import KIND_NAMES
+from dider.graph import edge_mask
+from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Forecast:
+    """A roll-out over a whole clip after its burn-in, with what it is scored against."""
+
+    pred: torch.Tensor  # [B, P, N, D]
+    target: torch.Tensor  # [B, P, N, D]
+    mask: torch.Tensor  # [B, P, N] bool: targets that exist
+    types: torch.Tensor  # [B, E, T-1] long: the edge types the roll-out used
+    horizon: torch.Tensor | None  # [B, P, N] long: each target's own horizon (per-agent burn-in), else None
+
+
+class TestMetrics(nn.Module):
+    """update() per test batch, compute() once at the end: ``test/...`` name -> value."""
+
+    def __init__(self, horizons: Sequence[int], num_types: int) -> None:
+        super().__init__()
+        self.mse, self.mse_raw = HorizonMSE(horizons), HorizonMSE(horizons)
+        self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
+        self.segments = SegmentStats()
+        self.boundary = BoundaryF1(tolerance=2)
+        self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
+
+    def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
+               normalizer: Normalizer | None = None) -> None:
+        """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past."""
+        self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
+        if normalizer is not None:
+            self.mse_raw.update(normalizer.denormalize(forecast.pred), normalizer.denormalize(forecast.target),
+                                forecast.mask, forecast.horizon)
+        present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
+        self.segments.update(posterior, present.any(1))
+        if "edges" in batch:
+            self.acc_posterior.update(posterior.transpose(1, 2), batch["edges"], present)
+            self.acc_prior.update(prior.transpose(1, 2), batch["edges"], present)
+            self.boundary.update(posterior, batch["edges"].transpose(1, 2))
+        if "pair_kind" in batch:
+            self.pairs.update(posterior, batch["pair_kind"], present.transpose(1, 2))
+
+    def compute(self) -> dict[str, torch.Tensor]:
+        """Every metric that saw data, then reset them all."""
+        out = horizon_values("test/mse", self.mse)
+        if self.mse_raw.update_count:
+            out |= horizon_values("test/mse_raw", self.mse_raw)
+        out["test/segments_per_edge"], out["test/switches_per_100"] = self.segments.compute()
+        if self.boundary.update_count:
+            out["test/boundary_f1"] = self.boundary.compute()
+        for name, metric in {"posterior": self.acc_posterior, "prior": self.acc_prior}.items():
+            if metric.update_count:
+                out[f"test/edge_acc/{name}/none"], out[f"test/edge_acc/{name}/interaction"] = metric.compute()
+        if self.pairs.update_count:
+            out |= self._consistency()
+        for metric in self.children():
+            metric.reset()
+        return out
+
+    def _consistency(self) -> dict[str, torch.Tensor]:
+        """test/consistency/{parked,opposite}/{share,type,edge_steps}; a kind with no edge-steps in the test
+        split gets only its (zero) count, with a warning, rather than a made-up share."""
+        share, dominant, total = self.pairs.compute()
+        out = {}
+        for k, name in KIND_NAMES.items():
+            out[f"test/consistency/{name}/edge_steps"] = total[k - 1].float()
+            if total[k - 1] > 0:
+                out[f"test/consistency/{name}/share"] = share[k - 1]
+                out[f"test/consistency/{name}/type"] = dominant[k - 1].float()
+            else:
+                log.warning("consistency check: no %s pairs in the test split (data.pairs sets the rules)", name)
+        return out
+
+
+def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:
+    """``prefix/hXX`` -> the metric's value at each of its horizons."""
+    return {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, metric.compute(), strict=True)}

@@ -1,0 +1,264 @@
+"""The relational VAE as a plain ``nn.Module``: inference, the loss, online edges and the forecast roll-out.
+
+DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins the model is built with (see
+:mod:`dider.models.plugins`): the duration plugin decides how each edge's time axis is cut into segments,
+and the edge posterior and prior are read once per segment. With one-step segments this is exactly DNRI.
+Nothing here needs Lightning: schedules come in as a :class:`Progress`, the forecast protocol as arguments.
+
+Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots,
+R LSTM width, P predicted steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from dider.graph import edge_mask
+from dider.losses import capacity, categorical_kl, gaussian_nll
+from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
+from dider.models.prior import fixed_log_probs
+from dider.models.segments import Segmentation
+from dider.protocol import burn_in_mask, fill_absent
+from dider.validation import require
+
+LOSS_TERMS = ("nll", "kl_edge", "kl_duration")
+# Keys of a model config that configure training and evaluation (the LightningModule), not the network.
+TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
+
+
+@dataclass
+class Inference:
+    """Result of the teacher-forced pass over a clip."""
+
+    pred: torch.Tensor  # [B, T-1, N, D] predictions of x_1..x_{T-1}
+    posterior_logits: torch.Tensor  # [B, E, S, K] per segment
+    prior_logits: torch.Tensor  # [B, E, S, K] per segment
+    probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
+    step_logits: torch.Tensor  # [B, E, T-1, K] per-step posterior logits (before segmentation)
+    seg: Segmentation
+    h_fwd: torch.Tensor  # [B, E, T-1, R]
+    nll: torch.Tensor  # [B]
+    kl_edge: torch.Tensor  # [B]
+    kl_duration: torch.Tensor  # [B]
+
+    def posterior_types(self) -> torch.Tensor:
+        """[B, E, T-1] long: the argmax type of each step's segment."""
+        one_hot = F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()
+        return self.seg.spread(one_hot).argmax(-1)
+
+
+class RelationalVAE(nn.Module):
+    """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
+    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|)."""
+
+    def __init__(
+        self,
+        encoder: Encoder,
+        prior: Prior,
+        duration: Duration,
+        decoder: Decoder,
+        num_edges: int = 2,
+        nll_variance: float = 5e-5,
+        gumbel_tau: float = 0.5,
+        beta_edge: float = 1.0,
+        beta_duration: float = 1.0,
+        capacity_edge: float = 0.0,
+        capacity_duration: float = 0.0,
+        capacity_ramp: float = 0.5,
+        kl_warmup: float = 0.0,
+        sparsity_mix: float = 0.0,
+        no_edge_prob: float = 0.9,
+        rollout_edges: str = "sample",
+        posterior_readout: str = "start",
+        name: str = "model",
+    ) -> None:
+        """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
+        ramp up. sparsity_mix: weight of DNRI's synthetic-data term KL(mean_e q || [no_edge_prob, ...]) in
+        the edge KL. rollout_edges: ``sample`` (DNRI) or ``argmax`` prior edge types in roll-outs.
+        posterior_readout: a segment's posterior type read at its first step (``start``, the paper) or
+        pooled over its steps (``mean``)."""
+        super().__init__()
+        require({
+            "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
+            "model.rollout_edges": rollout_edges, "model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau,
+            "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
+            "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
+            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
+        })  # fmt: skip
+        seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
+                 "decoder": (decoder, Decoder)}
+        for key, (plugin, interface) in seams.items():
+            if missing := missing_members(plugin, interface):  # a user's plugin: say what it lacks, up front
+                raise TypeError(f"model.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
+                                f"(missing {missing}; see dider.models.plugins)")
+        self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
+        self.num_types, self.name = num_edges, name
+        self.nll_variance, self.gumbel_tau = nll_variance, gumbel_tau
+        self.beta_edge, self.beta_duration = beta_edge, beta_duration
+        self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
+        self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
+        self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
+        self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
+        """Build the network from a model config (``cfg.model`` of the Hydra app), ignoring its training keys."""
+        node = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+        return instantiate({k: v for k, v in node.items() if k not in TRAINING_KEYS}, _convert_="all")
+
+    def load_checkpoint(self, path: str | Path) -> RelationalVAE:
+        """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run) into this model."""
+        state = torch.load(path, map_location="cpu", weights_only=True)["state_dict"]
+        self.load_state_dict({k.removeprefix("model."): v for k, v in state.items()})
+        return self
+
+    # ------------------------------------------------------------------ inference and loss
+    def infer(self, batch: Mapping[str, torch.Tensor], hard: bool, progress: Progress = Progress()) -> Inference:
+        """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame.
+
+        batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool."""
+        x, mask = batch["states"], batch["mask"]
+        # With every agent present (the synthetic sets) the plugins skip their masking passes.
+        plugin_mask = None if bool(mask.all()) else mask
+        enc = self.encoder(x, plugin_mask)
+        seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress)
+        # The posterior reads a segment's type at its first step (the paper) or pools the per-step
+        # logits over the segment; the prior always reads the first step, so it stays online.
+        pooled = self.posterior_readout == "mean"
+        q_seg = seg.pool(enc.posterior_logits) if pooled else seg.gather(enc.posterior_logits)
+        p_seg = seg.gather(self.prior(enc.h_fwd))
+        z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
+        pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
+        nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.nll_variance)
+
+        # Edge KL per segment, summed over an edge's segments and divided by its steps, so that with
+        # one-step segments it is DNRI's mean over (step, edge).
+        present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        at_start = present.gather(2, seg.start) & seg.valid
+        kl_slots = categorical_kl(q_seg, p_seg) * at_start
+        steps = present.flatten(1).sum(1).clamp_min(1)
+        kl_edge = kl_slots.flatten(1).sum(1) / steps
+        probs = seg.spread(F.softmax(q_seg, dim=-1))
+        if self.sparsity_mix > 0:  # DNRI's synthetic runs: KL(mean_e q_t || [0.9, 0.1, ...])
+            w = present.unsqueeze(-1).to(probs.dtype)
+            mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
+            kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
+            kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * kl_sparse
+        return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl)
+
+    def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:
+        """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
+        et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
+        al.), so the posterior carries information before the prior may pull it in. -> scalar terms."""
+        ramp = progress.ramp_steps(self.capacity_ramp)
+        c_e = capacity(progress.step, self.capacity_edge, ramp)
+        c_d = capacity(progress.step, self.capacity_duration, ramp)
+        w = capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))
+        nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
+        loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
+        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d}
+
+    # ------------------------------------------------------------------ online edges and roll-out
+    def advance_edges(
+        self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
+        left, a new type comes from the prior and a new duration from the duration plugin."""
+        logits = self.prior(h_t)  # [B, E, K]
+        if sample:
+            logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
+        need = left <= 0
+        etype = torch.where(need, logits.argmax(-1), etype)
+        left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
+        return etype, left
+
+    @torch.no_grad()
+    def online_types(self, h_fwd: torch.Tensor) -> torch.Tensor:
+        """Prior-only (past-only) edge types over a clip: h_fwd [B, E, T, R] -> [B, E, T] long."""
+        b, e, t, _ = h_fwd.shape
+        etype = torch.zeros(b, e, dtype=torch.long, device=h_fwd.device)
+        left = torch.zeros_like(etype)
+        types = []
+        for s in range(t):
+            etype, left = self.advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False)
+            types.append(etype)
+        return torch.stack(types, dim=2)
+
+    @torch.no_grad()
+    def rollout(
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Forecast: ground truth during the burn-in, then the model's own predictions.
+
+        mode ``global``: every agent's input is ground truth for the window's first ``burn_in`` frames, its
+        own prediction afterwards; x may hold only those frames, [B, >=burn_in, N, D].
+        mode ``per_agent`` (agents entering mid-window, DNRI's inD protocol): agent i's input at frame t is
+        ground truth while t is among its own first ``burn_in`` present frames (``burn_in_mask``), its own
+        previous prediction afterwards; absent agents are zeros and masked. x: [B, >=burn_in+P-1, N, D].
+        With every agent present from frame 0 both modes compute the same thing, bit for bit.
+
+        Edges come from the prior only, read from the forward LSTM that is advanced on the inputs above, so
+        no state after an agent's burn-in is ever seen. mask: [B, >=burn_in+P, N] (agents present) ->
+        predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an agent's frame t is predicted from its
+        input at t-1) and the edge types used at each transition [B, E, burn_in+P-1].
+        """
+        if burn_in < 1 or num_pred < 1:
+            raise ValueError(f"rollout: need burn_in >= 1 and num_pred >= 1, got {burn_in}, {num_pred}")
+        b, n = x.shape[0], x.shape[2]
+        end = burn_in + num_pred - 1  # transitions covered
+        sample = self.rollout_edges == "sample"
+        if mode == "per_agent":
+            if x.shape[1] < end or mask.shape[1] < end:
+                raise ValueError(f"rollout(per_agent): need >= {end} frames of states and mask (an agent may "
+                                 f"enter late and be observed then), got {x.shape[1]} and {mask.shape[1]}")
+            fed = burn_in_mask(mask[:, :end], burn_in)  # [B, end, N]: inputs that are ground truth
+            # Frames before any present agent has left its burn-in are pure ground truth: one batched LSTM
+            # pass over them, exactly as in the global mode (where this prefix is the burn-in itself).
+            rolled = (mask[:, :end] & ~fed).any(dim=2).any(dim=0)  # [end]
+            t_obs = int(rolled.to(torch.uint8).argmax()) if bool(rolled.any()) else end
+            x_obs = fill_absent(x[:, :t_obs], mask[:, :t_obs])
+        elif mode == "global":
+            fed, t_obs, x_obs = None, burn_in, x[:, :burn_in]
+        else:
+            raise ValueError(f"rollout: mode={mode!r}, expected 'global' or 'per_agent'")
+        h_past, enc_state = self.encoder.past(x_obs, mask[:, :t_obs])
+        etype = torch.zeros(b, h_past.shape[1], dtype=torch.long, device=x.device)
+        left = torch.zeros_like(etype)
+        dec_state = self.decoder.init_state(b, n, x)
+        preds, types = [], []
+        cur = x[:, 0]
+        for t in range(end):
+            m_t = mask[:, t]
+            if t < t_obs:
+                cur, h_t = x_obs[:, t], h_past[:, :, t]
+            else:  # t >= t_obs >= burn_in: cur holds the previous step's prediction
+                if fed is not None:
+                    cur = fill_absent(torch.where(fed[:, t, :, None], x[:, t], cur), m_t)
+                h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
+            etype, left = self.advance_edges(h_t, t, end, etype, left, sample)
+            types.append(etype)
+            # No input before burn_in - 1 is ever a prediction (an agent needs burn_in present frames
+            # first), so a stateless decoder has nothing to do there.
+            if t < burn_in - 1 and self.decoder.stateless:
+                continue
+            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * edge_mask(m_t).unsqueeze(-1)
+            out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
+            if t >= burn_in - 1:
+                preds.append(out)
+                cur = out
+        return torch.stack(preds, dim=1), torch.stack(types, dim=2)
+
+    def forward(
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"
+    ) -> torch.Tensor:
+        """Inference entry point: the forecast of :meth:`rollout`, [B, P, N, D]."""
+        return self.rollout(x, mask, burn_in, num_pred, mode)[0]

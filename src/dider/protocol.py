@@ -1,0 +1,101 @@
+"""The forecast protocol: which frames a model observes before it forecasts, and which forecasts are scored.
+
+A clip of T frames is split into a burn-in, which the model observes, and the frames after it, which it
+rolls out from its own predictions. There are two ways to place the burn-in (``burn_in_mode``):
+
+- ``global``: every agent is observed for the clip's first ``burn_in`` frames and predicted from frame
+  ``burn_in`` on. Used where every agent is present all along (synthetic push clips, basketball).
+- ``per_agent``: each agent is observed for its own first ``burn_in`` *present* frames and predicted
+  after those. Used for road users (inD and the other levelX data sets), who enter and leave mid-clip, so
+  an agent that appears late still gets a full burn-in before its forecast is counted (DNRI's protocol).
+
+A horizon h is the h-th predicted step after the burn-in: for ``global`` the frame ``burn_in + h - 1`` of
+every agent, for ``per_agent`` the agent's h-th present frame after its own burn-in. Test errors are
+reported at a few such horizons (``data.horizons``), each of which must therefore lie in
+1..T - burn_in.
+
+Absent agents (mask False) get zero states, the centre of the normalised range, so no NaN ever reaches
+a model. Shapes: B clips, T frames, N agents.
+"""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Sequence
+
+import torch
+
+BURN_IN_MODES = ("global", "per_agent")
+
+
+def burn_in_mask(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
+    """The steps that are each agent's own burn-in: its first ``burn_in`` present steps.
+
+    The per-agent protocol observes every agent for ``burn_in`` steps from its first appearance (agents
+    enter and leave mid-clip), so forecasting errors are only counted after that. mask: [B, T, N] bool ->
+    [B, T, N] bool.
+    """
+    return mask & (mask.long().cumsum(dim=1) <= burn_in)
+
+
+def agent_horizons(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
+    """Per-agent forecast horizon of every frame: h >= 1 at an agent's h-th present frame after its own
+    burn-in (its first ``burn_in`` present frames, :func:`burn_in_mask`); <= 0 in its burn-in, 0 where absent.
+
+    With every agent present from frame 0 this is the global horizon t - burn_in + 1. mask: [B, T, N] bool
+    -> [B, T, N] long.
+    """
+    steps = mask.long().cumsum(dim=1) - burn_in
+    return torch.where(mask, steps, torch.zeros((), dtype=steps.dtype, device=steps.device))
+
+
+def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Zero the states of absent agents (normalised space: the centre of the range), never NaN.
+
+    states: [..., N, 4], mask: [..., N] bool -> [..., N, 4].
+    """
+    return torch.where(mask[..., None], states, torch.zeros((), dtype=states.dtype))
+
+
+def horizons_problem(horizons: object, longest: int | None, key: str = "data.horizons", context: str = "",
+                     integers: bool = False) -> str | None:
+    """The one rule for forecast horizons: a non-empty list, each h in 1..longest (h is the h-th predicted
+    step after the burn-in, so ``longest`` = clip length - burn_in; None while the clip length is unknown:
+    each h >= 1). Returns ``"key=value: what is wrong (context)"`` or None. integers: also reject horizons
+    that are not integers (bools included) rather than truncating them."""
+    try:
+        hs = [h if integers else int(h) for h in horizons]  # type: ignore[union-attr]
+    except (TypeError, ValueError):
+        return f"{key}={horizons!r}: expected a list of ints"
+    if integers and not all(isinstance(h, numbers.Integral) and not isinstance(h, bool) for h in hs):
+        hs = []  # reported with the range below
+    if longest is None:
+        return None if hs and min(hs) >= 1 else f"{key}={list(horizons)}: need at least one horizon >= 1"  # type: ignore[arg-type]
+    if hs and min(hs) >= 1 and max(hs) <= longest:
+        return None
+    return f"{key}={list(horizons)}: each must lie in 1..{longest}" + (f" ({context})" if context else "")  # type: ignore[arg-type]
+
+
+def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, where: str = "", *,
+                   length_key: str | None = None, integers: bool = False) -> None:
+    """Raise a ValueError naming ``data.burn_in`` or ``data.horizons`` unless the burn-in is shorter than
+    the clips and every horizon fits after it (:func:`horizons_problem`).
+
+    seq_len: the clip length in steps, or None while it is unknown (data modules that learn it only when
+    they read their files): then only that there is a horizon and none is below 1. where: appended to the
+    clip length in messages (e.g. " in <file>"); length_key: the config key that sets the clip length,
+    named in messages instead of "<seq_len>-step clips"; integers: see :func:`horizons_problem`.
+    """
+    if seq_len is not None:
+        if burn_in < 1:
+            raise ValueError(f"data.burn_in={burn_in}: must be >= 1")
+        if length_key is None:
+            clip, clips = f"the clips ({seq_len} steps{where})", f"{seq_len}-step clips{where}"
+        else:
+            clip, clips = f"the clip ({length_key}={seq_len})", f"{length_key}={seq_len}"
+        if burn_in >= seq_len:
+            raise ValueError(f"data.burn_in={burn_in} must be shorter than {clip}")
+    longest = None if seq_len is None else seq_len - burn_in
+    context = "" if seq_len is None else f"the predicted steps after data.burn_in={burn_in} of {clips}"
+    if (found := horizons_problem(horizons, longest, context=context, integers=integers)) is not None:
+        raise ValueError(found)

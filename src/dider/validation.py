@@ -1,0 +1,126 @@
+"""One way to validate settings: each rule is written once, under its full config key.
+
+Constructors call :func:`require` with the values they receive; ``dider.run.validate_config`` applies
+every rule to a whole config before any work starts. Either way an error names the key and the value,
+e.g. ``model.num_edges=1: must be >= 2 (...)``, and lists every problem at once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from dider.protocol import BURN_IN_MODES
+
+Rule = Callable[[Any], "str | None"]  # a value -> what is wrong with it, or None
+
+
+class ConfigError(ValueError):
+    """Invalid configuration values; the message lists each one by its key."""
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def at_least(low: float, note: str = "") -> Rule:
+    def rule(value: Any) -> str | None:
+        if not _is_number(value):
+            return "must be a number"
+        return None if value >= low else f"must be >= {low}{note}"
+
+    return rule
+
+
+def above(low: float) -> Rule:
+    def rule(value: Any) -> str | None:
+        if not _is_number(value):
+            return "must be a number"
+        return None if value > low else f"must be > {low}"
+
+    return rule
+
+
+def within(low: float, high: float, what: str = "must lie in") -> Rule:
+    def rule(value: Any) -> str | None:
+        if not _is_number(value):
+            return "must be a number"
+        return None if low <= value <= high else f"{what} [{low}, {high}]"
+
+    return rule
+
+
+def within_open(low: float, high: float) -> Rule:
+    def rule(value: Any) -> str | None:
+        if not _is_number(value):
+            return "must be a number"
+        return None if low < value < high else f"must lie in ({low}, {high})"
+
+    return rule
+
+
+def optional(rule: Rule) -> Rule:
+    """``rule``, or null."""
+    return lambda value: None if value is None else rule(value)
+
+
+def one_of(*options: Any) -> Rule:
+    def rule(value: Any) -> str | None:
+        return None if value in options else f"expected one of {list(options)}"
+
+    return rule
+
+
+def boolean(value: Any) -> str | None:
+    return None if isinstance(value, bool) else "expected true or false"
+
+
+FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
+
+RULES: dict[str, Rule] = {
+    "compile": boolean,
+    "model.num_edges": at_least(2, " (type 0 is 'no interaction': a relation needs another type)"),
+    "model.nll_variance": above(0),
+    "model.gumbel_tau": above(0),
+    "model.beta_edge": at_least(0),
+    "model.beta_duration": at_least(0),
+    "model.capacity_edge": at_least(0),
+    "model.capacity_duration": at_least(0),
+    "model.capacity_ramp": FRACTION_OF_TRAINING,
+    "model.kl_warmup": FRACTION_OF_TRAINING,
+    "model.sparsity_mix": within(0.0, 1.0),
+    "model.posterior_readout": one_of("start", "mean"),
+    "model.rollout_edges": one_of("sample", "argmax"),
+    "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
+    "model.check_finite": boolean,
+    "model.duration.max_segments": at_least(1),
+    "model.duration.source": one_of("past", "future"),
+    "model.duration.min_duration": at_least(1, " step"),
+    "model.duration.rho_min": within(0.0, 1.0),
+    "model.duration.sigma_min": within_open(0.0, 1.0),
+    "model.duration.prior_sigma": above(0),
+    "model.duration.tau_start": above(0),
+    "model.duration.tau_end": above(0),
+    "model.duration.fixed_duration": optional(at_least(1)),
+    "model.burn_in": at_least(1),
+    "data.burn_in": at_least(1),
+    "data.burn_in_mode": one_of(*BURN_IN_MODES),
+}
+
+
+def problem(key: str, value: Any) -> str | None:
+    """The rule of ``key`` applied to ``value``: ``"key=value: what is wrong"``, or None when it is fine."""
+    why = RULES[key](value)
+    return None if why is None else f"{key}={value!r}: {why}"
+
+
+def require(values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None) -> None:
+    """Check values by their full config keys (each must have a rule in :data:`RULES`), and ``related``
+    ones whose rule depends on another value (key -> (value, rule)); raises :class:`ConfigError` listing
+    every problem."""
+    found = [p for key, value in values.items() if (p := problem(key, value)) is not None]
+    for key, (value, rule) in (related or {}).items():
+        if (why := rule(value)) is not None:
+            found.append(f"{key}={value!r}: {why}")
+    if found:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(found))

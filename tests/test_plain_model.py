@@ -1,0 +1,87 @@
+"""The network is a plain nn.Module: built from the config, loaded from a checkpoint and rolled out with no
+Trainer; the Lightning shell rebuilds itself from its checkpoint alone."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from dider.models.module import RelationalVAEModule
+from dider.run import train
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+OVERRIDES = ["model=dider", "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.encoder.head_hidden=16",
+             "model.decoder.hidden=32"]
+
+# What a notebook does: compose the config, build the network, load a run's weights, forecast a tensor.
+NOTEBOOK = """
+import json, sys
+import torch
+from hydra import compose, initialize_config_module
+from dider.models.vae import RelationalVAE
+
+overrides, ckpt = json.loads(sys.argv[1]), sys.argv[2]
+with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+    cfg = compose(config_name="config", overrides=overrides)
+model = RelationalVAE.from_config(cfg.model).load_checkpoint(ckpt).eval()
+torch.manual_seed(0)
+x = torch.rand(2, 12, 3, 4) * 2 - 1
+pred = model(x, torch.ones(2, 30, 3, dtype=torch.bool), burn_in=10, num_pred=20)
+print(json.dumps({"shape": list(pred.shape), "sum": pred.double().sum().item(),
+                  "lightning_loaded": any(m == "lightning" or m.startswith("lightning.") for m in sys.modules)}))
+"""
+
+
+def test_checkpoint_weights_roll_out_without_a_trainer(make_cfg, tmp_path):
+    train(make_cfg([*OVERRIDES, "logger=none", "callbacks=none", "+callbacks.ckpt._target_="
+                    "lightning.pytorch.callbacks.ModelCheckpoint", f"+callbacks.ckpt.dirpath={tmp_path}/ck",
+                    "+callbacks.ckpt.save_last=true"], out=tmp_path / "run"))
+    ckpt = tmp_path / "ck" / "last.ckpt"
+    assert ckpt.is_file()
+    done = subprocess.run([sys.executable, "-c", NOTEBOOK, json.dumps(OVERRIDES), str(ckpt)],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["shape"] == [2, 20, 3, 4]
+    assert not out["lightning_loaded"]  # the network needs nothing of Lightning
+
+    # The Lightning shell rebuilds from the checkpoint alone (configs in its hyper-parameters) and holds
+    # the same weights: the same forecast, number for number.
+    module = RelationalVAEModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    torch.manual_seed(0)
+    x = torch.rand(2, 12, 3, 4) * 2 - 1
+    pred = module(x, torch.ones(2, 30, 3, dtype=torch.bool), burn_in=10, num_pred=20)
+    assert pred.double().sum().item() == pytest.approx(out["sum"], rel=1e-6, abs=1e-6)
+    assert module.hparams.model["num_edges"] == 2 and module.hparams.burn_in == 5
+
+
+def test_old_checkpoint_layout_loads(make_cfg):
+    """Checkpoints written before the network moved into ``module.model`` (plugins at the top level)."""
+    module = RelationalVAEModule.from_config(make_cfg(["model=dnri"]).model)
+    old = {"state_dict": {k.removeprefix("model."): v for k, v in module.state_dict().items()}}
+    module.on_load_checkpoint(old)
+    module.load_state_dict(old["state_dict"])
+    assert set(old["state_dict"]) == set(module.state_dict())
+
+
+def test_model_config_keys_are_split(make_cfg):
+    module = RelationalVAEModule.from_config(make_cfg(["model=dnri", "model.eval_seed=7"]).model)
+    assert module.hparams.eval_seed == 7 and "eval_seed" not in module.hparams.model
+    assert "optimizer" not in module.hparams.model and module.hparams.optimizer["lr"] == pytest.approx(5e-4)
+    assert Path(module.model.__class__.__module__.replace(".", "/")).name == "vae"
+
+
+def test_a_plugin_lacking_its_interface_is_named(make_cfg):
+    from hydra.utils import instantiate
+
+    from dider.models.vae import RelationalVAE
+
+    cfg = make_cfg(["model=dnri"]).model
+    parts = {k: instantiate(cfg[k]) for k in ("encoder", "prior", "duration")}
+    with pytest.raises(TypeError, match=r"model.decoder: Linear is not a Decoder plugin \(missing \['init_state', "
+                                        r"'stateless', 'step'\]"):
+        RelationalVAE(**parts, decoder=torch.nn.Linear(2, 2))
