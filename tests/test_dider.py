@@ -127,12 +127,56 @@ def test_rollout_holds_types_for_their_duration(make_cfg):
     with torch.no_grad():
         net.duration.head[-1].bias.copy_(torch.tensor([5.0, 0.0]))  # rho -> 1: one segment to the end
     _, types = net.rollout(clip()["states"], clip()["mask"], 5, 20)
-    assert (types == types[..., :1]).all()
+    # the burn-in's transitions 0..3 are one segment; the forecast's first segment runs to the end
+    assert (types[..., :4] == types[..., :1]).all() and (types[..., 4:] == types[..., 4:5]).all()
     with torch.no_grad():
         net.duration.head[-1].bias.copy_(torch.tensor([-50.0, 0.0]))  # rho -> 0: one-step segments
     online = net.online_types(net.encoder(clip()["states"], clip()["mask"]).h_fwd)
     prior = net.prior(net.encoder(clip()["states"], clip()["mask"]).h_fwd).argmax(-1)
-    assert torch.equal(online, prior)
+    assert torch.equal(online[..., 4:], prior[..., 4:]) and torch.equal(online[..., :4], prior[..., :1].expand_as(
+        online[..., :4]))
+
+
+@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
+    """The paper's t_1 = 0, d_0 = T_obs: the burn-in is its own segment, and the first forecast segment's
+    type and duration are read at its end, in training (segment) and in the roll-out alike."""
+    burn = 6
+    net = build(make_cfg, f"model={model}", f"model.burn_in={burn}", "model.rollout_edges=argmax").eval()
+    batch = clip(t=30)
+    enc = net.encoder(batch["states"], batch["mask"])
+    seg = net.duration.segment(enc.h_fwd, enc.h_rev, batch["states"])
+    assert (seg.start[..., 0] == 0).all() and (seg.start[..., 1] == burn - 1).all()
+    assert (seg.step_slot()[..., : burn - 1] == 0).all() and (seg.step_slot()[..., burn - 1] == 1).all()
+
+    new_segment: dict[int, torch.Tensor] = {}  # t -> [B, E] bool: the edge starts a segment at t
+    drawn: dict[int, torch.Tensor] = {}  # t -> [B, E] the duration a new segment would get
+    latent: dict[int, torch.Tensor] = {}  # t -> [B, E] its latent's mean (durations are rounded to steps)
+    advance, next_duration = net.advance_edges, net.duration.next_duration
+
+    def spy_advance(h_t, t, end, etype, left, sample):
+        new_segment[t] = left <= 0
+        return advance(h_t, t, end, etype, left, sample)
+
+    def spy_duration(h_t, t, end):
+        drawn[t], latent[t] = next_duration(h_t, t, end), net.duration.gaussian(h_t)[0]
+        return drawn[t]
+
+    net.advance_edges, net.duration.next_duration = spy_advance, spy_duration
+    changed = batch["states"].clone()
+    changed[:, burn - 1] = torch.rand_like(changed[:, burn - 1]) * 2 - 1  # the last burn-in frame only
+    runs = []
+    for states in (batch["states"], changed):
+        types = net.rollout(states, batch["mask"], burn, 10)[1]
+        runs.append((types, dict(drawn), dict(new_segment), dict(latent)))
+    (types_a, dur_a, new_a, mu_a), (types_b, _, _, mu_b) = runs
+    # every edge starts a segment at transition 0 and where the forecast starts, never inside the burn-in
+    assert [t for t in range(burn) if new_a[t].any()] == [0, burn - 1]
+    assert new_a[0].all() and new_a[burn - 1].all() and (dur_a[0] == burn - 1).all()
+    assert torch.equal(types_a[..., : burn - 1], types_b[..., : burn - 1])  # read at x_0: unchanged
+    if model == "dider":  # SKID's online duration is the prior mean's fraction: it cannot depend on x
+        assert not torch.allclose(mu_a[burn - 1], mu_b[burn - 1])
+    assert not torch.equal(types_a[..., burn - 1], types_b[..., burn - 1])
 
 
 def test_bad_duration_values_name_the_key():

@@ -50,7 +50,7 @@ def test_short_run(make_cfg, roots, tmp_path, data, model):
 
 
 def test_ind_command_line(roots, tmp_path, cache_dir):
-    """The design card's usage line, on the inD fixture."""
+    """The README's inD usage line (model=dider data=ind model.num_edges=6), on the inD fixture."""
     cmd = [sys.executable, "-m", "dider.run", "model=dider", "data=ind", "model.num_edges=6",
            f"data.root={roots['ind']}", f"hydra.run.dir={tmp_path}", f"data.cache_dir={cache_dir}",
            "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4", "data.num_test=4", "trainer.max_epochs=1",

@@ -218,3 +218,29 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
     assert seen and all(seen)
     for h in ("h01", "h05", "h15"):
         assert torch.isfinite(torch.tensor(metrics[f"test/mse/{h}"])), h
+
+
+def test_nri_forecasts_with_the_edges_its_encoder_infers_from_the_burn_in(make_cfg):
+    net = build(make_cfg, "model=nri", "model.rollout_edges=argmax").eval()
+
+    class FollowsTheClip(torch.nn.Module):
+        """A posterior head whose type depends on the clip: the sign of a feature, centred over the batch."""
+
+        def forward(self, h: torch.Tensor) -> torch.Tensor:
+            f = h[..., 0] - h[..., 0].mean()
+            return torch.stack([f, -f], dim=-1)
+
+    net.encoder.posterior_head = FollowsTheClip()
+    x, mask = clip(b=32, t=30, seed=4)
+    burn = 6
+    _, types = net.rollout(x, mask, burn, 10)
+    assert (types == types[..., :1]).all()  # one type per edge, held (a static graph)
+    enc = net.encoder(x[:, :burn], None)
+    want = enc.posterior_logits[:, :, 0].argmax(-1)  # NRI's readout: the (one) segment's first step
+    assert torch.equal(types[..., 0], want)
+    assert set(types.unique().tolist()) == {0, 1}  # they depend on the clip: not the fixed prior's type 0
+    later = x.clone()
+    later[:, burn:] = torch.rand_like(later[:, burn:])  # frames after the burn-in are never read
+    assert torch.equal(net.rollout(later, mask, burn, 10)[1], types)
+    prior_only = build(make_cfg, "model=nri", "model.rollout_edges=argmax", "model.forecast_edges=prior").eval()
+    assert (prior_only.rollout(x, mask, burn, 10)[1] == 0).all()  # the old behaviour: [0.9, 0.1] prior argmax

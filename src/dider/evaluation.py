@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import nn
+from torchmetrics import Metric
 
 from dider.data.batch import Batch, Normalizer
 from dider.data.pairs import KIND_NAMES
@@ -32,21 +33,30 @@ class Forecast:
     horizon: torch.Tensor | None  # [B, P, N] long: each target's own horizon (per-agent burn-in), else None
 
 
+# Forecasts with given edges beside the model's own, to separate the decoder's error from the edge
+# forecast's: ``posterior`` (edges inferred from the whole clip), ``oracle`` (the ground truth, where known).
+EDGE_SOURCES = ("posterior", "oracle")
+
+
 class TestMetrics(nn.Module):
     """update() per test batch, compute() once at the end: ``test/...`` name -> value."""
 
     def __init__(self, horizons: Sequence[int], num_types: int) -> None:
         super().__init__()
         self.mse, self.mse_raw = HorizonMSE(horizons), HorizonMSE(horizons)
+        self.mse_by_edges = nn.ModuleDict({k: HorizonMSE(horizons) for k in EDGE_SOURCES})
         self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
         self.segments = SegmentStats()
         self.boundary = BoundaryF1(tolerance=2)
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
 
     def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
-               normalizer: Normalizer | None = None) -> None:
-        """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past."""
+               normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None) -> None:
+        """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
+        by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`)."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
+        for source, f in (by_edges or {}).items():
+            self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
         if normalizer is not None:
             self.mse_raw.update(normalizer.denormalize(forecast.pred), normalizer.denormalize(forecast.target),
                                 forecast.mask, forecast.horizon)
@@ -64,6 +74,9 @@ class TestMetrics(nn.Module):
         out = horizon_values("test/mse", self.mse)
         if self.mse_raw.update_count:
             out |= horizon_values("test/mse_raw", self.mse_raw)
+        for source, metric in self.mse_by_edges.items():
+            if metric.update_count:
+                out |= horizon_values(f"test/mse_{source}", metric)
         out["test/segments_per_edge"], out["test/switches_per_100"] = self.segments.compute()
         if self.boundary.update_count:
             out["test/boundary_f1"] = self.boundary.compute()
@@ -72,8 +85,9 @@ class TestMetrics(nn.Module):
                 out[f"test/edge_acc/{name}/none"], out[f"test/edge_acc/{name}/interaction"] = metric.compute()
         if self.pairs.update_count:
             out |= self._consistency()
-        for metric in self.children():
-            metric.reset()
+        for metric in self.modules():
+            if isinstance(metric, Metric):
+                metric.reset()
         return out
 
     def _consistency(self) -> dict[str, torch.Tensor]:

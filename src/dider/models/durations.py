@@ -89,9 +89,11 @@ class LearnedDuration(nn.Module):
         prior_sigma: float = 1.0,
         tau_start: float = 1.5,
         tau_end: float = 0.5,
-        tau_anneal_steps: int = 10000,
+        tau_anneal: float = 1.0,
+        tau_anneal_steps: int | None = None,
         fixed_duration: int | None = None,
         sigma_init: float = 0.5,
+        burn_in: int | None = None,
     ) -> None:
         super().__init__()
         require({
@@ -99,20 +101,30 @@ class LearnedDuration(nn.Module):
             "model.duration.min_duration": min_duration, "model.duration.rho_min": rho_min,
             "model.duration.sigma_min": sigma_min, "model.duration.prior_sigma": prior_sigma,
             "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
-            "model.duration.fixed_duration": fixed_duration,
+            "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
+            "model.duration.tau_anneal_steps": tau_anneal_steps, "model.duration.burn_in": burn_in,
         }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
-        self.tau_start, self.tau_end, self.tau_anneal_steps = tau_start, tau_end, tau_anneal_steps
+        self.tau_start, self.tau_end = tau_start, tau_end
+        self.tau_anneal, self.tau_anneal_steps = tau_anneal, tau_anneal_steps
+        # Transitions 0..burn_in-2 only lead up to the last observed frame: one segment of their own, and
+        # the first learned segment starts at transition burn_in-1, read from x_0..x_{burn_in-1}.
+        self.observed = 0 if burn_in is None or fixed_duration is not None else burn_in - 1
         self.head = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 2))
         with torch.no_grad():  # start at the prior's mean fraction, with a small spread, not at rho = 0.5 +- 0.25
             self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
 
-    def tau(self, step: int) -> float:
-        """The soft-step temperature after ``step`` optimiser steps."""
-        frac = min(1.0, step / self.tau_anneal_steps) if self.tau_anneal_steps > 0 else 1.0
+    def tau(self, progress: Progress) -> float:
+        """The soft-step temperature: annealed linearly over the first ``tau_anneal`` of training (or over
+        ``tau_anneal_steps`` optimiser steps when that is set)."""
+        if self.tau_anneal_steps is not None:
+            span = self.tau_anneal_steps
+            frac = min(1.0, progress.step / span) if span > 0 else 1.0
+        else:
+            frac = min(1.0, progress.fraction / self.tau_anneal) if self.tau_anneal > 0 else 1.0
         return self.tau_start + (self.tau_end - self.tau_start) * frac
 
     def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -128,9 +140,15 @@ class LearnedDuration(nn.Module):
         b, e, t, _ = h_fwd.shape
         feats = h_fwd if self.source == "past" else h_rev
         fixed = self.fixed_duration
-        slots = min(self.max_segments, t) if fixed is None else -(-t // fixed)
+        span = min(self.observed, t)  # the observed burn-in span: slot 0, no duration latent
+        learned = t - span
+        slots = (min(self.max_segments, learned) if fixed is None else -(-t // fixed)) if learned > 0 else 0
         s = h_fwd.new_zeros(b, e)  # continuous start of the current slot
-        bounds, starts, kls = [s], [], []
+        bounds, starts, kls, sigmas = [s], [], [], []
+        if span > 0:
+            starts.append(s.long())
+            s = s + span
+            bounds.append(s)
         for k in range(slots):
             start = s.detach().ceil().long().clamp(max=t - 1)  # first integer step of the slot
             starts.append(start)
@@ -143,15 +161,18 @@ class LearnedDuration(nn.Module):
                 z = mu + sigma * torch.randn_like(mu) if self.training else mu
                 d = torch.maximum(self.fraction(z) * remaining, torch.full_like(s, self.min_duration))
                 kls.append(gaussian_kl(mu, sigma, self.prior_mu, self.prior_sigma))
+                sigmas.append(sigma.detach())
             d = remaining if k == slots - 1 else torch.minimum(d, remaining)
             s = s + d
             bounds.append(s)
-        assign, hard = self._assignment(torch.stack(bounds, dim=-1), t, self.tau(progress.step))
+        assign, hard = self._assignment(torch.stack(bounds, dim=-1), t, self.tau(progress))
         valid = hard.sum(2) > 0  # slots holding at least one step (a slot past the end holds none)
-        kl = h_fwd.new_zeros(b)
+        kl, sigma = h_fwd.new_zeros(b), None
         if kls:  # summed over an edge's segments, divided by its steps: the edge KL's convention
-            kl = (torch.stack(kls, -1) * valid).flatten(1).sum(1) / (e * t)
-        return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl)
+            learned_valid = valid[..., len(starts) - len(kls):]
+            kl = (torch.stack(kls, -1) * learned_valid).flatten(1).sum(1) / (e * t)
+            sigma = (torch.stack(sigmas, -1) * learned_valid).sum() / learned_valid.sum().clamp_min(1)
+        return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma)
 
     def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Continuous boundaries [B, E, S+1] -> step-to-slot assignment [B, E, T, S]: exactly one-hot in
@@ -170,6 +191,8 @@ class LearnedDuration(nn.Module):
         remaining = float(end - t)
         if self.fixed_duration is not None:
             return torch.full(h_t.shape[:2], self.fixed_duration, dtype=torch.long, device=h_t.device)
+        if t < self.observed:  # inside the burn-in: its span ends where the forecast starts
+            return torch.full(h_t.shape[:2], self.observed - t, dtype=torch.long, device=h_t.device)
         if self.source == "past":
             rho = self.fraction(self.gaussian(h_t)[0])
         else:  # the future-reading posterior is unavailable online: the prior mean sets the fraction

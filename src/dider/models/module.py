@@ -19,7 +19,7 @@ from dider.callbacks import EvalRandomState, FiniteGuard
 from dider.data.batch import Batch
 from dider.evaluation import Forecast, TestMetrics, horizon_values
 from dider.graph import edge_mask
-from dider.metrics import HorizonMSE
+from dider.metrics import EdgeAccuracy, HorizonMSE
 from dider.models.plugins import Progress
 from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE
 from dider.protocol import agent_horizons
@@ -48,6 +48,7 @@ class RelationalVAEModule(L.LightningModule):
         self.save_hyperparameters(logger=False)
         self.model = RelationalVAE.from_config(model)
         self.val_mse = HorizonMSE(horizons)
+        self.val_acc = EdgeAccuracy()
         self.test_metrics = TestMetrics(horizons, self.model.num_types)
 
     @classmethod
@@ -76,6 +77,7 @@ class RelationalVAEModule(L.LightningModule):
         return self.model.infer(batch, hard, Progress(self.global_step))
 
     def loss_terms(self, batch: Batch, hard: bool = False) -> dict[str, torch.Tensor]:
+        """The loss terms of a batch at the current progress (the NaN/inf guard replays steps with it)."""
         return self.model.loss(self._infer(batch, hard), self.progress())
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int) -> torch.Tensor:
@@ -86,34 +88,55 @@ class RelationalVAEModule(L.LightningModule):
         guard = [FiniteGuard()] if self.hparams.check_finite else []
         return [EvalRandomState(self.hparams.eval_seed), *guard]
 
+    def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
+        """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""
+        present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
+        stats = {f"{stage}/segments/{k}": v for k, v in out.seg.stats(present).items()}
+        self.log_dict(stats, on_step=False, on_epoch=True, batch_size=batch["states"].shape[0], sync_dist=True)
+
     def training_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
-        terms = self.loss_terms(batch)
+        out = self._infer(batch, hard=False)
+        progress = self.progress()
+        terms = self.model.loss(out, progress)
         bs = batch["states"].shape[0]
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
         self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
+        self.log_dict({f"train/schedule/{k}": v for k, v in self.model.schedule(progress).items()},
+                      on_step=True, on_epoch=False, batch_size=bs)
+        self._log_segments("train", out, batch)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
     def on_train_epoch_end(self) -> None:
         self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
 
-    def _forecast(self, batch: Batch) -> Forecast:
+    def _forecast(self, batch: Batch, edges: torch.Tensor | None = None) -> Forecast:
         """Roll out over the whole clip after the burn-in (each agent's own burn-in in ``per_agent`` mode,
-        where each target carries its own horizon; frame p is horizon p + 1 in ``global`` mode)."""
+        where each target carries its own horizon; frame p is horizon p + 1 in ``global`` mode), with the
+        model's own edges or given ones (edges [B, E, T-1])."""
         x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in
         mode = self.burn_in_mode
-        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode)
+        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges)
         horizon = agent_horizons(mask, b)[:, b:] if mode == "per_agent" else None
         return Forecast(pred, x[:, b:], mask[:, b:], types, horizon)
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
-        terms = self.loss_terms(batch, hard=True)
+        out = self._infer(batch, hard=True)
+        terms = self.model.loss(out, self.progress())
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=batch["states"].shape[0], sync_dist=True)
         f = self._forecast(batch)
         self.val_mse.update(f.pred, f.target, f.mask, f.horizon)
+        self._log_segments("val", out, batch)
+        if "edges" in batch:
+            present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
+            self.val_acc.update(out.posterior_types().transpose(1, 2), batch["edges"], present)
 
     def on_validation_epoch_end(self) -> None:
         self.log_dict(horizon_values("val/mse", self.val_mse))
         self.val_mse.reset()
+        if self.val_acc.update_count:
+            none, interaction = self.val_acc.compute()
+            self.log_dict({"val/edge_acc/posterior/none": none, "val/edge_acc/posterior/interaction": interaction})
+            self.val_acc.reset()
 
     def test_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
         """Scores the batch and returns its per-clip outputs for the export and figure callbacks:
@@ -125,7 +148,11 @@ class RelationalVAEModule(L.LightningModule):
         self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs, sync_dist=True)
         posterior, prior = out.posterior_types(), self.model.online_types(out.h_fwd)
         normalizer = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
-        self.test_metrics.update(batch, self._forecast(batch), posterior, prior, normalizer)
+        forecast = self._forecast(batch)
+        by_edges = {"posterior": self._forecast(batch, posterior)}
+        if "edges" in batch:
+            by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
+        self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges)
         absent = ~edge_mask(batch["mask"][:, :-1]).transpose(1, 2)  # [B, E, T-1]
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),

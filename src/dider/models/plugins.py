@@ -25,6 +25,11 @@ class Progress:
     step: int = 0  # optimiser steps taken
     total: int | None = None  # optimiser steps in the whole run
 
+    @property
+    def fraction(self) -> float:
+        """How much of training is done, in [0, 1] (1 when the run's length is unknown)."""
+        return min(1.0, self.step / self.total) if self.total else 1.0
+
     def ramp_steps(self, fraction: float) -> int:
         """The optimiser steps that ``fraction`` of training spans (0 when the run's length is unknown)."""
         return int(fraction * self.total) if self.total else 0

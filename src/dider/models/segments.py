@@ -5,7 +5,7 @@ Shapes: B batch, E edges, T steps (transitions), S slots, K edge types.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -16,6 +16,7 @@ class Segmentation:
     valid: torch.Tensor  # [B, E, S] bool: the slot holds at least one step
     assign: torch.Tensor | None  # [B, E, T, S] one-hot step -> slot (straight-through); None: slot s is step s
     kl: torch.Tensor  # [B] KL of the duration latents (zero for plugins without one)
+    sigma: torch.Tensor | None = field(default=None)  # [] mean std of the duration latents, for monitoring
 
     @property
     def num_steps_per_slot(self) -> torch.Tensor:
@@ -43,6 +44,17 @@ class Segmentation:
         if self.assign is None:
             return per_slot
         return torch.einsum("bets,besf->betf", self.assign, per_slot)
+
+    def stats(self, present: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Monitoring: segments per present edge, mean segment length in steps and (if any) the duration
+        latents' mean std. present: [B, E] bool, edges present at some step."""
+        w = present.to(torch.float32)
+        count = (self.valid.to(torch.float32).sum(-1) * w).sum() / w.sum().clamp_min(1)
+        steps = (self.num_steps_per_slot.to(torch.float32).sum(-1) * w).sum() / w.sum().clamp_min(1)
+        out = {"segments_per_edge": count, "steps_per_segment": steps / count.clamp_min(1)}
+        if self.sigma is not None:
+            out["sigma"] = self.sigma
+        return out
 
     def step_slot(self) -> torch.Tensor:
         """[B, E, T] long: the slot index of every step."""

@@ -79,20 +79,23 @@ class RelationalVAE(nn.Module):
         no_edge_prob: float = 0.9,
         rollout_edges: str = "sample",
         posterior_readout: str = "start",
+        forecast_edges: str = "prior",
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
         ramp up. sparsity_mix: weight of DNRI's synthetic-data term KL(mean_e q || [no_edge_prob, ...]) in
         the edge KL. rollout_edges: ``sample`` (DNRI) or ``argmax`` prior edge types in roll-outs.
         posterior_readout: a segment's posterior type read at its first step (``start``, the paper) or
-        pooled over its steps (``mean``)."""
+        pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from: ``prior``
+        (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in alone,
+        one type per edge held for the whole roll-out: NRI)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
             "model.rollout_edges": rollout_edges, "model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau,
             "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
-            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
+            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -107,6 +110,7 @@ class RelationalVAE(nn.Module):
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
         self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
+        self.forecast_edges = forecast_edges
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -131,10 +135,8 @@ class RelationalVAE(nn.Module):
         plugin_mask = None if bool(mask.all()) else mask
         enc = self.encoder(x, plugin_mask)
         seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress)
-        # The posterior reads a segment's type at its first step (the paper) or pools the per-step
-        # logits over the segment; the prior always reads the first step, so it stays online.
-        pooled = self.posterior_readout == "mean"
-        q_seg = seg.pool(enc.posterior_logits) if pooled else seg.gather(enc.posterior_logits)
+        q_seg = self.segment_posterior(enc.posterior_logits, seg)
+        # The prior always reads a segment's first step, so it stays online.
         p_seg = seg.gather(self.prior(enc.h_fwd))
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
@@ -155,17 +157,32 @@ class RelationalVAE(nn.Module):
             kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * kl_sparse
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl)
 
+    def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
+        """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
+        step_logits [B, E, T, K] -> [B, E, S, K]."""
+        return seg.pool(step_logits) if self.posterior_readout == "mean" else seg.gather(step_logits)
+
+    def schedule(self, progress: Progress = Progress()) -> dict[str, float]:
+        """The annealed weights at ``progress``: the KL weight w (warm-up), the capacities C_e, C_d and, for
+        a duration plugin that has one, the soft-step temperature."""
+        ramp = progress.ramp_steps(self.capacity_ramp)
+        out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup)),
+               "capacity_edge": capacity(progress.step, self.capacity_edge, ramp),
+               "capacity_duration": capacity(progress.step, self.capacity_duration, ramp)}
+        if hasattr(self.duration, "tau"):
+            out["tau"] = self.duration.tau(progress)
+        return out
+
     def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:
         """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
         et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
-        al.), so the posterior carries information before the prior may pull it in. -> scalar terms."""
-        ramp = progress.ramp_steps(self.capacity_ramp)
-        c_e = capacity(progress.step, self.capacity_edge, ramp)
-        c_d = capacity(progress.step, self.capacity_duration, ramp)
-        w = capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))
+        al.), so the posterior carries information before the prior may pull it in. -> scalar terms, and
+        ``nelbo`` = NLL + KL_e + KL_d, the objective free of schedules (for model selection)."""
+        sched = self.schedule(progress)
+        w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
-        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d}
+        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "nelbo": (nll + kl_e + kl_d).detach()}
 
     # ------------------------------------------------------------------ online edges and roll-out
     def advance_edges(
@@ -194,8 +211,22 @@ class RelationalVAE(nn.Module):
         return torch.stack(types, dim=2)
 
     @torch.no_grad()
+    def burn_in_edges(self, x_obs: torch.Tensor, mask_obs: torch.Tensor, end: int) -> torch.Tensor:
+        """NRI's forecast edges: the posterior of the observed frames alone, one type per edge (the readout
+        of its first segment), held for all ``end`` transitions. x_obs [B, T_obs, N, D] -> [B, E, end]."""
+        if x_obs.shape[1] < 2:
+            raise ValueError("forecast_edges=burn_in: the burn-in needs at least 2 frames (one transition)")
+        enc = self.encoder(x_obs, None if bool(mask_obs.all()) else mask_obs)
+        seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs)
+        logits = self.segment_posterior(enc.posterior_logits, seg)[:, :, 0]  # [B, E, K]
+        if self.rollout_edges == "sample":
+            logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
+        return logits.argmax(-1).unsqueeze(-1).expand(-1, -1, end)
+
+    @torch.no_grad()
     def rollout(
-        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"
+        self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global",
+        edges: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Forecast: ground truth during the burn-in, then the model's own predictions.
 
@@ -206,10 +237,13 @@ class RelationalVAE(nn.Module):
         previous prediction afterwards; absent agents are zeros and masked. x: [B, >=burn_in+P-1, N, D].
         With every agent present from frame 0 both modes compute the same thing, bit for bit.
 
-        Edges come from the prior only, read from the forward LSTM that is advanced on the inputs above, so
-        no state after an agent's burn-in is ever seen. mask: [B, >=burn_in+P, N] (agents present) ->
-        predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an agent's frame t is predicted from its
-        input at t-1) and the edge types used at each transition [B, E, burn_in+P-1].
+        Edges (``forecast_edges``) come from the prior, read from the forward LSTM that is advanced on the
+        inputs above, so no state after an agent's burn-in is ever seen, or from the burn-in's posterior
+        (NRI); or they are given: ``edges`` [B, E, >=burn_in+P-1] long (e.g. the ground truth or the
+        posterior of the whole clip, to tell the decoder's error from the edge forecast's). mask:
+        [B, >=burn_in+P, N] (agents present) -> predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an
+        agent's frame t is predicted from its input at t-1) and the edge types used at each transition
+        [B, E, burn_in+P-1].
         """
         if burn_in < 1 or num_pred < 1:
             raise ValueError(f"rollout: need burn_in >= 1 and num_pred >= 1, got {burn_in}, {num_pred}")
@@ -230,8 +264,14 @@ class RelationalVAE(nn.Module):
             fed, t_obs, x_obs = None, burn_in, x[:, :burn_in]
         else:
             raise ValueError(f"rollout: mode={mode!r}, expected 'global' or 'per_agent'")
-        h_past, enc_state = self.encoder.past(x_obs, mask[:, :t_obs])
-        etype = torch.zeros(b, h_past.shape[1], dtype=torch.long, device=x.device)
+        if edges is None and self.forecast_edges == "burn_in":
+            edges = self.burn_in_edges(x_obs, mask[:, :t_obs], end)
+        online = edges is None  # the prior picks the edges as the roll-out goes
+        if online:
+            h_past, enc_state = self.encoder.past(x_obs, mask[:, :t_obs])
+        elif edges.shape[-1] < end:
+            raise ValueError(f"rollout: edges cover {edges.shape[-1]} transitions, need {end}")
+        etype = torch.zeros(b, n * (n - 1), dtype=torch.long, device=x.device)
         left = torch.zeros_like(etype)
         dec_state = self.decoder.init_state(b, n, x)
         preds, types = [], []
@@ -239,12 +279,18 @@ class RelationalVAE(nn.Module):
         for t in range(end):
             m_t = mask[:, t]
             if t < t_obs:
-                cur, h_t = x_obs[:, t], h_past[:, :, t]
+                cur = x_obs[:, t]
+                if online:
+                    h_t = h_past[:, :, t]
             else:  # t >= t_obs >= burn_in: cur holds the previous step's prediction
                 if fed is not None:
                     cur = fill_absent(torch.where(fed[:, t, :, None], x[:, t], cur), m_t)
-                h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
-            etype, left = self.advance_edges(h_t, t, end, etype, left, sample)
+                if online:
+                    h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
+            if online:
+                etype, left = self.advance_edges(h_t, t, end, etype, left, sample)
+            else:
+                etype = edges[:, :, t]
             types.append(etype)
             # No input before burn_in - 1 is ever a prediction (an agent needs burn_in present frames
             # first), so a stateless decoder has nothing to do there.
