@@ -195,3 +195,21 @@ def test_duration_head_starts_at_the_prior_mean_with_sigma_init():
     assert torch.allclose(sigma, torch.full_like(sigma, 0.2), atol=1e-6)
     with pytest.raises(ValueError, match="model.duration.sigma_init"):
         LearnedDuration(sigma_init=0.005)
+
+
+def test_segment_kl_per_step_counts_each_segment_once_per_step(make_cfg):
+    batch = clip()
+    torch.manual_seed(2)
+    once = build(make_cfg, "model=dider", "model.sparsity_mix=0").eval()
+    per_step = build(make_cfg, "model=dider", "model.sparsity_mix=0", "model.segment_kl=per_step").eval()
+    per_step.load_state_dict(once.state_dict())
+    with torch.no_grad():
+        a, b = once.infer(batch, hard=True), per_step.infer(batch, hard=True)
+    lengths = a.seg.num_steps_per_slot
+    assert (lengths > 1).any()  # some segment holds several steps: the two weightings differ there
+    assert b.kl_edge.sum() > a.kl_edge.sum()
+    dnri = build(make_cfg, "model=dnri", "model.sparsity_mix=0").eval()
+    dnri_steps = build(make_cfg, "model=dnri", "model.sparsity_mix=0", "model.segment_kl=per_step").eval()
+    dnri_steps.load_state_dict(dnri.state_dict())
+    with torch.no_grad():  # one-step segments: both are DNRI's mean over (step, edge)
+        assert torch.equal(dnri.infer(batch, hard=True).kl_edge, dnri_steps.infer(batch, hard=True).kl_edge)

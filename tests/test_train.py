@@ -1,6 +1,7 @@
 """End-to-end runs through dider.run.train: outputs, TensorBoard, learning."""
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -26,7 +27,8 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     metrics = train(cfg)
     record = json.loads((out / "metrics.json").read_text())
     for key in ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/none",
-                "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "test/nll"):
+                "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "test/nll",
+                "test/mse_posterior/h25", "test/mse_oracle/h25", "test/nelbo"):
         assert key in record["metrics"] and record["metrics"][key] == pytest.approx(metrics[key])
     assert record["seed"] == 7 and record["config"]["data"]["num_train"] == 64
     assert (out / "checkpoints" / "last.ckpt").exists()
@@ -36,6 +38,10 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     acc = events(out / "tb")
     tags = acc.Tags()
     assert "test/mse/h01" in tags["scalars"] and "val/nll" in tags["scalars"] and "train/loss_epoch" in tags["scalars"]
+    for tag in ("val/nelbo", "val/edge_acc/posterior/interaction", "train/schedule/kl_weight", "train/schedule/tau",
+                "train/segments/segments_per_edge", "val/segments/steps_per_segment", "train/segments/sigma"):
+        assert tag in tags["scalars"], tag
+    assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
     assert any(t.startswith("test/timeline/") for t in tags["images"])
     # HParams tab: the session start info names the hyper-parameters and the metric tags
     plugin = acc.PluginTagToContent("hparams")
@@ -127,3 +133,17 @@ def test_compiled_run_matches_eager_loss(make_cfg, tmp_path):
         torch.manual_seed(1)
         b = compiled.loss(compiled.infer(batch, hard=True))["loss"]
     assert torch.allclose(a, b, rtol=1e-4, atol=1e-4), (a, b)
+
+
+def test_best_checkpoint_is_chosen_after_the_kl_warm_up(make_cfg, tmp_path):
+    """4 batches x 4 epochs = 16 steps, KL weight 1 from step int(0.6 * 16) = 9: the validations after epochs
+    0 and 1 (steps 4, 8) lie inside the warm-up and may not be picked, however low their NLL."""
+    out = tmp_path / "run"
+    train(make_cfg(["model=dider", "model.kl_warmup=0.6", "trainer.max_epochs=4", "logger=csv"], out=out))
+    record = json.loads((out / "metrics.json").read_text())
+    assert Path(record["checkpoint"]).name in ("epoch_002.ckpt", "epoch_003.ckpt"), record["checkpoint"]
+    import csv
+
+    rows = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
+    select = [float(r["val/select"]) for r in rows if r.get("val/select")]
+    assert select[:2] == [float("inf")] * 2 and all(math.isfinite(v) for v in select[2:])

@@ -72,7 +72,9 @@ class LearnedDuration(nn.Module):
 
     ``source`` picks what the duration is read from: ``past`` (DIDER: the forward LSTM state, online,
     usable when forecasting) or ``future`` (DIDER with SKID: the reverse LSTM state, i.e. the whole
-    remaining trajectory; when forecasting there is no future, so the prior mean sets the fraction).
+    remaining trajectory). When forecasting there is no future (the paper evaluates every model online), so
+    ``skid_online`` picks what sets SKID's durations then: ``prior_mean``, the duration prior's mean fraction,
+    or ``head``, the duration head fed the past-only (forward LSTM) state.
     ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
     """
 
@@ -94,6 +96,7 @@ class LearnedDuration(nn.Module):
         fixed_duration: int | None = None,
         sigma_init: float = 0.5,
         burn_in: int | None = None,
+        skid_online: str = "prior_mean",
     ) -> None:
         super().__init__()
         require({
@@ -103,8 +106,10 @@ class LearnedDuration(nn.Module):
             "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
             "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
             "model.duration.tau_anneal_steps": tau_anneal_steps, "model.duration.burn_in": burn_in,
+            "model.duration.skid_online": skid_online,
         }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
+        self.skid_online = skid_online
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
         self.tau_start, self.tau_end = tau_start, tau_end
@@ -193,7 +198,8 @@ class LearnedDuration(nn.Module):
             return torch.full(h_t.shape[:2], self.fixed_duration, dtype=torch.long, device=h_t.device)
         if t < self.observed:  # inside the burn-in: its span ends where the forecast starts
             return torch.full(h_t.shape[:2], self.observed - t, dtype=torch.long, device=h_t.device)
-        if self.source == "past":
+        if self.source == "past" or self.skid_online == "head":
+            # SKID with ``head``: the head trained on the remaining trajectory, fed the past-only state
             rho = self.fraction(self.gaussian(h_t)[0])
         else:  # the future-reading posterior is unavailable online: the prior mean sets the fraction
             rho = self.fraction(torch.full(h_t.shape[:2], self.prior_mu, device=h_t.device))

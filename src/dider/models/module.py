@@ -102,7 +102,7 @@ class RelationalVAEModule(L.LightningModule):
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
         self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
         self.log_dict({f"train/schedule/{k}": v for k, v in self.model.schedule(progress).items()},
-                      on_step=True, on_epoch=False, batch_size=bs)
+                      on_step=False, on_epoch=True, batch_size=bs)  # the epoch's mean: logged however short
         self._log_segments("train", out, batch)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
@@ -121,7 +121,12 @@ class RelationalVAEModule(L.LightningModule):
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         out = self._infer(batch, hard=True)
-        terms = self.model.loss(out, self.progress())
+        progress = self.progress()
+        terms = self.model.loss(out, progress)
+        # Checkpoints are chosen by ``val/select``: the negative ELBO once the KL weight has reached 1, inf
+        # inside the warm-up, where a posterior not yet held to the prior fits the data best.
+        warm = self.model.schedule(progress)["kl_weight"] >= 1.0
+        terms["select"] = terms["nelbo"] if warm else torch.full_like(terms["nelbo"], float("inf"))
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=batch["states"].shape[0], sync_dist=True)
         f = self._forecast(batch)
         self.val_mse.update(f.pred, f.target, f.mask, f.horizon)

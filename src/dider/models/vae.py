@@ -80,6 +80,7 @@ class RelationalVAE(nn.Module):
         rollout_edges: str = "sample",
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
+        segment_kl: str = "per_segment",
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -88,7 +89,9 @@ class RelationalVAE(nn.Module):
         posterior_readout: a segment's posterior type read at its first step (``start``, the paper) or
         pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from: ``prior``
         (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in alone,
-        one type per edge held for the whole roll-out: NRI)."""
+        one type per edge held for the whole roll-out: NRI). segment_kl: a segment's edge KL counted once
+        (``per_segment``, the paper's sum over segments) or once per step it holds (``per_step``, DNRI's
+        weight for a type held that long)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -96,6 +99,7 @@ class RelationalVAE(nn.Module):
             "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
+            "model.segment_kl": segment_kl,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -110,7 +114,7 @@ class RelationalVAE(nn.Module):
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
         self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
-        self.forecast_edges = forecast_edges
+        self.forecast_edges, self.segment_kl = forecast_edges, segment_kl
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -142,11 +146,13 @@ class RelationalVAE(nn.Module):
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.nll_variance)
 
-        # Edge KL per segment, summed over an edge's segments and divided by its steps, so that with
-        # one-step segments it is DNRI's mean over (step, edge).
+        # Edge KL per segment (or per step it holds, ``segment_kl``), summed over an edge's segments and
+        # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         at_start = present.gather(2, seg.start) & seg.valid
         kl_slots = categorical_kl(q_seg, p_seg) * at_start
+        if self.segment_kl == "per_step":
+            kl_slots = kl_slots * seg.num_steps_per_slot
         steps = present.flatten(1).sum(1).clamp_min(1)
         kl_edge = kl_slots.flatten(1).sum(1) / steps
         probs = seg.spread(F.softmax(q_seg, dim=-1))
