@@ -1,0 +1,460 @@
+"""The torchmetrics classes of dider.metrics against values worked out by hand.
+
+Each metric gets: a small example with its expected value derived in a comment, masked-out entries that
+must not count, its documented value with no data, and a DDP-style merge (two instances fed one half each,
+merged, equal one fed the whole). Inputs are fixed tensors, never random, so every expected value is exact.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+
+import pytest
+import torch
+from torchmetrics import Metric
+from torchmetrics.utilities.data import dim_zero_sum
+
+from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+
+L = torch.long
+
+
+def assert_values(actual: torch.Tensor, expected: float | Sequence[float]) -> None:
+    """compute() divides float64 sums, then casts to float32: compare against the float32 of the hand value."""
+    torch.testing.assert_close(actual, torch.tensor(expected, dtype=torch.float32))
+
+
+def compute_quietly(metric: Metric) -> torch.Tensor | tuple[torch.Tensor, ...]:
+    """compute() on a metric that never saw update(): torchmetrics warns about that, which is the point here."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*was called before the ``update`` method.*")
+        return metric.compute()
+
+
+def merged(make: Callable[[], Metric], first: Sequence[tuple], second: Sequence[tuple]) -> Metric:
+    """What DDP does: one metric per rank, each updated with its share, then the states reduced."""
+    a, b = make(), make()
+    for args in first:
+        a.update(*args)
+    for args in second:
+        b.update(*args)
+    a.merge_state(b)
+    return a
+
+
+def whole(make: Callable[[], Metric], *updates: tuple) -> Metric:
+    metric = make()
+    for args in updates:
+        metric.update(*args)
+    return metric
+
+
+def assert_same_states(a: Metric, b: Metric) -> None:
+    for name in a._defaults:
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3),
+], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency"])
+def test_every_state_is_a_sum(make: Callable[[], Metric]) -> None:
+    """The module promises DDP safety by summing every state: what makes merge_state (and the all-reduce)
+    exact, and what the by-hand merges below rely on."""
+    metric = make()
+    assert metric._defaults
+    assert all(metric._reductions[name] is dim_zero_sum for name in metric._defaults)
+    assert metric.full_state_update is False
+
+
+# ---------------------------------------------------------------------------------------------- HorizonMSE
+# One sample, P=3 frames, N=2 agents, D=2 features, target 0. The squared error summed over features is a
+# distinct power of two per (frame, agent), so any wrongly included entry changes the value visibly:
+#            agent 0         agent 1
+# frame 0:  [1,0] -> 1      [1,1] -> 2
+# frame 1:  [2,0] -> 4      [2,2] -> 8
+# frame 2:  [4,0] -> 16     [4,4] -> 32
+PRED = torch.tensor([[[1.0, 0.0], [1.0, 1.0]], [[2.0, 0.0], [2.0, 2.0]], [[4.0, 0.0], [4.0, 4.0]]]).unsqueeze(0)
+TARGET = torch.zeros_like(PRED)
+ALL = torch.ones(1, 3, 2, dtype=torch.bool)
+
+
+def test_horizon_mse_global_horizons() -> None:
+    """No ``horizon``: frame p is horizon p + 1; the mean is over present agents AND features (count x D)."""
+    m = HorizonMSE([1, 3])
+    m.update(PRED, TARGET, ALL)
+    # h1 = frame 0: (1 + 2) / (2 agents * 2 features) = 0.75; h3 = frame 2: (16 + 32) / 4 = 12.
+    # Frame 1 (4, 8) is no requested horizon and must not leak in.
+    assert_values(m.compute(), [0.75, 12.0])
+
+
+def test_horizon_mse_global_mask() -> None:
+    """An absent agent drops out of both the sum and the count, even with a huge error."""
+    pred = PRED.clone()
+    pred[0, 2, 1] = 1e3  # agent 1 at frame 2: absent below, so this must not count
+    mask = ALL.clone()
+    mask[0, 2, 1] = False
+    m = HorizonMSE([1, 3])
+    m.update(pred, TARGET, mask)
+    # h1 unchanged 0.75; h3 = 16 / (1 agent * 2 features) = 8.
+    assert_values(m.compute(), [0.75, 8.0])
+
+
+def test_horizon_mse_per_agent_horizons() -> None:
+    """With ``horizon``: agent 0 has no burn-in (horizons 1, 2, 3), agent 1 one burn-in frame (0, 1, 2)."""
+    horizon = torch.tensor([[[1, 0], [2, 1], [3, 2]]])  # [B, P, N]
+    m = HorizonMSE([1, 2, 3])
+    m.update(PRED, TARGET, ALL, horizon)
+    # h1: agent 0 frame 0 (1) + agent 1 frame 1 (8) -> 9 / 4 = 2.25
+    # h2: agent 0 frame 1 (4) + agent 1 frame 2 (32) -> 36 / 4 = 9
+    # h3: agent 0 frame 2 (16) only; agent 1 never reaches horizon 3 -> 16 / 2 = 8
+    # agent 1's burn-in frame 0 (2) is never scored.
+    assert_values(m.compute(), [2.25, 9.0, 8.0])
+
+
+def test_horizon_mse_per_agent_mask() -> None:
+    """A frame at the right horizon but absent is not scored (and no other frame of that agent stands in)."""
+    horizon = torch.tensor([[[1, 0], [2, 1], [3, 2]]])
+    mask = ALL.clone()
+    mask[0, 1, 1] = False  # agent 1's horizon-1 frame
+    pred = PRED.clone()
+    pred[0, 1, 1] = 1e3
+    m = HorizonMSE([1, 2])
+    m.update(pred, TARGET, mask, horizon)
+    # h1: agent 0 frame 0 only -> 1 / 2 = 0.5; h2 unchanged -> (4 + 32) / 4 = 9
+    assert_values(m.compute(), [0.5, 9.0])
+
+
+def test_horizon_mse_per_agent_equals_global_when_horizon_is_frame_plus_one() -> None:
+    """horizon = p + 1 everywhere is the global case; the states match to the bit."""
+    mask = torch.tensor([[[True, True], [False, True], [True, False]]])
+    horizon = torch.arange(1, 4).view(1, 3, 1).expand(1, 3, 2)
+    a, b = HorizonMSE([1, 2, 3]), HorizonMSE([1, 2, 3])
+    a.update(PRED, TARGET, mask)
+    b.update(PRED, TARGET, mask, horizon)
+    assert_same_states(a, b)
+    # (1 + 2) / 4, 8 / 2, 16 / 2
+    assert_values(b.compute(), [0.75, 4.0, 8.0])
+
+
+def test_horizon_mse_empty_is_zero() -> None:
+    """No data (no update, all masked, or a horizon no agent reaches) reports 0, not NaN: the count is
+    clamped to 1. Callers must check update_count themselves (dider.evaluation does)."""
+    assert_values(compute_quietly(HorizonMSE([1, 2])), [0.0, 0.0])
+
+    m = HorizonMSE([1, 3])
+    m.update(PRED, TARGET, torch.zeros_like(ALL))
+    assert m.count.tolist() == [0.0, 0.0]
+    assert_values(m.compute(), [0.0, 0.0])
+
+    m = HorizonMSE([3])
+    m.update(PRED, TARGET, ALL, torch.zeros(1, 3, 2, dtype=L))  # everything burn-in
+    assert_values(m.compute(), [0.0])
+
+
+def test_horizon_mse_rejects_bad_horizons() -> None:
+    with pytest.raises(ValueError, match="at least one horizon"):
+        HorizonMSE([])
+    with pytest.raises(ValueError, match="at least one horizon"):
+        HorizonMSE([0, 1])
+    with pytest.raises(ValueError, match="exceeds the 3 predicted steps"):
+        HorizonMSE([4]).update(PRED, TARGET, ALL)
+
+
+@pytest.mark.parametrize("per_agent", [False, True])
+def test_horizon_mse_merge(per_agent: bool) -> None:
+    """Two samples split across two 'ranks' merge into the single-rank result."""
+    pred = torch.cat([PRED, 2 * PRED])
+    target = torch.cat([TARGET, TARGET + 1])
+    mask = torch.tensor([[[True, True], [True, False], [True, True]], [[False, True], [True, True], [True, True]]])
+    horizon = torch.tensor([[[1, 0], [2, 1], [3, 2]], [[0, 1], [1, 2], [2, 3]]]) if per_agent else None
+    halves = [(pred[i:i + 1], target[i:i + 1], mask[i:i + 1], None if horizon is None else horizon[i:i + 1])
+              for i in range(2)]
+    make = lambda: HorizonMSE([1, 2, 3])  # noqa: E731
+    a, ref = merged(make, halves[:1], halves[1:]), whole(make, (pred, target, mask, horizon))
+    assert_same_states(a, ref)
+    torch.testing.assert_close(a.compute(), ref.compute(), rtol=0, atol=0)
+
+
+# -------------------------------------------------------------------------------------------- EdgeAccuracy
+# Seven edge-steps, recall per true class; any type > 0 is "interaction", on either side.
+EA_PRED = torch.tensor([0, 1, 2, 0, 1, 0, 0])
+EA_TARGET = torch.tensor([0, 1, 1, 1, 0, 0, 3])
+
+
+def test_edge_accuracy_hand_example() -> None:
+    m = EdgeAccuracy()
+    m.update(EA_PRED, EA_TARGET)
+    # none (truth 0 at 0, 4, 5): predicted 0 at 0 and 5 -> 2/3
+    # interaction (truth > 0 at 1, 2, 3, 6): predicted > 0 at 1 and 2 (type 2 counts as found) -> 2/4
+    assert_values(m.compute(), [2 / 3, 0.5])
+
+
+def test_edge_accuracy_mask() -> None:
+    """Masked edge-steps leave both the hits and the totals."""
+    mask = torch.tensor([True, True, True, False, False, True, True])  # drop a miss of each class
+    m = EdgeAccuracy()
+    m.update(EA_PRED, EA_TARGET, mask)
+    # none: steps 0, 5 -> 2/2; interaction: steps 1, 2, 6 -> 2/3
+    assert_values(m.compute(), [1.0, 2 / 3])
+
+
+def test_edge_accuracy_any_shape() -> None:
+    """[B, T, E] as dider.evaluation passes it: every element is an edge-step, the layout does not matter."""
+    m = EdgeAccuracy()
+    m.update(EA_PRED[:6].view(2, 3, 1), EA_TARGET[:6].view(2, 3, 1), torch.ones(2, 3, 1, dtype=torch.bool))
+    # none: 0, 4, 5 -> 2/3; interaction: 1, 2, 3 -> 2/3
+    assert_values(m.compute(), [2 / 3, 2 / 3])
+
+
+def test_edge_accuracy_empty_is_zero() -> None:
+    """A class with no edge-steps (no update, all masked, or only the other class) reports 0, not NaN."""
+    assert_values(compute_quietly(EdgeAccuracy()), [0.0, 0.0])
+    m = EdgeAccuracy()
+    m.update(EA_PRED, EA_TARGET, torch.zeros(7, dtype=torch.bool))
+    assert m.total.tolist() == [0.0, 0.0]
+    assert_values(m.compute(), [0.0, 0.0])
+    m = EdgeAccuracy()
+    m.update(torch.tensor([0, 1]), torch.tensor([0, 0]))  # no interacting edge-step at all
+    assert_values(m.compute(), [0.5, 0.0])
+
+
+def test_edge_accuracy_merge() -> None:
+    mask = torch.tensor([True, True, False, True, True, True, True])
+    a = merged(EdgeAccuracy, [(EA_PRED[:3], EA_TARGET[:3], mask[:3])], [(EA_PRED[3:], EA_TARGET[3:], mask[3:])])
+    ref = whole(EdgeAccuracy, (EA_PRED, EA_TARGET, mask))
+    assert_same_states(a, ref)
+    # none: 0, 4, 5 -> 2/3; interaction: 1, 3, 6 (2 masked) -> 1/3
+    assert_values(a.compute(), [2 / 3, 1 / 3])
+
+
+# -------------------------------------------------------------------------------------------- SegmentStats
+# One sample, three edges, T=5 steps.
+SEG = torch.tensor([[[0, 0, 0, 0, 0],    # 0 switches
+                     [0, 1, 1, 0, 0],    # 2 switches (0->1, 1->0)
+                     [1, 2, 3, 3, 3]]])  # 2 switches (1->2, 2->3): every type change counts
+
+
+def test_segment_stats_hand_example() -> None:
+    m = SegmentStats()
+    m.update(SEG)
+    # 4 switches over 3 edges: 1 + 4/3 = 7/3 segments per edge; 4 per 15 edge-steps: 100 * 4/15 = 80/3
+    assert_values(m.compute(), [7 / 3, 80 / 3])
+
+
+def test_segment_stats_edge_mask() -> None:
+    m = SegmentStats()
+    m.update(SEG, torch.tensor([[True, True, False]]))
+    # 2 switches over 2 edges: 1 + 1 = 2 per edge; 2 per 10 steps -> 20 per 100
+    assert_values(m.compute(), [2.0, 20.0])
+
+
+def test_segment_stats_empty() -> None:
+    """No edges: one segment per edge (the '1 +'), zero switches per 100, not NaN."""
+    assert_values(compute_quietly(SegmentStats()), [1.0, 0.0])
+    m = SegmentStats()
+    m.update(SEG, torch.zeros(1, 3, dtype=torch.bool))
+    assert_values(m.compute(), [1.0, 0.0])
+
+
+def test_segment_stats_merge() -> None:
+    other = torch.tensor([[[2, 2, 0, 0, 1], [0, 0, 0, 0, 0], [1, 1, 1, 1, 1]]])  # 2 switches on edge 0
+    types = torch.cat([SEG, other])
+    mask = torch.tensor([[True, True, True], [True, False, True]])
+    a = merged(SegmentStats, [(types[:1], mask[:1])], [(types[1:], mask[1:])])
+    ref = whole(SegmentStats, (types, mask))
+    assert_same_states(a, ref)
+    # 4 + 2 switches over 3 + 2 edges and 25 steps: 1 + 6/5 = 2.2; 100 * 6/25 = 24
+    assert_values(a.compute(), [2.2, 24.0])
+
+
+# --------------------------------------------------------------------------------------------- BoundaryF1
+# One edge, 10 steps -> 9 transitions; switch index i is the change between step i and i+1.
+BF_TRUE = torch.tensor([[[0, 0, 1, 1, 1, 0, 0, 0, 0, 0]]])  # switches at 1 (on) and 4 (off)
+BF_PRED = torch.tensor([[[0, 0, 0, 1, 1, 1, 1, 0, 2, 0]]])  # switches at 2, 6, 7, 8
+
+
+def test_boundary_f1_tolerance_one() -> None:
+    m = BoundaryF1(tolerance=1)
+    m.update(BF_PRED, BF_TRUE)
+    # predicted: 2 is within 1 of true 1; 6, 7, 8 are not (nearest true 4 is 2+ away) -> precision 1/4
+    # true: 1 has predicted 2 nearby; 4 has none within 1 -> recall 1/2
+    # F1 = 2 * (1/4)(1/2) / (1/4 + 1/2) = 1/3
+    assert [m.pred_hit.item(), m.pred_all.item(), m.true_hit.item(), m.true_all.item()] == [1, 4, 1, 2]
+    assert_values(m.compute(), 1 / 3)
+
+
+def test_boundary_f1_tolerance_two() -> None:
+    m = BoundaryF1(tolerance=2)
+    m.update(BF_PRED, BF_TRUE)
+    # predicted 2 (near 1) and 6 (|6-4| = 2) hit, 7 and 8 miss -> 2/4; both true switches found -> 2/2
+    # F1 = 2 * (1/2)(1) / (3/2) = 2/3
+    assert_values(m.compute(), 2 / 3)
+
+
+def test_boundary_f1_tolerance_zero_and_window_edges() -> None:
+    """Tolerance 0 needs the same transition; dilation near the ends of the window does not wrap around."""
+    m = BoundaryF1(tolerance=0)
+    m.update(torch.tensor([[[0, 1, 1, 1, 0]]]), torch.tensor([[[1, 1, 1, 1, 0]]]))
+    # pred switches at 0, 3; true at 3 -> precision 1/2, recall 1/1, F1 = 2 * (1/2) / (3/2) = 2/3
+    assert_values(m.compute(), 2 / 3)
+    m = BoundaryF1(tolerance=1)
+    m.update(torch.tensor([[[0, 0, 0, 0, 1]]]), torch.tensor([[[0, 1, 1, 1, 1]]]))
+    # pred switch at 3, true at 0: 3 apart, no wrap-around from the end to the start -> F1 0
+    assert_values(m.compute(), 0.0)
+
+
+def test_boundary_f1_edges_do_not_match_each_other() -> None:
+    """Switches are matched within their own edge and clip only (the dilation is per row)."""
+    pred = torch.tensor([[[0, 0, 0, 0], [0, 1, 1, 1]], [[0, 0, 0, 0], [0, 0, 0, 0]]])  # edge 1 of clip 0: at 0
+    target = torch.tensor([[[0, 1, 1, 1], [0, 0, 0, 0]], [[0, 0, 0, 0], [0, 1, 1, 1]]])  # same time, other rows
+    m = BoundaryF1(tolerance=2)
+    m.update(pred, target)
+    # 1 predicted and 2 true switches, none in the same (clip, edge) -> precision 0, recall 0 -> F1 0
+    assert [m.pred_hit.item(), m.true_hit.item()] == [0, 0]
+    assert_values(m.compute(), 0.0)
+
+
+def test_boundary_f1_constant_padding_does_not_count() -> None:
+    """There is no mask argument: absent edges count only through their switches, so padding them with a
+    constant type (as dider.evaluation's inputs do) leaves the score unchanged."""
+    padded_pred = torch.cat([BF_PRED, torch.zeros_like(BF_PRED), torch.full_like(BF_PRED, 3)], dim=1)
+    padded_true = torch.cat([BF_TRUE, torch.zeros_like(BF_TRUE), torch.zeros_like(BF_TRUE)], dim=1)
+    a, b = BoundaryF1(tolerance=1), BoundaryF1(tolerance=1)
+    a.update(BF_PRED, BF_TRUE)
+    b.update(padded_pred, padded_true)
+    assert_same_states(a, b)
+    assert_values(b.compute(), 1 / 3)
+
+
+def test_boundary_f1_empty_and_one_sided() -> None:
+    """Documented: 1 when neither side has switches (also with no update); 0 when only one side has any."""
+    assert_values(compute_quietly(BoundaryF1()), 1.0)
+    m = BoundaryF1()
+    m.update(torch.full((2, 3, 6), 2), torch.ones(2, 3, 6, dtype=L))  # constant both sides
+    assert_values(m.compute(), 1.0)
+    m = BoundaryF1()
+    m.update(torch.zeros(1, 1, 10, dtype=L), BF_TRUE)  # nothing predicted: recall 0 -> F1 0
+    assert_values(m.compute(), 0.0)
+    m = BoundaryF1()
+    m.update(BF_PRED, torch.zeros(1, 1, 10, dtype=L))  # nothing to find: precision 0 -> F1 0
+    assert_values(m.compute(), 0.0)
+    m = BoundaryF1()
+    m.update(torch.zeros(0, 3, 6, dtype=L), torch.zeros(0, 3, 6, dtype=L))  # an empty batch
+    assert_values(m.compute(), 1.0)
+
+
+def test_boundary_f1_target_is_binarised() -> None:
+    """The ground truth is read as interaction on/off (target > 0); the prediction's raw types are used."""
+    m = BoundaryF1(tolerance=0)
+    m.update(torch.tensor([[[0, 1, 1, 0]]]), torch.tensor([[[0, 3, 3, 0]]]))
+    assert_values(m.compute(), 1.0)
+
+
+@pytest.mark.xfail(strict=True, reason="BoundaryF1 binarises the target (target > 0) but not the prediction: "
+                   "with more than one ground-truth interaction type, the truth scored against itself is < 1")
+def test_boundary_f1_truth_against_itself_is_one_with_several_types() -> None:
+    """dider.data.trajectories allows ground-truth edge types > 1. A switch 1 -> 2 far (> tolerance) from any
+    on/off switch is a predicted switch but not a true one: 3 predicted (0, 6, 12), 2 true (0, 12) ->
+    precision 2/3, recall 1, F1 0.8 instead of 1."""
+    truth = torch.tensor([[[0, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2, 0]]])
+    m = BoundaryF1(tolerance=2)
+    m.update(truth, truth)
+    assert_values(m.compute(), 1.0)
+
+
+@pytest.mark.xfail(strict=True, raises=RuntimeError,
+                   reason="BoundaryF1._near reshapes [..., 0] events with -1: a one-step window crashes")
+def test_boundary_f1_one_step_window_has_no_switches() -> None:
+    """T=1 has no transitions, so (as with SegmentStats) it should count as 'no switches', i.e. F1 1."""
+    m = BoundaryF1()
+    m.update(torch.zeros(2, 3, 1, dtype=L), torch.zeros(2, 3, 1, dtype=L))
+    assert_values(m.compute(), 1.0)
+
+
+def test_boundary_f1_merge() -> None:
+    pred = torch.cat([BF_PRED, BF_TRUE])
+    target = torch.cat([BF_TRUE, BF_TRUE])
+    a = merged(lambda: BoundaryF1(tolerance=1), [(pred[:1], target[:1])], [(pred[1:], target[1:])])
+    ref = whole(lambda: BoundaryF1(tolerance=1), (pred, target))
+    assert_same_states(a, ref)
+    # clip 0: 1/4 predicted and 1/2 true hit; clip 1 (perfect): 2/2 and 2/2
+    # micro: precision 3/6, recall 3/4 -> F1 = 2 * (1/2)(3/4) / (5/4) = 3/5
+    assert_values(a.compute(), 0.6)
+
+
+# ----------------------------------------------------------------------------------------- PairConsistency
+# One sample, three edges, four steps, 3 edge types, kinds 1 and 2 (0: not checked).
+PC_TYPES = torch.tensor([[[0, 0, 2, 0],    # kind 1, all present: type 0 x3, type 2 x1
+                          [1, 1, 2, 2],    # kind 2, last step absent: type 1 x2, type 2 x1
+                          [2, 2, 2, 2]]])  # kind 0: not checked
+PC_KIND = torch.tensor([[1, 2, 0]])
+PC_PRESENT = torch.tensor([[[True] * 4, [True, True, True, False], [True] * 4]])
+
+
+def test_pair_consistency_hand_example() -> None:
+    m = PairConsistency(num_types=3, num_kinds=2)
+    m.update(PC_TYPES, PC_KIND, PC_PRESENT)
+    share, dominant, total = m.compute()
+    # kind 1: 3 of 4 edge-steps in type 0 -> 0.75; kind 2: 2 of 3 in type 1 -> 2/3
+    assert_values(share, [0.75, 2 / 3])
+    assert dominant.tolist() == [0, 1]
+    assert total.tolist() == [4.0, 3.0]
+    assert m.counts.tolist() == [[3, 0, 1], [0, 2, 1]]  # kind 0's edge left nothing anywhere
+
+
+def test_pair_consistency_absent_steps_do_not_count() -> None:
+    """Absent steps drop out: with kind 1's type-0 steps hidden, type 2 becomes dominant."""
+    present = PC_PRESENT.clone()
+    present[0, 0, :2] = False
+    m = PairConsistency(num_types=3)
+    m.update(PC_TYPES, PC_KIND, present)
+    share, dominant, total = m.compute()
+    # kind 1: steps 2 (type 2), 3 (type 0) -> a 1-1 tie is avoided by hiding step 3 too? No: keep it, and
+    # check the counts instead of a tie-broken dominant.
+    assert m.counts[0].tolist() == [1, 0, 1]
+    assert total.tolist() == [2.0, 3.0]
+    assert_values(share, [0.5, 2 / 3])
+    present[0, 0, 3] = False
+    m = PairConsistency(num_types=3)
+    m.update(PC_TYPES, PC_KIND, present)
+    share, dominant, total = m.compute()
+    # kind 1: only step 2 (type 2) left -> share 1, dominant 2, 1 edge-step
+    assert_values(share, [1.0, 2 / 3])
+    assert dominant.tolist() == [2, 1]
+    assert total.tolist() == [1.0, 3.0]
+
+
+def test_pair_consistency_unseen_kind_is_nan() -> None:
+    """Documented: share is NaN for a kind never seen (no update, only kind 0, or nothing present), with a
+    zero count."""
+    share, _, total = compute_quietly(PairConsistency(num_types=3))
+    assert torch.isnan(share).all() and total.tolist() == [0.0, 0.0]
+
+    m = PairConsistency(num_types=3)
+    m.update(PC_TYPES, torch.tensor([[1, 0, 0]]), PC_PRESENT)  # kind 2 never occurs
+    share, dominant, total = m.compute()
+    assert share[0].item() == 0.75 and torch.isnan(share[1])
+    assert dominant[0].item() == 0 and total.tolist() == [4.0, 0.0]
+
+    m = PairConsistency(num_types=3)
+    m.update(PC_TYPES, PC_KIND, torch.zeros_like(PC_PRESENT))
+    share, _, total = m.compute()
+    assert torch.isnan(share).all() and total.tolist() == [0.0, 0.0]
+
+
+def test_pair_consistency_merge() -> None:
+    other = torch.tensor([[[2, 2, 2, 2], [1, 0, 1, 1], [0, 0, 0, 0]]])
+    types = torch.cat([PC_TYPES, other])
+    kind = torch.tensor([[1, 2, 0], [1, 2, 2]])
+    present = torch.cat([PC_PRESENT, torch.ones(1, 3, 4, dtype=torch.bool)])
+    make = lambda: PairConsistency(num_types=3)  # noqa: E731
+    a = merged(make, [(types[:1], kind[:1], present[:1])], [(types[1:], kind[1:], present[1:])])
+    ref = whole(make, (types, kind, present))
+    assert_same_states(a, ref)
+    share, dominant, total = a.compute()
+    # kind 1: [3, 0, 1] + [0, 0, 4] = [3, 0, 5] -> type 2, 5/8
+    # kind 2: [0, 2, 1] + [1, 3, 0] + [4, 0, 0] = [5, 5, 1]: a tie; use the counts rather than the argmax
+    assert a.counts.tolist() == [[3, 0, 5], [5, 5, 1]]
+    assert_values(share, [5 / 8, 5 / 11])
+    assert dominant[0].item() == 2 and total.tolist() == [8.0, 11.0]
