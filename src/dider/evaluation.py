@@ -107,4 +107,5 @@ class TestMetrics(nn.Module):
 
 def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:
     """``prefix/hXX`` -> the metric's value at each of its horizons."""
-    return {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, metric.compute(), strict=True)}
+    values = metric.compute().reshape(-1)  # 0-d for a single horizon: torchmetrics squeezes it
+    return {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, values, strict=True)}

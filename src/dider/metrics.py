@@ -12,10 +12,12 @@ class HorizonMSE(Metric):
     """MSE at forecast horizons: the h-th predicted step, over present agents and all features.
 
     update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool, horizon [B, P, N] long or None);
-    compute() -> [len(horizons)]. Without ``horizon`` frame p of the window is horizon p + 1 for every agent
-    (one burn-in for the whole window). With it, each element carries its own horizon (e.g. the agent's
-    h-th own predicted step, dider.protocol.agent_horizons): horizon h scores, per agent, the present
-    frame whose horizon equals h (at most one per agent; <= 0 marks burn-in frames, never scored).
+    compute() -> [len(horizons)], 0-d for a single horizon (torchmetrics squeezes one-element results; read
+    it with :func:`dider.evaluation.horizon_values`). Without ``horizon`` frame p of the window is horizon
+    p + 1 for every agent (one burn-in for the whole window). With it, each element carries its own
+    horizon (e.g. the agent's h-th own predicted step, dider.protocol.agent_horizons): horizon h scores, per
+    agent, the present frame whose horizon equals h (at most one per agent; <= 0 marks burn-in frames,
+    never scored).
     """
 
     is_differentiable = False
@@ -135,12 +137,15 @@ class BoundaryF1(Metric):
 
     def _near(self, events: torch.Tensor) -> torch.Tensor:
         """Dilate boolean events [..., T] by the tolerance along time."""
+        if events.numel() == 0:  # a one-step window has no transitions, so no switches
+            return events
         k = 2 * self.tolerance + 1
         flat = events.reshape(-1, 1, events.shape[-1]).float()
         return torch.nn.functional.max_pool1d(flat, k, stride=1, padding=self.tolerance).view(events.shape) > 0
 
     def update(self, pred: torch.Tensor, target: torch.Tensor) -> None:
-        p, g = switches(pred), switches(target > 0)
+        # Switches of the raw types on both sides: a change 1 -> 2 of the truth is a switch too.
+        p, g = switches(pred), switches(target)
         self.pred_hit += (p & self._near(g)).sum().double()
         self.true_hit += (g & self._near(p)).sum().double()
         self.pred_all += p.sum().double()
