@@ -77,11 +77,13 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     states = dm.datasets["test"].states
     cv = constant_velocity(states, cfg.data.burn_in, dm.normalizer)
     cv_h1 = (cv[:, 0] - states[:, cfg.data.burn_in]).pow(2).mean().item()
-    assert metrics["test/mse/h01"] < 0.9 * cv_h1, (metrics["test/mse/h01"], cv_h1)
-    # ...and it infers the pushes from the whole clip above chance (balanced accuracy 0.5; this run: 0.58,
-    # a full-width 15-epoch run: 0.74); mislabelled or misaligned edges fall to 0.5 or below
+    # measured with this config (seed 1, the default), and seeds 2 and 3: 0.64, 0.34, 0.62 of constant velocity
+    assert metrics["test/mse/h01"] < 0.8 * cv_h1, (metrics["test/mse/h01"], cv_h1)
+    # ...and it infers the pushes from the whole clip above chance (balanced accuracy 0.5); measured 0.58,
+    # 0.78, 0.56 for seeds 1-3 (short DNRI runs are seed-sensitive); mislabelled or misaligned edges fall to
+    # 0.5 or below
     balanced = (metrics["test/edge_acc/posterior/none"] + metrics["test/edge_acc/posterior/interaction"]) / 2
-    assert balanced > 0.55, metrics
+    assert balanced > 0.53, metrics
     assert torch.isfinite(torch.tensor(list(metrics.values()))).all()
 
 
@@ -91,19 +93,18 @@ def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     Chance: types drawn independently of the truth give interaction recall = 1 - none recall (Youden's
     J = 0, balanced accuracy 0.5), whatever their rate. Edges mislabelled, shifted in time or collapsed
     onto the prior (the failure of the paper's start-of-segment readout in our runs) give J <= 0.
-    Measured with this config: seed 2 J = 0.61, seed 3 J = 0.52; seed 1 has not left the prior after 6
-    epochs (J = -0.02; it reaches J = 0.36 after 12): short runs are seed-sensitive, see docs/results.md.
+    Measured with this config: J = 0.37, 0.38, 0.48 for seeds 1 (the default, run here), 2 and 3.
     """
     cfg = make_cfg(
-        ["model=dider", "seed=2", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
+        ["model=dider", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
          "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "trainer.max_epochs=6",
          "model.optimizer.lr=1e-3", "logger=none", "callbacks=none"],
         tiny=False, out=tmp_path / "run",
     )  # fmt: skip
     metrics = train(cfg)
     none, inter = metrics["test/edge_acc/posterior/none"], metrics["test/edge_acc/posterior/interaction"]
-    assert inter - (1 - none) > 0.3, metrics
-    assert metrics["test/segments_per_edge"] < 3.0, metrics  # readable: few segments per 49-step edge
+    assert inter - (1 - none) > 0.2, metrics
+    assert metrics["test/segments_per_edge"] < 2.0, metrics  # readable: few segments per 49-step edge (1.14-1.21)
 
 
 @pytest.mark.slow
