@@ -23,40 +23,31 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def at_least(low: float, note: str = "") -> Rule:
+def _numeric(ok: Callable[[float], bool], why: str) -> Rule:
+    """A rule for numbers: ``why`` unless ``ok(value)``."""
+
     def rule(value: Any) -> str | None:
         if not _is_number(value):
             return "must be a number"
-        return None if value >= low else f"must be >= {low}{note}"
+        return None if ok(value) else why
 
     return rule
+
+
+def at_least(low: float, note: str = "") -> Rule:
+    return _numeric(lambda v: v >= low, f"must be >= {low}{note}")
 
 
 def above(low: float) -> Rule:
-    def rule(value: Any) -> str | None:
-        if not _is_number(value):
-            return "must be a number"
-        return None if value > low else f"must be > {low}"
-
-    return rule
+    return _numeric(lambda v: v > low, f"must be > {low}")
 
 
 def within(low: float, high: float, what: str = "must lie in") -> Rule:
-    def rule(value: Any) -> str | None:
-        if not _is_number(value):
-            return "must be a number"
-        return None if low <= value <= high else f"{what} [{low}, {high}]"
-
-    return rule
+    return _numeric(lambda v: low <= v <= high, f"{what} [{low}, {high}]")
 
 
 def within_open(low: float, high: float) -> Rule:
-    def rule(value: Any) -> str | None:
-        if not _is_number(value):
-            return "must be a number"
-        return None if low < value < high else f"must lie in ({low}, {high})"
-
-    return rule
+    return _numeric(lambda v: low < v < high, f"must lie in ({low}, {high})")
 
 
 def optional(rule: Rule) -> Rule:

@@ -13,7 +13,7 @@ from typing import Any
 import lightning as L
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from dider.callbacks import EvalRandomState, FiniteGuard
 from dider.data.batch import Batch
@@ -21,7 +21,7 @@ from dider.evaluation import Forecast, TestMetrics, horizon_values
 from dider.graph import edge_mask
 from dider.metrics import EdgeAccuracy, HorizonMSE
 from dider.models.plugins import Progress
-from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE
+from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons
 from dider.validation import require
 
@@ -54,7 +54,7 @@ class RelationalVAEModule(L.LightningModule):
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
         """From a model config (``cfg.model``): its training keys configure the module, the rest the network."""
-        node = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+        node = plain_config(cfg)
         return cls(model={k: v for k, v in node.items() if k not in TRAINING_KEYS},
                    **{k: node[k] for k in TRAINING_KEYS if k in node})
 

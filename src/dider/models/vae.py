@@ -56,6 +56,18 @@ class Inference:
         return self.seg.spread(one_hot).argmax(-1)
 
 
+def plain_config(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """A model config as a plain, resolved dict (what checkpoints keep: they load with weights_only)."""
+    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+
+
+def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
+    """Edge types from logits [..., K] -> [...] long: a categorical draw (Gumbel-max) or the argmax."""
+    if sample:
+        logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
+    return logits.argmax(-1)
+
+
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
     NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|)."""
@@ -120,7 +132,7 @@ class RelationalVAE(nn.Module):
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
         """Build the network from a model config (``cfg.model`` of the Hydra app), ignoring its training keys."""
-        node = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+        node = plain_config(cfg)
         return instantiate({k: v for k, v in node.items() if k not in TRAINING_KEYS}, _convert_="all")
 
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
@@ -196,11 +208,8 @@ class RelationalVAE(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
         left, a new type comes from the prior and a new duration from the duration plugin."""
-        logits = self.prior(h_t)  # [B, E, K]
-        if sample:
-            logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
         need = left <= 0
-        etype = torch.where(need, logits.argmax(-1), etype)
+        etype = torch.where(need, pick_types(self.prior(h_t), sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
         return etype, left
 
@@ -225,9 +234,7 @@ class RelationalVAE(nn.Module):
         enc = self.encoder(x_obs, None if bool(mask_obs.all()) else mask_obs)
         seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs)
         logits = self.segment_posterior(enc.posterior_logits, seg)[:, :, 0]  # [B, E, K]
-        if self.rollout_edges == "sample":
-            logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
-        return logits.argmax(-1).unsqueeze(-1).expand(-1, -1, end)
+        return pick_types(logits, self.rollout_edges == "sample").unsqueeze(-1).expand(-1, -1, end)
 
     @torch.no_grad()
     def rollout(
