@@ -6,9 +6,12 @@ import os
 import subprocess
 import sys
 
+import numpy as np
+import pandas as pd
 import pytest
 
-from dider.run import train
+from dider.run import predict, train
+from fixtures import write_trajectories
 
 # Deterministic evaluation: argmax edges in the roll-out; posterior types are argmaxes, so segments.json is
 # deterministic too. 15 test clips: 8 on rank 0, 7 on rank 1, none counted twice.
@@ -35,3 +38,21 @@ def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
     ddp_segments = json.loads((run_dir / "segments.json").read_text())
     assert len(ddp_segments["clips"]) == 15
     assert ddp_segments == json.loads((tmp_path / "eval" / "segments.json").read_text())
+
+    # mode=predict under DDP: each rank predicts every other clip; rank 0 writes them all, in input order
+    new = write_trajectories(tmp_path / "new.npz", num=15, steps=12, agents=3, velocities=True, seed=3)
+    args = ["mode=predict", f"ckpt_path={ckpt}", "data=trajectories", f"data.path={tmp_path / 'new.npz'}",
+            "predict.forecast_steps=4", "experiment=smoke", "logger=none", "trainer.enable_progress_bar=false"]
+    proc = subprocess.run([sys.executable, "-m", "dider.run", *args, "trainer=ddp_sim",
+                           f"hydra.run.dir={tmp_path / 'ddp_predict'}"],
+                          env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    predict(make_cfg(args, tiny=False, out=tmp_path / "predict"))
+    ddp_table = pd.read_csv(tmp_path / "ddp_predict" / "predictions" / "segments.csv")
+    assert sorted(ddp_table["clip"].unique()) == list(range(len(new["positions"])))
+    pd.testing.assert_frame_equal(ddp_table, pd.read_csv(tmp_path / "predict" / "predictions" / "segments.csv"))
+    with np.load(tmp_path / "ddp_predict" / "predictions" / "clips.npz") as a, \
+            np.load(tmp_path / "predict" / "predictions" / "clips.npz") as b:
+        assert a["clip"].tolist() == list(range(15))
+        for key in ("segments", "prior", "step_probs", "positions", "forecast"):
+            np.testing.assert_allclose(a[key].astype(float), b[key].astype(float), atol=1e-5, err_msg=key)

@@ -4,6 +4,7 @@ import json
 
 import torch
 
+from dider.clips import split_clips, stack_clips
 from dider.export import segments_json
 from dider.graph import edge_index
 from dider.run import train
@@ -16,7 +17,9 @@ def test_segments_json_lists_runs_of_present_edges():
     probs[0, 0, 2:] = 0.9
     three = torch.full((2, 6, 5), -1)
     three[1, 3] = torch.tensor([1, 1, 1, 1, 1])  # 3 agents, only edge 1 -> 2 of the second clip present
-    blob = segments_json([(types, probs), (three, torch.ones(2, 6, 5))])
+    clips = split_clips({"segments": types, "probs": probs}) + split_clips({"segments": three,
+                                                                            "probs": torch.ones(2, 6, 5)})
+    blob = segments_json(stack_clips(clips))  # the 2-agent clip is padded to 3 agents: its edges keep their pairs
     assert [c["clip"] for c in blob["clips"]] == [0, 1, 2]
     first = blob["clips"][0]["edges"]
     assert [(e["sender"], e["receiver"]) for e in first] == [(0, 1), (1, 0)]
@@ -43,3 +46,18 @@ def test_run_exports_every_test_clip(make_cfg, tmp_path):
             segs = edge["segments"]
             assert segs[0]["start"] == 0 and segs[-1]["end"] == steps
             assert all(a["end"] == b["start"] and a["type"] != b["type"] for a, b in zip(segs, segs[1:], strict=False))
+
+
+def test_segments_json_carries_the_source_identifiers():
+    types = torch.tensor([[[1, 1, 0], [0, 0, 0]]])  # one clip, 2 agents, 3 steps
+    clips = split_clips({"segments": types, "probs": torch.ones(1, 2, 3),
+                         "source": {"clip": torch.tensor([7]), "scene": torch.tensor([1]),
+                                    "frame": torch.tensor([100]), "agent": torch.tensor([[42, 5]])}})
+    blob = segments_json(stack_clips(clips), frame_step=10, names={"scene": ["a", "b"]})
+    clip = blob["clips"][0]
+    assert clip["source"] == {"clip": 7, "scene": "b", "frame": 100, "agent": [42, 5]}
+    first = clip["edges"][0]
+    assert (first["sender_id"], first["receiver_id"]) == (42, 5)
+    # the 0 -> 1 edge: type 1 over transitions 0..1 (frames 100..120 of the input), then type 0
+    assert first["segments"][0] == {"start": 0, "end": 2, "type": 1, "prob": 1.0, "start_frame": 100,
+                                    "end_frame": 120}

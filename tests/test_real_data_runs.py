@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from dider.run import train
@@ -66,3 +68,23 @@ def test_ind_command_line(roots, tmp_path, cache_dir):
     assert m["test/consistency/parked/type"] in range(6)
     figures = sorted(p.name for p in (tmp_path / "figures").glob("*.png"))
     assert "trajectories_00.png" in figures and "timeline_00.png" in figures
+
+    # segments.json and clips.npz trace each test window back to the recording's rows
+    clip = json.loads((tmp_path / "segments.json").read_text())["clips"][0]
+    source = clip["source"]
+    assert source["scene"] == 2 and source["frame"] % 10 == 0  # the test recording, 02; 25 Hz / 10
+    edge = clip["edges"][0]
+    assert (edge["sender_id"], edge["receiver_id"]) == (source["agent"][edge["sender"]],
+                                                        source["agent"][edge["receiver"]])
+    seg = edge["segments"][0]
+    assert (seg["start_frame"], seg["end_frame"]) == (source["frame"] + 10 * seg["start"],
+                                                      source["frame"] + 10 * seg["end"])
+    tracks = pd.read_csv(roots["ind"] / "02_tracks.csv").set_index(["trackId", "frame"])
+    with np.load(tmp_path / "clips.npz", allow_pickle=False) as z:
+        assert z["clip"][0] == 0 and z["scene"][0] == 2 and z["agent"][0].tolist()[: len(source["agent"])] \
+            == source["agent"]
+        for slot, track in enumerate(source["agent"]):  # every agent of the window, at its first present step
+            step = int(np.argmax(z["mask"][0, :, slot]))
+            xy = tracks.loc[(track, source["frame"] + 10 * step), ["xCenter", "yCenter"]].to_numpy(float)
+            assert np.allclose(z["positions"][0, step, slot], xy, atol=1e-3), (track, step)
+        assert z["background_of"][0] == 0 and z["background_0"].ndim == 3 and z["background_0_extent"].shape == (4,)

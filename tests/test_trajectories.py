@@ -38,7 +38,15 @@ def test_positions_only_finite_difference(tmp_path):
     dm = make_dm(tmp_path / "t.npz", frame_rate=2.0)
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 32, "val": 4, "test": 4}
     batch = next(iter(dm.train_dataloader()))
-    assert set(batch) == {"states", "mask"} and batch["states"].shape == (8, 19, 3, 4) and batch["mask"].all()
+    assert set(batch) == {"states", "mask", "source"} and batch["states"].shape == (8, 19, 3, 4) and batch["mask"].all()
+    # each clip's source: its index in the file, and the file's step 0 is frame 1 (differencing used frame 0)
+    test_idx = split_indices(40, dm.hparams.split, dm.hparams.seed)["test"]
+    test_batch = next(iter(dm.test_dataloader()))
+    assert test_batch["source"]["clip"].tolist() == test_idx.tolist()
+    assert (test_batch["source"]["frame"] == 1).all()
+    torch.testing.assert_close(dm.normalizer.denormalize(test_batch["states"])[..., :2],
+                               torch.as_tensor(arrays["positions"], dtype=torch.float32)[test_idx, 1:], atol=1e-4,
+                               rtol=0)
     pos = torch.as_tensor(arrays["positions"], dtype=torch.float32)
     got = all_clips(dm)["states"]
     torch.testing.assert_close(got[..., :2], pos[:, 1:], atol=1e-4, rtol=0)

@@ -21,7 +21,7 @@ class NonFiniteError(FloatingPointError):
 
 
 class EvalRandomState(L.Callback):
-    """Validation and test draw (roll-out edge samples, hard Gumbel samples) from a generator seeded with
+    """Validation, test and prediction draw (roll-out edge samples, hard Gumbel samples) from a generator seeded with
     ``seed``; the training run's random state is put back afterwards. Metrics are then a function of the
     weights, and checkpoints carry the training run's state, so a resumed run draws exactly what the
     uninterrupted one would have drawn."""
@@ -42,8 +42,8 @@ class EvalRandomState(L.Callback):
             set_rng_state(self._outside)
             self._outside = None
 
-    on_validation_epoch_start = on_test_epoch_start = _enter
-    on_validation_epoch_end = on_test_epoch_end = _exit
+    on_validation_epoch_start = on_test_epoch_start = on_predict_epoch_start = _enter
+    on_validation_epoch_end = on_test_epoch_end = on_predict_epoch_end = _exit
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         checkpoint[self.CHECKPOINT_KEY] = self._outside or rng_state()

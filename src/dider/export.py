@@ -1,95 +1,116 @@
-"""Interpretability outputs: per-edge segment lists for every test clip, written atomically as JSON."""
+"""Interpretability outputs of a test: per-edge segment lists of every test clip (JSON) and the arrays behind
+them for the explorer (``clips.npz``), written atomically."""
 
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
 
-from dider.graph import edge_index, num_agents
+from dider.clips import (
+    explore_arrays,
+    explore_extras,
+    gather_in_order,
+    segment_frame,
+    split_clips,
+    stack_clips,
+    write_clips_npz,
+)
 from dider.io import atomic_write_text
 
 
-def segment_table(types: torch.Tensor, probs: torch.Tensor) -> torch.Tensor:
-    """Runs of constant type on every edge of every clip.
-
-    types: [S, E, T] long, probs: [S, E, T] probability of the chosen type ->
-    [R, 6] float rows (clip, edge, start, end (exclusive), type, mean probability over the run).
-    """
-    s, e, t = types.shape
-    new_run = torch.ones_like(types, dtype=torch.bool)
-    new_run[..., 1:] = types[..., 1:] != types[..., :-1]
-    run_id = new_run.flatten().cumsum(0) - 1  # runs never cross an edge: every edge starts a run
-    starts = new_run.flatten().nonzero().squeeze(1)
-    ends = torch.cat([starts[1:], torch.tensor([types.numel()])])
-    prob_sum = torch.zeros(len(starts), dtype=torch.float64).index_add_(0, run_id, probs.flatten().double())
-    clip, rest = starts // (e * t), starts % (e * t)
-    edge, start = rest // t, rest % t
-    return torch.stack([clip.double(), edge.double(), start.double(), (start + ends - starts).double(),
-                        types.flatten()[starts].double(), prob_sum / (ends - starts).double()], dim=1)  # fmt: skip
-
-
-def segments_json(batches: list[tuple[torch.Tensor, torch.Tensor]]) -> dict[str, Any]:
+def segments_json(arrays: Mapping[str, torch.Tensor], frame_step: int = 1,
+                  names: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
     """The segments of every test clip, in test-set order.
 
-    batches: (types [B, E, T] long with -1 where the edge is absent, probs [B, E, T]) per test batch; E may
-    differ between batches (real data: padded to each batch's largest agent count). ->
-    {"clips": [{"clip": i, "edges": [{"sender", "receiver", "segments": [{start, end, type, prob}]}]}]}
-    listing only edges present at some step, and only the steps where they are present.
+    arrays: stacked clips (:func:`dider.clips.stack_clips`): ``segments`` [S, E, T-1] long (-1 where the
+    edge is absent), ``probs`` [S, E, T-1], and the source identifiers the data set has (``clip``,
+    ``scene``, ``frame``, ``agent``; :mod:`dider.data.common`). ->
+    {"clips": [{"clip": i, "source": {...}, "edges": [{"sender", "receiver", ["sender_id", "receiver_id"],
+    "segments": [{start, end, type, prob, [start_frame, end_frame]}]}]}]} listing only edges present at
+    some step, and only the steps where they are present.
     """
+    s = arrays["segments"].shape[0]
+    frame = segment_frame({**arrays, "clip": torch.arange(s)}, frame_step, names)
+    keys = [k for k in ("sender_id", "receiver_id") if k in frame]
+    seg_keys = ["start", "end", "type", "prob"] + [k for k in ("start_frame", "end_frame") if k in frame]
+    frame = frame.rename(columns={"start_step": "start", "end_step": "end"})
     clips: list[dict[str, Any]] = []
-    for types, probs in batches:
-        b, e, _ = types.shape
-        n = num_agents(e)
-        send, recv = edge_index(n)
-        edges: list[dict[int, list[dict[str, Any]]]] = [{} for _ in range(b)]
-        for clip, edge, start, end, typ, prob in segment_table(types, probs).tolist():
-            if typ >= 0:  # runs of -1 are steps where the edge does not exist
-                row = {"start": int(start), "end": int(end), "type": int(typ), "prob": round(prob, 4)}
-                edges[int(clip)].setdefault(int(edge), []).append(row)
-        for per_edge in edges:
-            clips.append({"clip": len(clips), "edges": [
-                {"sender": int(send[k]), "receiver": int(recv[k]), "segments": rows} for k, rows in per_edge.items()]})
-    return {"note": "steps are transitions t -> t+1 of the clip; end is exclusive; agents in the data set's order",
+    for i in range(s):
+        clip: dict[str, Any] = {"clip": i}
+        if source := _source(arrays, i, names or {}):
+            clip["source"] = source
+        clip["edges"] = []
+        clips.append(clip)
+    for (i, send, recv), rows in frame.groupby(["clip", "sender", "receiver"], sort=False):
+        edge: dict[str, Any] = {"sender": int(send), "receiver": int(recv)}
+        edge |= {k: _plain(rows[k].iloc[0]) for k in keys}
+        edge["segments"] = [{k: _plain(v) for k, v in row.items()} for row in rows[seg_keys].to_dict("records")]
+        clips[int(i)]["edges"].append(edge)
+    return {"note": "steps are transitions t -> t+1 of the clip; end is exclusive; agents in the data set's order; "
+                    "source: where the clip came from in the input (its index, scene, frame of step 0, agent ids)",
             "clips": clips}
 
 
+def _plain(value: Any) -> Any:
+    """numpy scalars -> JSON-ready Python values."""
+    return value.item() if hasattr(value, "item") else value
+
+
+def _source(arrays: Mapping[str, torch.Tensor], i: int, names: Mapping[str, Sequence[str]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key in ("clip", "scene", "frame", "agent"):
+        if key in arrays:
+            value = arrays[key][i].tolist()
+            if key in names:
+                value = [names[key][v] if v >= 0 else None for v in value] if isinstance(value, list) \
+                    else names[key][value]
+            out[key] = value
+    return out
+
+
 class SegmentExport(L.Callback):
-    """After testing, writes the posterior segments of every test clip to ``path`` (JSON, atomic).
+    """After testing, writes the posterior segments of every test clip to ``path`` (JSON, atomic) and the
+    first ``explore_clips`` test clips' arrays to ``clips.npz`` beside it (for ``python -m dider.explore``).
 
-    Collects the ``segments`` and ``probs`` that ``test_step`` returns per batch; under DDP rank r of W
-    tested clips r, r + W, ... (the data modules' unrepeated sampler), so rank 0 puts them back in
-    test-set order before writing."""
+    Collects what ``test_step`` returns per batch and the batch's source identifiers; under DDP rank 0
+    puts the clips of every rank back in test-set order before writing."""
 
-    def __init__(self, path: str) -> None:
-        self.path = Path(path)
-        self.batches: list[tuple[torch.Tensor, torch.Tensor]] = []
+    def __init__(self, path: str, explore_clips: int = 50) -> None:
+        self.path, self.explore_clips = Path(path), explore_clips
+        self.clips: list[dict[str, torch.Tensor]] = []
 
     def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.batches = []
+        self.clips = []
 
     def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                           batch_idx: int, dataloader_idx: int = 0) -> None:
-        if isinstance(outputs, dict) and "segments" in outputs:
-            self.batches.append((outputs["segments"].cpu(), outputs["probs"].cpu()))
+        if not (isinstance(outputs, dict) and "segments" in outputs):
+            return
+        absent = outputs["segments"] < 0
+        keep = {"segments": outputs["segments"], "probs": outputs["probs"],
+                "per_step": outputs["per_step"].masked_fill(absent, -1),
+                "prior": outputs["prior"].masked_fill(absent, -1),
+                "states": batch["states"], "mask": batch["mask"], "source": batch.get("source", {})}
+        if "edges" in batch:
+            keep["truth"] = batch["edges"].transpose(1, 2).masked_fill(absent, -1)
+        self.clips += split_clips(keep)
 
     def on_test_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        world = trainer.world_size
-        if world == 1:
-            return
-        clips = [(t, p) for tb, pb in self.batches for t, p in zip(tb, pb, strict=True)]
-        per_rank: list[Any] | None = [None] * world if trainer.global_rank == 0 else None
-        torch.distributed.gather_object(clips, per_rank, dst=0)  # the export runs on rank 0 only
-        if trainer.global_rank != 0:
-            self.batches = []
-            return
-        ordered = [per_rank[r][j] for j in range(max(map(len, per_rank))) for r in range(world)
-                   if j < len(per_rank[r])]
-        self.batches = [(t[None], p[None]) for t, p in ordered]
+        self.clips = gather_in_order(trainer, self.clips)
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if self.batches and trainer.is_global_zero:
-            atomic_write_text(self.path, json.dumps(segments_json(self.batches)))
+        if not self.clips or not trainer.is_global_zero:
+            return
+        dm = getattr(trainer, "datamodule", None)
+        arrays = stack_clips(self.clips)
+        frame_step, names = getattr(dm, "frame_step", 1), getattr(dm, "source_names", {})
+        atomic_write_text(self.path, json.dumps(segments_json(arrays, frame_step, names)))
+        if self.explore_clips > 0:
+            first = {k: v[: self.explore_clips] for k, v in arrays.items()}
+            write_clips_npz(self.path.parent / "clips.npz", explore_arrays(first, dm),
+                            explore_extras(pl_module, dm, "test", first))

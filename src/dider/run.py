@@ -23,7 +23,9 @@ from dider.checkpoint import AtomicCheckpointIO
 from dider.io import atomic_write_text
 from dider.models.module import RelationalVAEModule
 from dider.perf import compile_modules, tune_allocator
+from dider.prediction import PredictionWriter
 from dider.protocol import horizons_problem
+from dider.trained import load
 from dider.validation import RULES, ConfigError, problem
 
 log = logging.getLogger(__name__)
@@ -75,6 +77,8 @@ def _build_list(group: DictConfig | None) -> list[Any]:
     return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
 
 
+MODES = ("train", "eval", "predict")
+
 # The key holding the clip length of each data module that knows it from its config alone.
 CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
 
@@ -96,11 +100,18 @@ def validate_config(cfg: DictConfig) -> None:
         if value is not None and (found := problem(key, value)) is not None:
             problems.append(found)
     mode = get("mode")
-    if mode not in ("train", "eval"):
-        problems.append(f"mode={mode!r}: expected 'train' or 'eval'")
+    if mode not in MODES:
+        problems.append(f"mode={mode!r}: expected one of {list(MODES)}")
     ckpt = get("ckpt_path")
-    if mode == "eval" and not ckpt:
-        problems.append("ckpt_path: mode=eval needs ckpt_path=PATH (or ckpt_path=last)")
+    if mode in ("eval", "predict") and not ckpt:
+        problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
+    if mode == "predict" and ckpt == "last":
+        problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's checkpoint "
+                        "file (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
+    for key in ("predict.forecast_steps", "predict.burn_in"):
+        value = get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            problems.append(f"{key}={value!r}: must be an integer >= 1 (or null)")
     if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
         problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
 
@@ -160,6 +171,28 @@ def format_table(metrics: dict[str, float]) -> str:
     return "\n".join(lines)
 
 
+def predict(cfg: DictConfig) -> list[Path]:
+    """mode=predict: the checkpoint's model (its own config and normaliser, whatever ``model=`` says) on every
+    clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.prediction`). Returns them."""
+    ckpt = Path(str(cfg.ckpt_path)).expanduser()
+    trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
+    out_dir = Path(cfg.output_dir)
+    datamodule = instantiate(cfg.data, _convert_="all")
+    datamodule.use_normalizer(trained.normalizer)
+    module = RelationalVAEModule.from_config(trained.config)
+    module.model.load_state_dict(trained.network.state_dict())
+    burn_in = cfg.predict.burn_in or module.hparams.burn_in
+    module.predict_forecast = (burn_in, cfg.predict.forecast_steps) if cfg.predict.forecast_steps else None
+    writer = PredictionWriter(out_dir / "predictions", burn_in)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[writer], logger=False, plugins=trainer_plugins(cfg))
+    log.info("predicting with %s (model %s, trained with dider %s)", ckpt, module.model.name, trained.version)
+    trainer.predict(module, datamodule=datamodule, return_predictions=False)
+    if trainer.is_global_zero:
+        for path in writer.written:
+            print(f"predictions: {path}")
+    return writer.written
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit (mode=train) and test, or test a checkpoint (mode=eval). Returns the test metrics."""
     validate_config(cfg)
@@ -214,6 +247,11 @@ def train(cfg: DictConfig) -> dict[str, float]:
 @hydra.main(version_base="1.3", config_path="pkg://dider.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
     tune_allocator()
+    if cfg.mode == "predict":
+        validate_config(cfg)
+        L.seed_everything(cfg.seed, workers=True, verbose=False)
+        predict(cfg)
+        return None
     metrics = train(cfg)
     return metrics.get("test/mse/h01")
 

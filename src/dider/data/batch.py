@@ -7,6 +7,8 @@ A batch is a plain dict (collates and moves between devices for free):
   for the *transition* t -> t+1, i.e. the force that produced state t+1 from state t.
 - ``pair_kind``: [B, E] long (optional, inD): 1 parked pair, 2 opposite-direction non-crossing pair, 0 other
   (:mod:`dider.data.pairs`), for the consistency check.
+- ``source``: dict of long tensors (optional): where each clip came from in the input (clip index, scene,
+  first frame, agent ids; :mod:`dider.data.common`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ class Batch(TypedDict):
     mask: torch.Tensor
     edges: NotRequired[torch.Tensor]
     pair_kind: NotRequired[torch.Tensor]
+    source: NotRequired[dict[str, torch.Tensor]]
 
 
 class Normalizer:

@@ -1,6 +1,13 @@
 """Pieces shared by every data module: in-memory clip datasets, padding, config checks, the loaders API.
 
 Shapes: S clips, T steps, N agents, P packed agent rows (one per agent per clip), E = N(N-1) edges.
+
+Source identifiers: a dataset may carry, per clip, where it came from, so that results can be traced back
+to the input. Batches then hold ``source``, a dict of long tensors: ``clip`` [B] (the clip's index in the
+input: its position in the file, or the window's number in reading order), and optionally ``scene`` [B]
+(recording or scene id), ``frame`` [B] (the input's frame number of the clip's first step) and ``agent``
+[B, N] (the input's agent or track ids, -1 for padded agents). A data module whose ids are strings keeps
+their names in ``source_names`` (key -> list indexed by the id).
 """
 
 from __future__ import annotations
@@ -21,17 +28,26 @@ from dider.protocol import check_horizons
 from dider.validation import at_least, require
 
 SPLITS = ("train", "val", "test")
+# The per-agent features of every batch, in order (raw units before normalisation).
+FEATURES = ("x", "y", "vx", "vy")
 
 
 def default_cache_dir() -> Path:
     return Path(os.environ.get("DIDER_CACHE", Path.home() / ".cache" / "dider"))
 
 
-class ClipDataset(Dataset):
-    """Clips held in memory. states: [S, T, N, 4]; mask: [S, T, N] bool; edges: [S, T-1, E] long or None."""
+def select_sources(sources: dict[str, torch.Tensor] | None, idx: torch.Tensor) -> dict[str, torch.Tensor] | None:
+    """The source identifiers (module docstring) of the clips ``idx`` [K] long."""
+    return None if sources is None else {k: v[idx] for k, v in sources.items()}
 
-    def __init__(self, states: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor | None = None) -> None:
-        self.states, self.mask, self.edges = states, mask, edges
+
+class ClipDataset(Dataset):
+    """Clips held in memory. states: [S, T, N, 4]; mask: [S, T, N] bool; edges: [S, T-1, E] long or None;
+    sources: the clips' source identifiers (module docstring), each [S] or [S, N] long, or None."""
+
+    def __init__(self, states: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor | None = None,
+                 sources: dict[str, torch.Tensor] | None = None) -> None:
+        self.states, self.mask, self.edges, self.sources = states, mask, edges, sources
 
     def __len__(self) -> int:
         return self.states.shape[0]
@@ -40,6 +56,8 @@ class ClipDataset(Dataset):
         item: Batch = {"states": self.states[i], "mask": self.mask[i]}
         if self.edges is not None:
             item["edges"] = self.edges[i]
+        if self.sources is not None:
+            item["source"] = {k: v[i] for k, v in self.sources.items()}
         return item
 
 
@@ -53,9 +71,12 @@ class PackedClipDataset(Dataset):
     """
 
     def __init__(self, states: torch.Tensor, mask: torch.Tensor, offsets: torch.Tensor,
-                 pairs: dict[str, torch.Tensor] | None = None) -> None:
+                 pairs: dict[str, torch.Tensor] | None = None, sources: dict[str, torch.Tensor] | None = None,
+                 agent_ids: torch.Tensor | None = None) -> None:
         """pairs: optional packed agent pairs of each clip (:func:`dider.data.pairs.find_pairs`); batches then
-        carry ``pair_kind`` [B, E] for the consistency check."""
+        carry ``pair_kind`` [B, E] for the consistency check. sources: per-clip identifiers, each [S] long;
+        agent_ids: [P] long, each row's agent id in the input; batches then carry ``source`` (module
+        docstring), with ``agent`` [B, N_max] from agent_ids."""
         if states.shape[0] != mask.shape[0] or int(offsets[-1]) != states.shape[0]:
             raise ValueError(f"PackedClipDataset: {states.shape[0]} rows, mask {mask.shape[0]}, offsets end "
                              f"{int(offsets[-1])}: these must agree")
@@ -63,6 +84,7 @@ class PackedClipDataset(Dataset):
             raise ValueError(f"PackedClipDataset: pair_offsets has {len(pairs['pair_offsets'])} entries, "
                              f"offsets {len(offsets)}: these must agree")
         self.states, self.mask, self.offsets, self.pairs = states, mask, offsets, pairs
+        self.sources, self.agent_ids = sources, agent_ids
 
     def __len__(self) -> int:
         return self.offsets.shape[0] - 1
@@ -91,6 +113,11 @@ class PackedClipDataset(Dataset):
         batch: Batch = {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
         if self.pairs is not None:
             batch["pair_kind"] = pair_kind_matrix(**self.pairs, windows=idx, n=n_max)
+        if self.sources is not None or self.agent_ids is not None:
+            source = select_sources(self.sources, idx) or {}
+            if self.agent_ids is not None:
+                source["agent"] = torch.where(valid, self.agent_ids[rows], -1)
+            batch["source"] = source
         return batch
 
 
@@ -147,6 +174,18 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
         raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first})")
 
 
+def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:
+    """What a checkpoint records of the data it was trained on: the data module's class and arguments, the
+    feature layout, its ``state_dict`` (the normaliser) and the input frames per step; {} without one."""
+    if dm is None:
+        return {}
+    cls = type(dm)
+    args = {k: v for k, v in dict(getattr(dm, "hparams", {})).items() if isinstance(v, (int, float, str, bool,
+                                                                                   list, tuple, type(None)))}
+    return {"target": f"{cls.__module__}.{cls.__qualname__}", "args": args, "features": list(FEATURES),
+            "frame_step": int(getattr(dm, "frame_step", 1)), "state": dm.state_dict()}
+
+
 class ClipDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
@@ -165,6 +204,25 @@ class ClipDataModule(L.LightningDataModule):
         super().__init__()
         self.normalizer: Normalizer | None = None
         self.datasets: dict[str, Dataset] = {}
+        self.source_names: dict[str, list[str]] = {}
+        self.frame_step = 1  # input frames per step (downsampling readers change it)
+
+    # The normaliser travels in checkpoints (Lightning stores a data module's state_dict), so a trained
+    # model can normalise new data the way it was trained.
+    def state_dict(self) -> dict[str, object]:
+        if self.normalizer is None:
+            return {}
+        return {"normalizer": self.normalizer.state_dict(), "features": list(FEATURES)}
+
+    def load_state_dict(self, state: dict[str, object]) -> None:
+        """Keeps a normaliser already fitted in ``setup`` (a resumed run fits the same one); otherwise takes
+        the checkpoint's."""
+        if self.normalizer is None and "normalizer" in state:
+            self.normalizer = Normalizer(**state["normalizer"])
+
+    def use_normalizer(self, normalizer: Normalizer) -> None:
+        """Normalise with a trained model's normaliser instead of fitting one (before ``setup``; prediction)."""
+        self.normalizer = normalizer
 
     def init_shared(self, clip_len: int | None = None, *, length_key: str | None = None,
                     integer_horizons: bool = False) -> None:
@@ -220,3 +278,15 @@ class ClipDataModule(L.LightningDataModule):
 
     def test_dataloader(self) -> DataLoader:
         return self._loader("test", train=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        """Every clip of the input, in order (``setup("predict")`` builds it, normalised with the normaliser
+        given to :meth:`use_normalizer`)."""
+        return self._loader("predict", train=False)
+
+    def predict_normalizer(self, where: str) -> Normalizer:
+        """The normaliser a ``predict`` setup must use: a trained model's, never one fitted on the new data."""
+        if self.normalizer is None:
+            raise ValueError(f"{where}: prediction normalises with the trained model's normaliser; call "
+                             f"use_normalizer(...) first (dider.load and mode=predict do)")
+        return self.normalizer

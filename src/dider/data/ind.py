@@ -219,6 +219,7 @@ class InDDataModule(ClipDataModule):
             raise ValueError(f"{h.name}: recordings have different frame rates {rates} (recordingMeta "
                              f"{h.frame_rate_column}); select recordings of one rate with data.recordings")
         self.dt = h.downsample / next(iter(rates.values()))
+        self.frame_step = h.downsample
         try:
             self.normalizer = Normalizer.fit(raw["train"]["states"], raw["train"]["mask"])
         except ValueError as e:  # e.g. only parked vehicles left: a zero velocity range
@@ -231,12 +232,28 @@ class InDDataModule(ClipDataModule):
                 vehicle = torch.tensor([c in self.pair_rules.vehicle_classes for c in data["class_names"]])
                 pairs = find_pairs(data["states"], data["mask"], data["offsets"],
                                    vehicle[data["agent_class"]], self.pair_rules)
-            ds = PackedClipDataset(states, data["mask"], data["offsets"], pairs)
+            # Where each window came from: its number in the split, its recording's id (window_recording
+            # indexes this split's recordings), the recording's frame of its first step, the track ids.
+            sources = {"clip": torch.arange(len(data["window_start"])),
+                       "scene": self._recording_codes(data["recordings"])[data["window_recording"]],
+                       "frame": data["window_start"] * h.downsample}
+            ds = PackedClipDataset(states, data["mask"], data["offsets"], pairs, sources, data["track_id"])
             for key in ("track_id", "agent_class", "class_names", "window_start", "window_recording",
                         "recordings"):
                 setattr(ds, key, data[key])
             self.datasets[split] = ds
         log.info("%s windows: %s", h.name, {s: len(d) for s, d in self.datasets.items()})
+
+    def _recording_codes(self, recordings: list[str]) -> torch.Tensor:
+        """Recording ids as source scene ids: the number itself for numeric ids ("07" -> 7), else a code
+        into ``source_names["scene"]``."""
+        if all(str(r).isdigit() for r in recordings):
+            return torch.tensor([int(r) for r in recordings], dtype=torch.long)
+        names = self.source_names.setdefault("scene", [])
+        for r in recordings:
+            if str(r) not in names:
+                names.append(str(r))
+        return torch.tensor([names.index(str(r)) for r in recordings], dtype=torch.long)
 
     def background(self, split: str, index: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
         """The background image of clip ``index`` of ``split`` and its extent (left, right, bottom, top) in

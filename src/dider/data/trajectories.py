@@ -21,6 +21,7 @@ import zipfile
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -56,10 +57,6 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
                 arrays[key] = z[key]
             except _READ_ERRORS as e:
                 raise ValueError(f"{path}: key {key!r} cannot be read ({type(e).__name__}: {e})") from e
-    for key, a in arrays.items():
-        kinds = "biuf" if key in ("mask", "edges") else "iuf"
-        if a.dtype.kind not in kinds:
-            raise ValueError(f"{path}: key {key!r} has dtype {a.dtype}; expected real numbers")
     return arrays
 
 
@@ -69,7 +66,7 @@ def _float32(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
 
 
-def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Tensor]:
+def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, Any]:
     """Read and validate the file -> states [S, T', N, 4] float32 (raw, zeros where absent), mask
     [S, T', N] bool and, if present, edges [S, T'-1, E] long (the transitions of the clip).
 
@@ -77,7 +74,19 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Te
     """
     if not path.is_file():
         raise FileNotFoundError(f"data.path={path}: no such file")
-    arrays = _read_npz(path)
+    return trajectory_states(_read_npz(path), path, frame_rate)
+
+
+def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rate: float = 1.0) -> dict[str, Any]:
+    """Validate arrays of the npz layout (module docstring; ``path`` names their origin in errors) -> states
+    [S, T', N, 4] float32 raw (zeros where absent), mask [S, T', N] bool, edges [S, T'-1, E] long if given, and
+    ``first_frame``: the input's time index of step 0."""
+    if "positions" not in arrays:
+        raise ValueError(f"{path}: no 'positions' [S, T, N, 2]")
+    for key, a in arrays.items():
+        kinds = "biuf" if key in ("mask", "edges") else "iuf"
+        if a.dtype.kind not in kinds:
+            raise ValueError(f"{path}: key {key!r} has dtype {a.dtype}; expected real numbers")
     pos = arrays["positions"]
     if pos.ndim != 4 or pos.shape[-1] != 2 or min(pos.shape) == 0:
         raise ValueError(f"{path}: key 'positions' has shape {pos.shape}; expected [S, T, N, 2] (non-empty)")
@@ -116,7 +125,8 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, torch.Te
         check_finite(f"{path}: key 'positions' (finite-difference velocities x data.frame_rate={frame_rate})",
                      vel, mask[..., None])
     states = torch.cat([pos, vel], dim=-1)
-    out = {"states": fill_absent(states, mask), "mask": mask}
+    # first_frame: the file's time index of the clip's step 0 (1 when the first step went to differencing)
+    out = {"states": fill_absent(states, mask), "mask": mask, "first_frame": drop}
 
     if "edges" in arrays:
         e = arrays["edges"]
@@ -190,6 +200,13 @@ class TrajectoryDataModule(ClipDataModule):
             raise ValueError("data.path is not set: point it at an .npz with 'positions' [S, T, N, 2] "
                              "(optional 'velocities', 'mask', 'edges')")
         path = Path(h.path).expanduser()
+        if stage == "predict":  # every clip, no split, the trained model's normalisation
+            normalizer = self.predict_normalizer(f"data.path={path}")
+            data = load_trajectories(path, h.frame_rate)
+            states = fill_absent(normalizer.normalize(data["states"]), data["mask"])
+            self.datasets["predict"] = ClipDataset(states, data["mask"], data.get("edges"),
+                                                   self._sources(torch.arange(states.shape[0]), data))
+            return
         data = load_trajectories(path, h.frame_rate)
         check_horizons(h.horizons, data["states"].shape[1], h.burn_in, where=f" in {path}")
         parts = split_indices(data["states"].shape[0], h.split, h.seed)
@@ -204,8 +221,13 @@ class TrajectoryDataModule(ClipDataModule):
             states, mask = data["states"][idx], data["mask"][idx]
             edges = data["edges"][idx] if "edges" in data else None
             states = fill_absent(self.normalizer.normalize(states), mask)
-            self.datasets[split] = ClipDataset(states, mask, edges)
+            self.datasets[split] = ClipDataset(states, mask, edges, self._sources(idx, data))
         _, t, n, _ = data["states"].shape
         log.info("trajectories %s: %s clips, %d steps, %d agents%s", path,
                  {s: len(d) for s, d in self.datasets.items()}, t, n,
                  ", with edges" if "edges" in data else "")
+
+    @staticmethod
+    def _sources(idx: torch.Tensor, data: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The clips' positions in the file and the file's time index of their step 0."""
+        return {"clip": idx, "frame": torch.full_like(idx, int(data["first_frame"]))}

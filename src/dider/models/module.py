@@ -15,8 +15,10 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
+from dider import __version__
 from dider.callbacks import EvalRandomState, FiniteGuard
 from dider.data.batch import Batch
+from dider.data.common import data_description
 from dider.evaluation import Forecast, TestMetrics, horizon_values
 from dider.graph import edge_mask
 from dider.metrics import EdgeAccuracy, HorizonMSE
@@ -50,6 +52,9 @@ class RelationalVAEModule(L.LightningModule):
         self.val_mse = HorizonMSE(horizons)
         self.val_acc = EdgeAccuracy()
         self.test_metrics = TestMetrics(horizons, self.model.num_types)
+        # Prediction's optional forecast: (burn_in, steps) from each clip's first frames, or None (set by
+        # ``mode=predict``, not a hyper-parameter: it does not change the model).
+        self.predict_forecast: tuple[int, int] | None = None
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -165,6 +170,26 @@ class RelationalVAEModule(L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         self.log_dict(self.test_metrics.compute())
+
+    def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
+        """What the model says about clips without ground truth: :meth:`RelationalVAE.describe` (each
+        [B, E, T-1], ``step_probs`` [B, E, T-1, K]), the batch's ``states``, ``mask`` and ``source``, and with
+        ``predict_forecast = (burn_in, steps)`` the ``forecast`` [B, steps, N, D] from each clip's first
+        burn_in frames (agents present at the burn-in's last frame carry on)."""
+        x, mask = batch["states"], batch["mask"]
+        out: dict[str, Any] = {"states": x, "mask": mask, "source": batch.get("source", {})}
+        if self.predict_forecast is not None:  # first: its sampled edges are the first draws from eval_seed
+            burn_in, steps = self.predict_forecast
+            future = mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)
+            out["forecast"] = self.model.rollout(x[:, :burn_in], torch.cat([mask[:, :burn_in], future], 1),
+                                                 burn_in, steps)[0]
+        return out | self.model.describe(self.model.infer(batch, hard=True), mask)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        # What a checkpoint needs to be used on new data on its own (dider.load): the package version and
+        # the data's description and normaliser; the model config is in the hyper-parameters.
+        dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        checkpoint["dider"] = {"version": __version__, "data": data_description(dm)}
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # Checkpoints from before the network moved into ``self.model`` keep their plugins at the top level.

@@ -202,6 +202,22 @@ class RelationalVAE(nn.Module):
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "nelbo": (nll + kl_e + kl_d).detach()}
 
+    @torch.no_grad()
+    def describe(self, out: Inference, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """What the model says about each edge of a clip, per transition t -> t+1 (what exports and prediction
+        write). out: a hard :meth:`infer` pass, mask [B, T, N] ->
+        ``segments`` (the segments' posterior types), ``per_step`` (per-step posterior types before
+        segmentation), ``prior`` (the online prior's types, past only): each [B, E, T-1] long, -1 where the
+        edge is absent; ``probs`` [B, E, T-1] the probability of the segment's type; ``step_probs``
+        [B, E, T-1, K] per-step posterior probabilities."""
+        absent = ~edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        posterior = out.posterior_types()
+        return {"segments": posterior.masked_fill(absent, -1),
+                "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
+                "per_step": out.step_logits.argmax(-1).masked_fill(absent, -1),
+                "prior": self.online_types(out.h_fwd).masked_fill(absent, -1),
+                "step_probs": F.softmax(out.step_logits.float(), dim=-1)}
+
     # ------------------------------------------------------------------ online edges and roll-out
     def advance_edges(
         self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool

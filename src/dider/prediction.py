@@ -1,0 +1,92 @@
+"""``mode=predict``: what a trained model says about every clip of new data, written into the run folder.
+
+``predictions/`` holds
+- ``segments.csv`` (and ``segments.parquet`` when pyarrow is installed): one row per (clip, sender,
+  receiver, segment) with its steps, the input's frame numbers and ids, type and probability
+  (:func:`dider.clips.segment_frame`);
+- ``clips.npz``: the arrays behind it (``segments``, ``probs``, ``per_step``, ``prior`` [S, E, T-1],
+  ``step_probs`` [S, E, T-1, K] per-step edge-type probabilities, ``positions`` [S, T, N, 2] and ``mask``
+  [S, T, N] in the input's units, source ids), read by ``python -m dider.explore``;
+- with ``predict.forecast_steps``: ``forecast.csv`` (clip, agent, step, x, y) and ``forecast`` [S, P, N, 2]
+  in ``clips.npz``, rolled out from each clip's first ``predict.burn_in`` frames.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import pandas as pd
+import torch
+from lightning.pytorch.callbacks import BasePredictionWriter
+
+from dider.clips import (
+    explore_arrays,
+    explore_extras,
+    gather_in_order,
+    segment_frame,
+    split_clips,
+    stack_clips,
+    write_clips_npz,
+    write_table,
+)
+from dider.io import atomic_write_bytes
+
+
+def forecast_frame(arrays: Mapping[str, torch.Tensor], burn_in: int, frame_step: int = 1) -> pd.DataFrame:
+    """The forecast as a long table: one row per (clip, agent, predicted step) of an agent that carries on.
+
+    arrays: ``forecast`` [S, P, N, 2] in input units, ``mask`` [S, T, N], optional ``clip`` [S], ``agent``
+    [S, N], ``frame`` [S]. The first predicted step is the clip's frame ``burn_in``."""
+    pred = arrays["forecast"]
+    s, p, n, _ = pred.shape
+    alive = arrays["mask"][:, burn_in - 1]  # [S, N]
+    clip_i, step, agent = torch.nonzero(alive[:, None, :].expand(s, p, n), as_tuple=True)
+    table: dict[str, Any] = {"clip": (arrays["clip"][clip_i] if "clip" in arrays else clip_i).numpy(),
+                             "agent": agent.numpy()}
+    if "agent" in arrays:
+        table["agent_id"] = arrays["agent"][clip_i, agent].numpy()
+    table["step"] = (burn_in + step).numpy()
+    if "frame" in arrays:
+        table["frame"] = (arrays["frame"][clip_i] + (burn_in + step) * frame_step).numpy()
+    xy = pred[clip_i, step, agent]
+    table["x"], table["y"] = xy[:, 0].numpy(), xy[:, 1].numpy()
+    return pd.DataFrame(table)
+
+
+class PredictionWriter(BasePredictionWriter):
+    """Collects ``predict_step``'s per-clip outputs batch by batch and, on rank 0 after the last batch,
+    writes ``output_dir`` (module docstring). Under DDP each rank predicts clips r, r + W, ... (the data
+    modules' unrepeated sampler); rank 0 puts them back in input order."""
+
+    def __init__(self, output_dir: str | Path, burn_in: int | None = None) -> None:
+        super().__init__(write_interval="batch")
+        self.output_dir, self.burn_in = Path(output_dir), burn_in
+        self.clips: list[dict[str, torch.Tensor]] = []
+        self.written: list[Path] = []
+
+    def on_predict_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clips = []
+
+    def write_on_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, prediction: Any,
+                           batch_indices: Any, batch: Any, batch_idx: int, dataloader_idx: int = 0) -> None:
+        self.clips += split_clips(prediction)
+
+    def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.clips = gather_in_order(trainer, self.clips)
+        if not trainer.is_global_zero or not self.clips:
+            return
+        dm = getattr(trainer, "datamodule", None)
+        frame_step, names = getattr(dm, "frame_step", 1), getattr(dm, "source_names", {})
+        arrays = explore_arrays(stack_clips(self.clips), dm)
+        out = self.output_dir
+        self.written = write_table(segment_frame(arrays, frame_step, names), out / "segments.csv")
+        write_clips_npz(out / "clips.npz", arrays, explore_extras(pl_module, dm, "predict", arrays))
+        self.written.append(out / "clips.npz")
+        if "forecast" in arrays and self.burn_in is not None:
+            table = forecast_frame(arrays, self.burn_in, frame_step)
+            atomic_write_bytes(out / "forecast.csv", table.to_csv(index=False).encode())
+            self.written.append(out / "forecast.csv")
+        self.clips = []

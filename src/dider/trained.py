@@ -1,0 +1,184 @@
+"""A trained model as a Python object: ``dider.load(run_or_checkpoint)`` -> :class:`TrainedModel`.
+
+The checkpoint describes itself (the model config, the data's normaliser and feature layout, the package
+version), so new trajectories are read the way the training data were, with no data module and no
+training data::
+
+    model = dider.load("runs/2026-11-23/10-00-00")          # a run folder or a .ckpt file
+    segs = model.segments(positions, frame_rate=2.5)        # pandas DataFrame, one row per segment
+    future = model.forecast(positions, burn_in=5, steps=20)  # [S, 20, N, 2] positions
+
+Nothing here needs Lightning. Shapes: S clips, T frames, N agents, E = N(N-1) edges, K edge types.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from dider.clips import segment_frame
+from dider.data.batch import Normalizer
+from dider.data.trajectories import trajectory_states
+from dider.models.vae import TRAINING_KEYS, RelationalVAE
+from dider.protocol import fill_absent
+
+ArrayLike = np.ndarray | torch.Tensor
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """A checkpoint file, or a run folder's: the best checkpoint its ``metrics.json`` names, else
+    ``checkpoints/last.ckpt``."""
+    path = Path(path).expanduser()
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: no such checkpoint file or run folder")
+    record = path / "metrics.json"
+    if record.is_file():
+        best = json.loads(record.read_text()).get("checkpoint")
+        if best and Path(best).is_file():
+            return Path(best)
+    last = path / "checkpoints" / "last.ckpt"
+    if last.is_file():
+        return last
+    raise FileNotFoundError(f"{path}: a run folder with no checkpoint (looked for the best one in metrics.json "
+                            f"and for {last})")
+
+
+def read_checkpoint(path: Path) -> dict[str, Any]:
+    """The checkpoint's contents (tensors and plain values only: ``weights_only``), with a named error for
+    a file that is not one, or one written before checkpoints described themselves."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # torch raises many types for a foreign or damaged file
+        raise ValueError(f"{path}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
+    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
+        raise ValueError(f"{path}: not a dider training checkpoint (no state_dict / hyper_parameters)")
+    data = (ckpt.get("dider") or {}).get("data") or {}
+    missing = [what for what, ok in (("the package version", "dider" in ckpt),
+                                     ("the data normaliser", "normalizer" in data.get("state", {}))) if not ok]
+    if missing:
+        raise ValueError(f"{path}: this checkpoint lacks {' and '.join(missing)} (written by an older version, or "
+                         f"by a model trained without a data module), so new data cannot be normalised the way "
+                         f"its training data were; retrain with this version, or evaluate it on its own data set "
+                         f"with `python -m dider.run mode=eval ckpt_path={path} data=...`")
+    return ckpt
+
+
+@dataclass
+class TrainedModel:
+    """A trained network with what it needs to read new data: the normaliser and the training data's
+    settings (``data``: the data module's arguments, e.g. ``frame_rate``, ``burn_in``)."""
+
+    network: RelationalVAE
+    normalizer: Normalizer
+    config: dict[str, Any]
+    data: dict[str, Any] = field(default_factory=dict)
+    version: str = ""
+    path: Path | None = None
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.network.parameters()).device
+
+    def to(self, device: str | torch.device) -> TrainedModel:
+        self.network.to(device)
+        return self
+
+    def states(self, positions: ArrayLike, mask: ArrayLike | None = None, velocities: ArrayLike | None = None,
+               frame_rate: float | None = None) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """Raw trajectories -> normalised model input: states [S, T', N, 4], mask [S, T', N] and the input's
+        index of step 0 (1 when velocities come from finite differences, which use the first frame).
+
+        positions [S, T, N, 2] or [T, N, 2]; mask the same without the last axis (absent agents may be
+        NaN); velocities like positions, else (pos[t] - pos[t-1]) * frame_rate (default: the training
+        data's ``frame_rate``)."""
+        arrays = {"positions": _numpy(positions)}
+        single = arrays["positions"].ndim == 3
+        for key, value in (("mask", mask), ("velocities", velocities)):
+            if value is not None:
+                arrays[key] = _numpy(value)
+        if single:
+            arrays = {k: v[None] for k, v in arrays.items()}
+        if velocities is None and frame_rate is None:
+            frame_rate = self.data.get("frame_rate")
+            if frame_rate is None:
+                raise ValueError("frame_rate: needed for finite-difference velocities (the training data did not "
+                                 "record one); pass frame_rate=... or velocities=...")
+        data = trajectory_states(arrays, "input", float(frame_rate or 1.0))
+        states = fill_absent(self.normalizer.normalize(data["states"]), data["mask"])
+        return states.to(self.device), data["mask"].to(self.device), int(data["first_frame"])
+
+    @torch.no_grad()
+    def describe(self, states: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
+        """:meth:`RelationalVAE.describe` of normalised states [S, T, N, 4] and mask [S, T, N] (eval mode)."""
+        self.network.eval()
+        return self.network.describe(self.network.infer({"states": states, "mask": mask}, hard=True), mask)
+
+    def segments(self, positions: ArrayLike, mask: ArrayLike | None = None, velocities: ArrayLike | None = None,
+                 frame_rate: float | None = None) -> pd.DataFrame:
+        """The interaction segments of every edge: one row per (clip, sender, receiver, segment) with
+        ``start_step``/``end_step`` (the segment covers frames start..end of the model's input), the same in
+        the input's frame numbers (``start_frame``/``end_frame``), ``type`` and ``prob``. Inputs as in
+        :meth:`states`."""
+        states, m, first = self.states(positions, mask, velocities, frame_rate)
+        out = self.describe(states, m)
+        s = states.shape[0]
+        arrays = {"segments": out["segments"].cpu(), "probs": out["probs"].cpu(), "clip": torch.arange(s),
+                  "frame": torch.full((s,), first)}
+        return segment_frame(arrays)
+
+    def edge_probabilities(self, positions: ArrayLike, mask: ArrayLike | None = None,
+                           velocities: ArrayLike | None = None, frame_rate: float | None = None) -> np.ndarray:
+        """Per-step posterior probabilities of each edge type, [S, E, T'-1, K] (transition t -> t+1)."""
+        states, m, _ = self.states(positions, mask, velocities, frame_rate)
+        return self.describe(states, m)["step_probs"].cpu().numpy()
+
+    @torch.no_grad()
+    def forecast(self, positions: ArrayLike, burn_in: int, steps: int, mask: ArrayLike | None = None,
+                 velocities: ArrayLike | None = None, frame_rate: float | None = None,
+                 seed: int | None = None) -> np.ndarray:
+        """Positions [S, steps, N, 2] (input units) after the first ``burn_in`` frames of the model's input
+        (frames 1..burn_in of the input with finite-difference velocities); agents present at the burn-in's
+        last frame carry on, others are NaN. A model that samples its roll-out edges (DNRI's default)
+        draws them from ``seed`` (default: the model's ``eval_seed``, as evaluation and ``mode=predict``
+        do), leaving the global random state alone."""
+        states, m, _ = self.states(positions, mask, velocities, frame_rate)
+        if not 1 <= burn_in <= states.shape[1]:
+            raise ValueError(f"burn_in={burn_in}: must be between 1 and the {states.shape[1]} frames given")
+        if steps < 1:
+            raise ValueError(f"steps={steps}: must be >= 1")
+        self.network.eval()
+        last = m[:, burn_in - 1 : burn_in]
+        future_mask = torch.cat([m[:, :burn_in], last.expand(-1, steps, -1)], dim=1)
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(self.config.get("eval_seed", 0) if seed is None else seed)
+            pred = self.network.rollout(states[:, :burn_in], future_mask, burn_in, steps)[0]
+        xy = self.normalizer.denormalize(pred.float().cpu())[..., :2]
+        return xy.masked_fill(~last.cpu()[..., None], float("nan")).numpy()
+
+
+def _numpy(value: ArrayLike) -> np.ndarray:
+    return value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
+
+
+def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
+    """A trained model from a run folder or a checkpoint file, ready on ``device`` in eval mode."""
+    ckpt_path = find_checkpoint(path)
+    ckpt = read_checkpoint(ckpt_path)
+    hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
+    config = dict(hparams["model"]) | {k: hparams[k] for k in TRAINING_KEYS if k in hparams}
+    network = RelationalVAE.from_config(hparams["model"])
+    state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
+    network.load_state_dict(state)
+    data = ckpt["dider"]["data"]
+    normalizer = Normalizer(**data["state"]["normalizer"])
+    return TrainedModel(network.to(device).eval(), normalizer, config, dict(data.get("args", {})),
+                        ckpt["dider"].get("version", ""), ckpt_path)

@@ -1,0 +1,173 @@
+"""Using a trained model on new data: self-describing checkpoints, dider.load, mode=predict, the README example."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, open_dict
+
+import dider
+from dider.data.batch import Normalizer
+from dider.data.trajectories import TrajectoryDataModule
+from dider.run import predict, train, validate_config
+from dider.validation import ConfigError
+from fixtures import write_trajectories
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "data.horizons=[1,5]", "data.frame_rate=10",
+        "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0"]
+
+
+def compose_cfg(overrides: list[str], out: Path) -> DictConfig:
+    GlobalHydra.instance().clear()
+    with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+        cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(out)
+        cfg.hydra.job.num, cfg.hydra.job.id = 0, "test"
+    HydraConfig().set_config(cfg)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A one-epoch DIDER run on an npz whose last agent leaves half-way."""
+    root = tmp_path_factory.mktemp("trained")
+    write_trajectories(root / "train.npz", num=60, steps=16, agents=3, mask=True)
+    train(compose_cfg([*TINY, f"data.path={root / 'train.npz'}"], root / "run"))
+    GlobalHydra.instance().clear()
+    return root / "run"
+
+
+@pytest.fixture(scope="module")
+def new_data(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, np.ndarray]]:
+    """Unseen clips, no edges and no split: 7 clips of 4 agents, one leaving half-way."""
+    path = tmp_path_factory.mktemp("new") / "new.npz"
+    return path, write_trajectories(path, num=7, steps=12, agents=4, mask=True, seed=5)
+
+
+def test_checkpoint_describes_itself(run):
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    meta = ckpt["dider"]
+    assert meta["version"] == dider.__version__
+    assert meta["data"]["features"] == ["x", "y", "vx", "vy"]
+    assert meta["data"]["args"]["frame_rate"] == 10
+    dm = TrajectoryDataModule(path=meta["data"]["args"]["path"], frame_rate=10, horizons=[1, 5], num_val=4)
+    dm.setup("fit")  # the same file and split refit the same normaliser
+    assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
+    assert ckpt["hyper_parameters"]["model"]["name"] == "dider"
+
+
+def test_load_gives_a_ready_model(run, new_data):
+    path, arrays = new_data
+    model = dider.load(run)
+    assert model.path.parent == run / "checkpoints" and not model.network.training
+    segs = model.segments(arrays["positions"], mask=arrays["mask"])  # frame_rate: the training data's
+    assert list(segs.columns) == ["clip", "sender", "receiver", "segment", "start_step", "end_step", "start_frame",
+                                  "end_frame", "type", "prob"]
+    assert sorted(segs["clip"].unique()) == list(range(7))
+    # Each present edge's segments tile its present transitions: 10 of the 11 steps (finite differences use
+    # the first frame) for pairs of the three agents that stay, 5 for pairs with the one that leaves.
+    span = segs.groupby(["clip", "sender", "receiver"]).agg(first=("start_step", "min"), last=("end_step", "max"),
+                                                            steps=("end_step", "sum"))
+    assert (span["first"] == 0).all()
+    stays = (segs.groupby(["clip", "sender", "receiver"]).size().index.get_level_values("sender") < 3)
+    ends = span["last"].to_numpy()
+    leaving = ~stays | (span.index.get_level_values("receiver") == 3)
+    assert (ends[~leaving] == 10).all() and (ends[leaving] == 5).all()
+    assert (segs["start_frame"] == segs["start_step"] + 1).all()  # input frame index of the segment's first frame
+    assert segs["type"].between(0, 1).all() and segs["prob"].between(0, 1).all()
+    probs = model.edge_probabilities(arrays["positions"], mask=arrays["mask"])
+    assert probs.shape == (7, 12, 10, 2) and np.allclose(probs.sum(-1), 1, atol=1e-5)
+    one = model.segments(arrays["positions"][2], mask=arrays["mask"][2])  # a single clip [T, N, 2]
+    pd.testing.assert_frame_equal(one.drop(columns="clip"),
+                                  segs[segs["clip"] == 2].drop(columns="clip").reset_index(drop=True))
+
+
+def test_forecast_reads_the_burn_in_only(run, new_data):
+    _, arrays = new_data
+    model = dider.load(run / "checkpoints" / "last.ckpt")
+    pos, mask = arrays["positions"].copy(), arrays["mask"]
+    future = model.forecast(pos, burn_in=4, steps=9, mask=mask)
+    assert future.shape == (7, 9, 4, 2)
+    assert np.isfinite(future[:, :, :3]).all()
+    pos[:, 7:] += 100.0 * mask[:, 7:, :, None]  # frames after the burn-in (input frames 5.. are steps 4..)
+    assert np.array_equal(model.forecast(pos, burn_in=4, steps=9, mask=mask), future, equal_nan=True)
+    pos[:, 3] += 1.0  # a burn-in frame
+    assert not np.allclose(model.forecast(pos, burn_in=4, steps=9, mask=mask)[:, :, :3], future[:, :, :3])
+
+
+def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
+    path, arrays = new_data
+    ckpt = run / "checkpoints" / "last.ckpt"
+    cfg = compose_cfg([*TINY, "mode=predict", f"ckpt_path={ckpt}", f"data.path={path}", "predict.forecast_steps=6",
+                       "model=dnri"],  # ignored: the checkpoint's own model is used
+                      tmp_path / "pred")
+    validate_config(cfg)
+    written = predict(cfg)
+    out = tmp_path / "pred" / "predictions"
+    assert {p.name for p in written} >= {"segments.csv", "clips.npz", "forecast.csv"}
+    table = pd.read_csv(out / "segments.csv")
+    expected = dider.load(ckpt).segments(arrays["positions"], mask=arrays["mask"])
+    pd.testing.assert_frame_equal(table, expected, check_dtype=False, atol=1e-4)
+    with np.load(out / "clips.npz", allow_pickle=False) as z:
+        assert z["segments"].shape == (7, 12, 10) and z["step_probs"].shape == (7, 12, 10, 2)
+        assert z["clip"].tolist() == list(range(7)) and str(z["model"]) == "dider"
+        present = arrays["mask"][:, 1:]  # the model's frames: finite differences drop the first
+        assert np.allclose(z["positions"][present], arrays["positions"][:, 1:][present], atol=1e-4)
+        api = dider.load(ckpt).forecast(arrays["positions"], burn_in=5, steps=6, mask=arrays["mask"])
+        assert np.allclose(z["forecast"], api, atol=1e-5)
+    forecast = pd.read_csv(out / "forecast.csv")
+    # every agent is present at the burn-in's last step (input frame 5; the fourth leaves at frame 6)
+    assert len(forecast) == 7 * 6 * 4
+    assert forecast["step"].min() == 5 and forecast["frame"].min() == 6
+
+
+def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    del ckpt["dider"]
+    old = tmp_path / "old.ckpt"
+    torch.save(ckpt, old)
+    with pytest.raises(ValueError, match=r"old\.ckpt: this checkpoint lacks the package version and the data "
+                                         r"normaliser.*mode=eval"):
+        dider.load(old)
+    foreign = tmp_path / "notes.ckpt"
+    foreign.write_text("not a checkpoint")
+    with pytest.raises(ValueError, match=r"notes\.ckpt: not a readable dider checkpoint"):
+        dider.load(foreign)
+    with pytest.raises(FileNotFoundError, match="a run folder with no checkpoint"):
+        dider.load(tmp_path)
+
+
+def test_predict_needs_the_trained_normaliser(new_data):
+    dm = TrajectoryDataModule(path=str(new_data[0]))
+    with pytest.raises(ValueError, match="trained model's normaliser"):
+        dm.setup("predict")
+
+
+@pytest.mark.parametrize("overrides, key", [(["mode=predict"], "ckpt_path"),
+                                            (["mode=predict", "ckpt_path=last"], "ckpt_path=last"),
+                                            (["predict.forecast_steps=0"], "predict.forecast_steps=0")])
+def test_predict_config_errors_name_the_key(tmp_path, overrides, key):
+    cfg = compose_cfg(["data=trajectories", f"data.path={README}", *overrides], tmp_path)
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        validate_config(cfg)
+
+
+def test_readme_example_runs(run, new_data):
+    block = re.search(r"```python\n(import numpy as np\nimport dider\n.*?)```", README.read_text(), re.S)
+    assert block, "README: the 'use a trained model' example is missing"
+    code = block.group(1).replace('"runs/2026-11-23/10-00-00"', repr(str(run))).replace('"new.npz"',
+                                                                                       repr(str(new_data[0])))
+    scope: dict[str, object] = {}
+    exec(compile(code, "README.md", "exec"), scope)
+    assert isinstance(scope["segs"], pd.DataFrame) and len(scope["segs"]) > 0
+    assert scope["future"].shape[1:3] == (10, 4)
