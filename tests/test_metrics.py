@@ -15,7 +15,7 @@ import torch
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_sum
 
-from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+from dider.metrics import BoundaryF1, DisplacementError, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
 
 L = torch.long
 
@@ -56,8 +56,8 @@ def assert_same_states(a: Metric, b: Metric) -> None:
 
 
 @pytest.mark.parametrize("make", [
-    lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3),
-], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency"])
+    lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3), DisplacementError,
+], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "DisplacementError"])
 def test_every_state_is_a_sum(make: Callable[[], Metric]) -> None:
     """The module promises DDP safety by summing every state: what makes merge_state (and the all-reduce)
     exact, and what the by-hand merges below rely on."""
@@ -465,3 +465,27 @@ def test_pair_consistency_merge() -> None:
     assert a.counts.tolist() == [[3, 0, 5], [2, 8, 1]]
     assert_values(share, [5 / 8, 8 / 11])
     assert dominant.tolist() == [2, 1] and total.tolist() == [8.0, 11.0]
+
+
+# ---------------------------------------------------------------------------------------- DisplacementError
+def test_displacement_error_hand_example() -> None:
+    """One sample, 3 frames, 2 agents; positions are features 0-1 (the velocities, 2-3, never count).
+    Agent 0 misses by 3-4-5 triangles at every frame: distances 5, 10, 5. Agent 1 is present at frames 0
+    and 1 only, off by 1 and 2. ADE = (5 + 10 + 5 + 1 + 2) / 5 = 4.6; FDE = (5 + 2) / 2 = 3.5."""
+    pred = torch.zeros(1, 3, 2, 4)
+    pred[0, :, 0, :2] = torch.tensor([[3.0, 4.0], [6.0, 8.0], [3.0, 4.0]])
+    pred[0, :, 1, :2] = torch.tensor([[1.0, 0.0], [0.0, 2.0], [9.0, 9.0]])
+    pred[..., 2:] = 100.0
+    mask = torch.tensor([[[True, True], [True, True], [True, False]]])
+    ade, fde = whole(DisplacementError, (pred, torch.zeros_like(pred), mask)).compute()
+    assert ade.item() == pytest.approx(4.6) and fde.item() == pytest.approx(3.5)
+
+
+def test_displacement_error_empty_is_nan_and_merges() -> None:
+    pred = torch.ones(2, 3, 2, 4)
+    empty = whole(DisplacementError, (pred, torch.zeros_like(pred), torch.zeros(2, 3, 2, dtype=torch.bool)))
+    assert empty.compute().isnan().all()
+    mask = torch.rand(2, 3, 2) > 0.3
+    target = torch.randn(2, 3, 2, 4)
+    first, second = [(pred[:1], target[:1], mask[:1])], [(pred[1:], target[1:], mask[1:])]
+    assert_same_states(merged(DisplacementError, first, second), whole(DisplacementError, *first, *second))

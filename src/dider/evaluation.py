@@ -17,7 +17,7 @@ from torchmetrics import Metric
 from dider.data.batch import Batch, Normalizer
 from dider.data.pairs import KIND_NAMES
 from dider.graph import edge_mask
-from dider.metrics import BoundaryF1, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+from dider.metrics import BoundaryF1, DisplacementError, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,7 @@ class TestMetrics(nn.Module):
     def __init__(self, horizons: Sequence[int], num_types: int) -> None:
         super().__init__()
         self.mse, self.mse_raw = HorizonMSE(horizons), HorizonMSE(horizons)
+        self.displacement = DisplacementError()  # ADE / FDE of positions in data units
         self.mse_by_edges = nn.ModuleDict({k: HorizonMSE(horizons) for k in EDGE_SOURCES})
         self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
         self.segments = SegmentStats()
@@ -58,8 +59,9 @@ class TestMetrics(nn.Module):
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
         if normalizer is not None:
-            self.mse_raw.update(normalizer.denormalize(forecast.pred), normalizer.denormalize(forecast.target),
-                                forecast.mask, forecast.horizon)
+            pred, target = normalizer.denormalize(forecast.pred), normalizer.denormalize(forecast.target)
+            self.mse_raw.update(pred, target, forecast.mask, forecast.horizon)
+            self.displacement.update(pred, target, forecast.mask)
         present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
         self.segments.update(posterior, present.any(1))
         if "edges" in batch:
@@ -74,6 +76,7 @@ class TestMetrics(nn.Module):
         out = horizon_values("test/mse", self.mse)
         if self.mse_raw.update_count:
             out |= horizon_values("test/mse_raw", self.mse_raw)
+            out["test/ade"], out["test/fde"] = self.displacement.compute()
         for source, metric in self.mse_by_edges.items():
             if metric.update_count:
                 out |= horizon_values(f"test/mse_{source}", metric)

@@ -57,6 +57,37 @@ class HorizonMSE(Metric):
         return (self.sum_sq / self.count.clamp_min(1)).float()
 
 
+class DisplacementError(Metric):
+    """ADE and FDE of forecast positions (the first two features): the mean Euclidean distance over every
+    present predicted frame, and over each agent's last present predicted frame.
+
+    update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool); compute() -> [2] (ADE, FDE), NaN
+    when no frame was present (an empty metric is not a perfect 0).
+    """
+
+    is_differentiable = False
+    higher_is_better = False
+    full_state_update = False
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.add_state("sums", torch.zeros(2, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("counts", torch.zeros(2, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> None:
+        dist = (pred[..., :2].double() - target[..., :2].double()).norm(dim=-1)  # [B, P, N]
+        m = mask.to(dist.dtype)
+        steps = torch.arange(1, mask.shape[1] + 1, device=mask.device).view(1, -1, 1)
+        last = (mask * steps).argmax(dim=1, keepdim=True)  # [B, 1, N]: the last present frame of each agent
+        seen = mask.any(dim=1)  # [B, N]
+        final = dist.gather(1, last).squeeze(1) * seen
+        self.sums += torch.stack([(dist * m).sum(), final.sum()])
+        self.counts += torch.stack([m.sum(), seen.sum().double()])
+
+    def compute(self) -> torch.Tensor:
+        return (self.sums / self.counts).float()  # 0 / 0 = NaN for an empty metric
+
+
 class EdgeAccuracy(Metric):
     """Recall per ground-truth class: "no interaction" (type 0) and "interaction" (any type > 0).
 

@@ -86,6 +86,7 @@ RULES: dict[str, Rule] = {
     "model.segment_kl": one_of("per_segment", "per_step"),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
+    "model.decoder_edges": boolean,
     "model.duration.max_segments": at_least(1),
     "model.duration.source": one_of("past", "future"),
     "model.duration.min_duration": at_least(1, " step"),

@@ -93,6 +93,7 @@ class RelationalVAE(nn.Module):
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
         segment_kl: str = "per_segment",
+        decoder_edges: bool = True,
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -103,7 +104,8 @@ class RelationalVAE(nn.Module):
         (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in alone,
         one type per edge held for the whole roll-out: NRI). segment_kl: a segment's edge KL counted once
         (``per_segment``, the paper's sum over segments) or once per step it holds (``per_step``, DNRI's
-        weight for a type held that long)."""
+        weight for a type held that long). decoder_edges: False switches every edge off for the decoder
+        (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -111,7 +113,7 @@ class RelationalVAE(nn.Module):
             "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
-            "model.segment_kl": segment_kl,
+            "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -126,7 +128,7 @@ class RelationalVAE(nn.Module):
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
         self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
-        self.forecast_edges, self.segment_kl = forecast_edges, segment_kl
+        self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -155,6 +157,7 @@ class RelationalVAE(nn.Module):
         # The prior always reads a segment's first step, so it stays online.
         p_seg = seg.gather(self.prior(enc.h_fwd))
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
+        z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.nll_variance)
 
@@ -325,7 +328,7 @@ class RelationalVAE(nn.Module):
             # first), so a stateless decoder has nothing to do there.
             if t < burn_in - 1 and self.decoder.stateless:
                 continue
-            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * edge_mask(m_t).unsqueeze(-1)
+            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (edge_mask(m_t).unsqueeze(-1) & self.decoder_edges)
             out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
             if t >= burn_in - 1:
                 preds.append(out)

@@ -1,0 +1,455 @@
+"""Long-format trajectory tables: one ``.csv`` or ``.parquet`` file (``data.path``), one row per agent per frame.
+
+Columns are named in ``data.columns``: ``agent``, ``frame``, ``x``, ``y`` (required), ``scene`` (null: the
+whole file is one scene), ``vx``/``vy`` (null: finite differences), ``agent_class`` (optional, one class per
+agent). Extra columns are ignored. Scene and agent ids may be integers (kept as they are) or strings
+(coded; the names are in ``source_names``); an agent is a (scene, agent id) pair.
+
+Each scene is downsampled to every ``downsample``-th frame counted from the scene's first frame, and laid
+on a grid of steps x agents: a frame missing inside an agent's span is an absent step (mask False).
+Without velocity columns, v[t] = (pos[t] - pos[t-1]) * frame_rate / downsample needs the agent at both
+steps, and the scene's first step is dropped (as the npz reader does). Windows of ``seq_len`` steps start
+every ``stride`` steps of a scene; a window keeps the agents present in >= ``min_agent_steps`` of its steps
+(ordered by id) and is dropped with fewer than ``min_agents``. Windows have different agent counts, so
+they are stored packed and padded per batch (:class:`~dider.data.common.PackedClipDataset`).
+
+Source ids (:mod:`dider.data.common`): ``clip`` the window's number in reading order (scenes in order of
+first appearance, then time), ``scene``, ``frame`` (the table's frame of the window's step 0) and
+``agent``. The split is by scene with >= 3 scenes that have windows (no window of a test scene is
+trained on), else by window. Bad input raises before any windowing, naming the file, the column and the
+CSV line (parquet: the row).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import torch
+
+from dider.data.batch import Normalizer
+from dider.data.common import (
+    SPLITS,
+    ClipDataModule,
+    PackedClipDataset,
+    check_counts,
+    pad_collate,
+    ragged_rows,
+    spread_indices,
+)
+from dider.data.levelx.reading import _header
+from dider.data.levelx.windows import MAX_GRID_CELLS
+from dider.data.trajectories import split_indices
+from dider.protocol import fill_absent
+from dider.validation import above, require
+
+log = logging.getLogger(__name__)
+
+DEFAULT_COLUMNS: dict[str, str | None] = {"scene": None, "agent": "agent", "frame": "frame", "x": "x", "y": "y",
+                                          "vx": None, "vy": None, "agent_class": None}
+REQUIRED = ("agent", "frame", "x", "y")
+NUMERIC = ("frame", "x", "y", "vx", "vy")
+SUFFIXES = (".csv", ".parquet")
+
+
+def check_columns(columns: Mapping[str, Any] | None) -> dict[str, str | None]:
+    """``data.columns`` merged over the defaults; raises naming the key of an unknown, missing or clashing entry."""
+    given = dict(columns or {})
+    if unknown := sorted(set(given) - set(DEFAULT_COLUMNS)):
+        raise ValueError(f"data.columns: unknown key(s) {unknown} (known: {list(DEFAULT_COLUMNS)})")
+    cols = {**DEFAULT_COLUMNS, **given}
+    for key, name in cols.items():
+        if name is None and key in REQUIRED:
+            raise ValueError(f"data.columns.{key} is null: the {key} column is required")
+        if name is not None and not (isinstance(name, str) and name):
+            raise ValueError(f"data.columns.{key}={name!r}: expected a column name or null")
+    if (cols["vx"] is None) != (cols["vy"] is None):
+        raise ValueError(f"data.columns: vx={cols['vx']!r}, vy={cols['vy']!r}: give both velocity columns or "
+                         f"neither (null: finite differences)")
+    named = [n for n in cols.values() if n is not None]
+    if clash := sorted({n for n in named if named.count(n) > 1}):
+        raise ValueError(f"data.columns: column(s) {clash} named for more than one key")
+    return cols
+
+
+# -- reading and validating
+
+
+def _row(path: Path, i: int) -> str:
+    """Where row i of the table is in the file: the CSV line (line 1 is the header) or the parquet row."""
+    return f"line {i + 2}" if path.suffix.lower() == ".csv" else f"row {i}"
+
+
+def _read_frame(path: Path, names: list[str]) -> pd.DataFrame:
+    """The named columns of the file (types inferred; checked by the callers)."""
+    if path.suffix.lower() not in SUFFIXES:
+        raise ValueError(f"data.path={path}: unknown extension {path.suffix!r}; expected one of {list(SUFFIXES)}")
+    if not path.is_file():
+        raise FileNotFoundError(f"data.path={path}: no such file")
+    csv = path.suffix.lower() == ".csv"
+    # CSV: the header first, so a missing column is named before the rows are read. Parquet: every column
+    # (reading the schema alone needs engine-specific code).
+    whole = None if csv else _read_parquet(path)
+    found = _header(path) if whole is None else [str(c) for c in whole.columns]
+    if missing := [n for n in names if n not in found]:
+        raise ValueError(f"{path}: missing column(s) {missing} (found {found}); name them in data.columns")
+    try:
+        df = pd.read_csv(path, usecols=names, low_memory=False) if whole is None else whole[names]
+    except (ValueError, OSError, pd.errors.ParserError) as e:
+        raise ValueError(f"{path}: not a readable table ({type(e).__name__}: {e})") from e
+    if len(df) == 0:
+        raise ValueError(f"{path}: no rows (expected one row per agent per frame)")
+    return df
+
+
+def _read_parquet(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_parquet(path)
+    except ImportError as e:
+        raise ImportError(f"data.path={path}: reading .parquet needs pyarrow (pip install pyarrow) or fastparquet; "
+                          f"or save the table as .csv ({e})") from None
+    except (ValueError, OSError) as e:
+        raise ValueError(f"{path}: not a readable parquet file ({type(e).__name__}: {e})") from e
+
+
+def _numbers(path: Path, s: pd.Series) -> np.ndarray:
+    """A required numeric column -> [R] float64; words, empty cells, NaN and inf raise with the first line."""
+    if pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
+        a = s.to_numpy(dtype=np.float64, na_value=np.nan)
+    else:
+        parsed = pd.to_numeric(s, errors="coerce")
+        words = (parsed.isna() & s.notna()).to_numpy()
+        if words.any():
+            i = int(np.argmax(words))
+            raise ValueError(f"{path}: column {s.name!r} has {int(words.sum())} non-numeric value(s) (first on "
+                             f"{_row(path, i)}: {s.iloc[i]!r})")
+        a = parsed.to_numpy(dtype=np.float64, na_value=np.nan)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{path}: column {s.name!r} has {int(bad.sum())} empty, NaN or inf value(s) (first on "
+                         f"{_row(path, i)}: {s.iloc[i]!r})")
+    big = np.abs(a) > np.finfo(np.float32).max  # would become inf in the float32 windows
+    if big.any():
+        i = int(np.argmax(big))
+        raise ValueError(f"{path}: column {s.name!r} has values beyond the float32 range (first on "
+                         f"{_row(path, i)}: {float(a[i])!r})")
+    return a
+
+
+def _ids(path: Path, s: pd.Series, sort: bool, integers: bool = True) -> tuple[np.ndarray, list[str] | None]:
+    """An id column -> ([R] int64 ids, None) when every id is an integer (and ``integers``), else ([R]
+    codes, names).
+
+    sort: codes in sorted name order (agents: a window lists its agents by id) or in order of appearance
+    (scenes: reading order)."""
+    empty = s.isna().to_numpy()
+    if empty.any():
+        i = int(np.argmax(empty))
+        raise ValueError(f"{path}: column {s.name!r} is empty on {_row(path, i)}")
+    if integers:
+        num = pd.to_numeric(s, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
+        if np.isfinite(num).all() and (num == np.round(num)).all() and np.abs(num).max() < 2**53:
+            return num.astype(np.int64), None
+    codes, names = pd.factorize(s.astype(str), sort=sort)
+    return codes.astype(np.int64), [str(n) for n in names]
+
+
+def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
+    """Read and validate the table; rows sorted by (scene in reading order, agent, frame).
+
+    Returns: scene [R] int64 (reading-order index), scene_ids [Z] int64 (each scene's source id), agent
+    [R] int64 (ids or codes), frame [R] int64, xy [R, 2] float64, vel [R, 2] float64 or None,
+    agent_class [R] int64 or None, line [R] int64 (each row's index in the file) and names (key -> names
+    of string ids: scene, agent, agent_class).
+    """
+    named = {k: v for k, v in columns.items() if v is not None}
+    df = _read_frame(path, list(named.values()))
+    nums = {k: _numbers(path, df[named[k]]) for k in NUMERIC if k in named}
+    frame = nums["frame"]
+    if (frac := frame != np.round(frame)).any():
+        i = int(np.argmax(frac))
+        raise ValueError(f"{path}: column {named['frame']!r} has non-integer frames (first on {_row(path, i)}: "
+                         f"{float(frame[i])!r})")
+    names: dict[str, list[str]] = {}
+    agent, agent_names = _ids(path, df[named["agent"]], sort=True)
+    if agent_names is not None:
+        names["agent"] = agent_names
+    if "scene" in named:
+        scene_ids, scene_names = _ids(path, df[named["scene"]], sort=False)
+        scene, first = _appearance(scene_ids)
+        if scene_names is not None:
+            names["scene"] = scene_names
+    else:
+        scene, first = np.zeros(len(df), np.int64), np.zeros(1, np.int64)
+        scene_ids = scene
+    klass = None
+    if "agent_class" in named:
+        klass, names["agent_class"] = _ids(path, df[named["agent_class"]], sort=True, integers=False)
+    order = np.lexsort((frame, agent, scene))
+    out = {"scene": scene[order], "scene_ids": scene_ids[first], "agent": agent[order],
+           "frame": frame[order].astype(np.int64), "line": order,
+           "xy": np.stack([nums["x"], nums["y"]], 1)[order],
+           "vel": np.stack([nums["vx"], nums["vy"]], 1)[order] if "vx" in nums else None,
+           "agent_class": None if klass is None else klass[order], "names": names}
+    _check_rows(path, out, named)
+    return out
+
+
+def _appearance(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ids [R] -> (index of each row's id in order of first appearance [R], first row of each id [Z])."""
+    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")
+    return rank[inverse], np.sort(first)
+
+
+def _check_rows(path: Path, t: dict[str, Any], named: Mapping[str, str]) -> None:
+    """Duplicate (scene, agent, frame) rows and agents whose class changes; rows sorted as read_table's."""
+    same_agent = (t["scene"][1:] == t["scene"][:-1]) & (t["agent"][1:] == t["agent"][:-1])
+    checks = [(same_agent & (t["frame"][1:] == t["frame"][:-1]), "duplicate rows for")]
+    if t["agent_class"] is not None:
+        checks.append((same_agent & (t["agent_class"][1:] != t["agent_class"][:-1]),
+                       f"more than one {named['agent_class']!r} for"))
+    for bad, what in checks:
+        if bad.any():
+            i = int(np.argmax(bad))
+            keys = [k for k in ("scene", "agent", "frame") if k in named]
+            scene = t["scene_ids"][t["scene"][i]]
+            values = {"scene": _name(t, "scene", scene), "agent": _name(t, "agent", t["agent"][i]),
+                      "frame": int(t["frame"][i])}
+            lines = [_row(path, j) for j in sorted(int(t["line"][k]) for k in (i, i + 1))]
+            raise ValueError(f"{path}: {what} ({', '.join(repr(named[k]) for k in keys)}) = "
+                             f"({', '.join(str(values[k]) for k in keys)}) on {' and '.join(lines)}")
+
+
+def _name(t: dict[str, Any], key: str, value: int) -> str:
+    names = t["names"].get(key)
+    return repr(names[int(value)]) if names is not None else str(int(value))
+
+
+# -- windows
+
+
+def cut_windows(present: np.ndarray, seq_len: int, stride: int, min_agent_steps: int,
+                min_agents: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The windows of one scene and the agents each keeps.
+
+    present: [S, K] bool (steps x agents) -> starts [W] int64 (first step of each kept window), window [P]
+    and agent [P] int64: the kept (window, agent) pairs, by window then agent.
+    """
+    num_steps, k = present.shape
+    starts = np.arange(0, num_steps - seq_len + 1, stride)
+    # Steps each agent is present in each window, from a cumulative sum over time: [W, K].
+    csum = np.zeros((num_steps + 1, k), np.int64)
+    np.cumsum(present, axis=0, out=csum[1:])
+    kept = csum[starts + seq_len] - csum[starts] >= min_agent_steps
+    good = kept.sum(1) >= min_agents
+    window, agent = np.nonzero(kept[good])
+    return starts[good], window, agent
+
+
+def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: np.ndarray,
+               rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """One scene's rows on a dense steps x agents grid.
+
+    xy: [r, 2], vel: [r, 2] or None, step, agent: [r] int64 (grid coordinates) -> grid [S, K, 4] float64
+    (x, y, vx, vy; zeros where absent) and present [S, K] bool. Without ``vel`` the velocities are finite
+    differences scaled by ``rate`` (frame_rate / downsample) and S is one step shorter: the first step,
+    which has no predecessor, is dropped.
+    """
+    num_steps, k = int(step.max()) + 1, int(agent.max()) + 1
+    grid = np.zeros((num_steps, k, 4))
+    present = np.zeros((num_steps, k), bool)
+    grid[step, agent, :2] = xy
+    present[step, agent] = True
+    if vel is not None:
+        grid[step, agent, 2:] = vel
+        return grid, present
+    # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
+    grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
+    both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
+    return grid[1:] * both[..., None], both
+
+
+def table_windows(path: Path, columns: Mapping[str, str | None], frame_rate: float, downsample: int, seq_len: int,
+                  stride: int, min_agent_steps: int, min_agents: int) -> dict[str, Any]:
+    """Read the table and cut every scene into packed windows (raw units), in reading order.
+
+    Returns states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w
+    owns rows offsets[w]:offsets[w+1]), agent [P] long (ids or codes), agent_class [P] long or None, clip,
+    scene, frame [W] long (source ids), scene_index [W] long (the scene's reading-order index) and names.
+    """
+    t = read_table(path, columns)
+    bounds = np.flatnonzero(np.diff(t["scene"])) + 1
+    lo_hi = list(zip([0, *bounds.tolist()], [*bounds.tolist(), len(t["scene"])], strict=True))
+    first_frame = np.minimum.reduceat(t["frame"], np.array([lo for lo, _ in lo_hi]))  # [Z]
+    offset = t["frame"] - first_frame[t["scene"]]
+    keep = offset % downsample == 0
+    step = offset // downsample
+    hint = ""
+    if (gap := int(np.gcd.reduce(step[keep]))) > 1:  # e.g. frames numbered 0, 10, 20 with downsample=1
+        hint = f" (frames step by {gap * downsample}: set data.downsample={gap * downsample}?)"
+        log.warning("%s: %d of every %d steps are absent%s", path, gap - 1, gap, hint)
+    drop = 1 if t["vel"] is None else 0
+    parts: list[dict[str, np.ndarray]] = []
+    longest = 0
+    for z, (lo, hi) in enumerate(lo_hi):  # scenes: dense grids of different sizes
+        rows = lo + np.flatnonzero(keep[lo:hi])
+        ids, first, local = np.unique(t["agent"][rows], return_index=True, return_inverse=True)
+        if (int(step[rows].max()) + 1) * ids.size > MAX_GRID_CELLS:
+            raise ValueError(f"{path}: scene {_name(t, 'scene', t['scene_ids'][z])} spans {int(step[rows].max()) + 1} "
+                             f"steps x {ids.size} agents: implausibly large (is data.downsample={downsample} right?)")
+        grid, present = scene_grid(t["xy"][rows], None if drop else t["vel"][rows], step[rows], local,
+                                   frame_rate / downsample)
+        longest = max(longest, present.shape[0])
+        starts, window, agent = cut_windows(present, seq_len, stride, min_agent_steps, min_agents)
+        steps = starts[window][:, None] + np.arange(seq_len)  # [p, T]
+        parts.append({
+            "states": grid[steps, agent[:, None]].astype(np.float32), "mask": present[steps, agent[:, None]],
+            "counts": np.bincount(window, minlength=len(starts)), "agent": ids[agent],
+            "agent_class": None if t["agent_class"] is None else t["agent_class"][rows][first][agent],
+            "scene_index": np.full(len(starts), z), "frame": first_frame[z] + (starts + drop) * downsample,
+        })
+    if longest < seq_len:
+        raise ValueError(f"{path}: too few frames for one window of data.seq_len={seq_len} steps: the longest scene "
+                         f"has {longest} step(s) of data.downsample={downsample} frame(s)"
+                         + (" (its first step went to finite-difference velocities)" if drop else ""))
+    out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts]))
+           for k in ("states", "mask", "agent", "scene_index", "frame")}
+    if len(out["frame"]) == 0:
+        raise ValueError(f"{path}: no window of data.seq_len={seq_len} steps has >= data.min_agents={min_agents} "
+                         f"agents present in >= data.min_agent_steps={min_agent_steps} of its steps{hint}")
+    counts = torch.from_numpy(np.concatenate([p["counts"] for p in parts]))
+    out["offsets"] = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
+    out["agent_class"] = None if t["agent_class"] is None else torch.from_numpy(
+        np.concatenate([p["agent_class"] for p in parts]))
+    out["clip"] = torch.arange(len(out["frame"]))
+    out["scene"] = torch.from_numpy(t["scene_ids"])[out["scene_index"]]
+    out["names"] = t["names"]
+    return out
+
+
+class TableDataModule(ClipDataModule):
+    """Windows of a long-format trajectory table (see the module docstring).
+
+    Batches: states [B, T, N, 4] (normalised; zeros for absent agents), mask [B, T, N] bool and source
+    (clip, scene, frame [B], agent [B, N]); N is the largest agent count in the batch. After ``setup``:
+    ``normalizer``, ``datasets`` (PackedClipDataset per split, with ``agent_class`` [P] and ``class_names``
+    when the table has a class column), ``source_names``, ``dt`` (seconds per step) and ``frame_step``
+    (table frames per step). ``cache_dir`` is accepted for a uniform interface; nothing is cached.
+    """
+
+    collate_fn = staticmethod(pad_collate)
+
+    def __init__(
+        self,
+        path: str | None = None,
+        columns: Mapping[str, str | None] | None = None,
+        frame_rate: float = 1.0,
+        downsample: int = 1,
+        seq_len: int = 20,
+        stride: int | None = None,
+        min_agent_steps: int = 1,
+        min_agents: int = 2,
+        split: Sequence[float] = (0.8, 0.1, 0.1),
+        seed: int = 1,
+        num_train: int | None = None,
+        num_val: int | None = None,
+        num_test: int | None = None,
+        burn_in: int = 5,
+        horizons: Sequence[int] = (1, 5, 10),
+        batch_size: int = 16,
+        eval_batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        cache_dir: str | None = None,
+        burn_in_mode: str = "per_agent",
+    ) -> None:
+        """stride: null means seq_len (windows do not overlap)."""
+        super().__init__()
+        self.columns = check_columns(columns)
+        counts = {"downsample": (downsample, 1), "seq_len": (seq_len, 2), "stride": (stride, 1),
+                  "min_agent_steps": (min_agent_steps, 1), "min_agents": (min_agents, 1),
+                  "num_train": (num_train, 1), "num_val": (num_val, 1), "num_test": (num_test, 1)}
+        for key, (value, _) in counts.items():  # 2.5 steps would pass the minimum yet break the windows
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | np.integer)):
+                raise ValueError(f"data.{key}={value!r}: must be an integer")
+        check_counts(**counts)
+        require({}, {"data.frame_rate": (frame_rate, above(0))})
+        if not np.isfinite(frame_rate):
+            raise ValueError(f"data.frame_rate={frame_rate}: must be finite")
+        if min_agent_steps > seq_len:
+            raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
+        split_indices(10**4, split, seed)  # the form of split (10**6 would cost 0.4 s); the window count comes later
+        self.save_hyperparameters(logger=False)
+        self.init_shared(seq_len, length_key="data.seq_len")
+        self.frame_step = downsample
+        self.dt = downsample / frame_rate
+
+    def _path(self) -> Path:
+        if self.hparams.path is None:
+            raise ValueError("data.path is not set: point it at a .csv or .parquet table with one row per agent "
+                             "per frame (columns named in data.columns)")
+        return Path(self.hparams.path).expanduser()
+
+    def _windows(self) -> dict[str, Any]:
+        h = self.hparams
+        data = table_windows(self._path(), self.columns, h.frame_rate, h.downsample, h.seq_len,
+                             h.stride or h.seq_len, h.min_agent_steps, h.min_agents)
+        self.source_names = {k: v for k, v in data["names"].items() if k in ("scene", "agent")}
+        return data
+
+    def _dataset(self, data: dict[str, Any], idx: torch.Tensor, normalizer: Normalizer) -> PackedClipDataset:
+        """The windows ``idx`` [K] long, normalised, with their source ids."""
+        rows, offsets = ragged_rows(data["offsets"], idx)
+        mask = data["mask"][rows]
+        states = fill_absent(normalizer.normalize(data["states"][rows]), mask)
+        keys = ("clip", "scene", "frame") if self.columns["scene"] else ("clip", "frame")
+        ds = PackedClipDataset(states, mask, offsets, sources={k: data[k][idx] for k in keys},
+                               agent_ids=data["agent"][rows])
+        if data["agent_class"] is not None:
+            ds.agent_class, ds.class_names = data["agent_class"][rows], data["names"]["agent_class"]
+        return ds
+
+    def _split(self, data: dict[str, Any]) -> tuple[dict[str, torch.Tensor], str]:
+        """Window indices of each split, by scene when >= 3 scenes have windows, else by window."""
+        h = self.hparams
+        scenes = torch.unique(data["scene_index"])
+        by = "scene" if len(scenes) >= 3 else "window"
+        try:
+            parts = split_indices(len(scenes) if by == "scene" else len(data["clip"]), h.split, h.seed)
+        except ValueError as e:
+            raise ValueError(f"{self._path()}: {len(data['clip'])} windows: {e}") from None
+        if by == "scene":
+            parts = {s: torch.isin(data["scene_index"], scenes[p]).nonzero().squeeze(1) for s, p in parts.items()}
+        caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
+        return {s: idx[spread_indices(len(idx), caps[s])] for s, idx in parts.items()}, by
+
+    def setup(self, stage: str | None = None) -> None:
+        h = self.hparams
+        if stage == "predict":  # every window, no split, the trained model's normalisation
+            if "predict" not in self.datasets:
+                normalizer = self.predict_normalizer(f"data.path={self._path()}")
+                data = self._windows()
+                self.datasets["predict"] = self._dataset(data, data["clip"], normalizer)
+            return
+        if all(s in self.datasets for s in SPLITS):
+            return
+        data = self._windows()
+        parts, by = self._split(data)
+        rows, _ = ragged_rows(data["offsets"], parts["train"])
+        try:
+            self.normalizer = Normalizer.fit(data["states"][rows], data["mask"][rows])
+        except ValueError as e:  # e.g. agents that never move: a zero velocity range
+            raise ValueError(f"{self._path()}: cannot fit the normalisation on the train split: {e}") from None
+        for split, idx in parts.items():
+            self.datasets[split] = self._dataset(data, idx, self.normalizer)
+        log.info("table %s: %d windows from %d scenes, split by %s: %s", self._path(), len(data["clip"]),
+                 len(torch.unique(data["scene_index"])), by, {s: len(d) for s, d in self.datasets.items()})
+        if by == "window" and (h.stride or h.seq_len) < h.seq_len:
+            log.warning("data.stride=%d < data.seq_len=%d with a split by window: val / test windows share steps "
+                        "with training windows", h.stride, h.seq_len)
