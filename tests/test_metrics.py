@@ -137,20 +137,19 @@ def test_horizon_mse_per_agent_equals_global_when_horizon_is_frame_plus_one() ->
     assert_values(b.compute(), [0.75, 4.0, 8.0])
 
 
-def test_horizon_mse_empty_is_zero() -> None:
-    """No data (no update, all masked, or a horizon no agent reaches) reports 0, not NaN: the count is
-    clamped to 1. Callers must check update_count themselves (dider.evaluation does)."""
-    assert_values(compute_quietly(HorizonMSE([1, 2])), [0.0, 0.0])
+def test_horizon_mse_empty_is_nan() -> None:
+    """No data (no update, all masked, or a horizon no agent reaches) is NaN, never a perfect 0."""
+    assert compute_quietly(HorizonMSE([1, 2])).isnan().all()
 
     m = HorizonMSE([1, 3])
     m.update(PRED, TARGET, torch.zeros_like(ALL))
     assert m.count.tolist() == [0.0, 0.0]
-    assert_values(m.compute(), [0.0, 0.0])
+    assert m.compute().isnan().all()
 
     m = HorizonMSE([1, 3])
     m.update(PRED, TARGET, ALL, torch.tensor([[[0, 0], [0, 1], [0, 2]]]))  # only agent 1 leaves burn-in, late
-    # h1: agent 1 frame 1 (8) -> 8 / 2 = 4; h3: nobody -> 0
-    assert_values(m.compute(), [4.0, 0.0])
+    # h1: agent 1 frame 1 (8) -> 8 / 2 = 4; h3: nobody -> NaN
+    assert m.compute()[0].item() == 4.0 and m.compute()[1].isnan()
 
 
 def test_horizon_mse_single_horizon_keeps_its_dimension() -> None:
@@ -220,16 +219,22 @@ def test_edge_accuracy_any_shape() -> None:
     assert_values(m.compute(), [2 / 3, 2 / 3])
 
 
-def test_edge_accuracy_empty_is_zero() -> None:
-    """A class with no edge-steps (no update, all masked, or only the other class) reports 0, not NaN."""
-    assert_values(compute_quietly(EdgeAccuracy()), [0.0, 0.0])
+def test_edge_accuracy_empty_is_nan(caplog) -> None:
+    """A class with no edge-steps (no update, all masked, or only the other class) is NaN, never 0, and the
+    logged values say so by name."""
+    from dider.evaluation import edge_acc_values
+
+    assert compute_quietly(EdgeAccuracy()).isnan().all()
     m = EdgeAccuracy()
     m.update(EA_PRED, EA_TARGET, torch.zeros(7, dtype=torch.bool))
     assert m.total.tolist() == [0.0, 0.0]
-    assert_values(m.compute(), [0.0, 0.0])
+    assert m.compute().isnan().all()
     m = EdgeAccuracy()
     m.update(torch.tensor([0, 1]), torch.tensor([0, 0]))  # no interacting edge-step at all
-    assert_values(m.compute(), [0.5, 0.0])
+    with caplog.at_level("WARNING"):
+        values = edge_acc_values("test/edge_acc/prior", m)
+    assert values["test/edge_acc/prior/none"].item() == 0.5 and values["test/edge_acc/prior/interaction"].isnan()
+    assert "test/edge_acc/prior/interaction: reported as NaN" in caplog.text
 
 
 def test_edge_accuracy_merge() -> None:

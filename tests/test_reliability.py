@@ -119,6 +119,36 @@ def test_killed_run_resumes_to_the_same_metrics(tmp_path, cache_dir):
     assert resumed_metrics == reference
 
 
+def test_terminated_run_exits_nonzero_and_resumes(tmp_path, cache_dir):
+    """SIGTERM (a scheduler's time limit) mid-training: exit status 143, a saved last.ckpt, the resume
+    command printed; ckpt_path=last then finishes the run."""
+    env = dict(os.environ, HYDRA_FULL_ERROR="1")
+    out = tmp_path / "run"
+    with (tmp_path / "run.log").open("w") as log_file:
+        run = subprocess.Popen(_run_args(out, cache_dir), cwd=tmp_path, env=env, stdout=log_file,
+                               stderr=subprocess.STDOUT)
+        try:
+            last, deadline = out / "checkpoints" / "last.ckpt", time.monotonic() + 300
+            while not (last.exists() and torch.load(last, map_location="cpu", weights_only=True)["epoch"] >= 1):
+                assert run.poll() is None, (tmp_path / "run.log").read_text()[-3000:]
+                assert time.monotonic() < deadline, "no epoch-1 checkpoint within 5 minutes"
+                time.sleep(0.02)
+            run.send_signal(signal.SIGTERM)
+            assert run.wait(timeout=120) == 143
+        finally:
+            if run.poll() is None:
+                run.kill()
+                run.wait()
+    text = (tmp_path / "run.log").read_text()
+    assert "terminated (SIGTERM); resume with: python -m dider.run" in text and "ckpt_path=last" in text
+    assert not (out / "metrics.json").exists()
+    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] > 0
+    resumed = subprocess.run(_run_args(out, cache_dir, "ckpt_path=last"), cwd=tmp_path, env=env,
+                             capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "test/mse/h01" in metrics_of(out)
+
+
 # ------------------------------------------------------------------------------------------ determinism
 
 

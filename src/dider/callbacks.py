@@ -1,5 +1,6 @@
 """Callbacks every training of the relational VAE runs with (``RelationalVAEModule.configure_callbacks``):
-evaluation that depends on the weights only, and a guard that stops on NaN/inf naming where it came from."""
+evaluation that depends on the weights only, a guard that stops on NaN/inf naming where it came from, and a
+checkpoint saved when the run is terminated."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any
 
 import lightning as L
 import torch
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dider.models.vae import LOSS_TERMS
 from dider.rng import rng_state, set_rng_state
@@ -120,3 +122,18 @@ class FiniteGuard(L.Callback):
             if any(g is not None and not bool(torch.isfinite(g).all()) for g in grads):
                 culprits.append(name)
         return culprits or ["loss (no single term: their sum)"]
+
+
+class SaveOnTerminate(L.Callback):
+    """On SIGTERM (a scheduler's time limit, ``kill``), Lightning stops training with ``SIGTERMException``:
+    save the run's state to the checkpoint folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it
+    (from the interrupted epoch's start of data if it stopped mid-epoch). ``dider.run`` then exits non-zero."""
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        folder = getattr(trainer.checkpoint_callback, "dirpath", None)
+        if not isinstance(exception, SIGTERMException) or folder is None or trainer.state.fn != "fit":
+            return
+        path = f"{folder}/last.ckpt"
+        trainer.save_checkpoint(path)
+        log.error("terminated by SIGTERM at epoch %d, step %d: saved %s", trainer.current_epoch,
+                  trainer.global_step, path)

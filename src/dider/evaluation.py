@@ -85,7 +85,7 @@ class TestMetrics(nn.Module):
             out["test/boundary_f1"] = self.boundary.compute()
         for name, metric in {"posterior": self.acc_posterior, "prior": self.acc_prior}.items():
             if metric.update_count:
-                out[f"test/edge_acc/{name}/none"], out[f"test/edge_acc/{name}/interaction"] = metric.compute()
+                out |= edge_acc_values(f"test/edge_acc/{name}", metric)
         if self.pairs.update_count:
             out |= self._consistency()
         for metric in self.modules():
@@ -109,6 +109,23 @@ class TestMetrics(nn.Module):
 
 
 def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:
-    """``prefix/hXX`` -> the metric's value at each of its horizons."""
+    """``prefix/hXX`` -> the metric's value at each of its horizons; NaN, with a warning naming it, for a
+    horizon that no present agent reached (e.g. tracks shorter than the burn-in plus the horizon)."""
     values = metric.compute().reshape(-1)  # 0-d for a single horizon: torchmetrics squeezes it
-    return {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, values, strict=True)}
+    out = {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, values, strict=True)}
+    _warn_empty(out, "no present agent reached this horizon")
+    return out
+
+
+def edge_acc_values(prefix: str, metric: EdgeAccuracy) -> dict[str, torch.Tensor]:
+    """``prefix/none`` and ``prefix/interaction``: recall per ground-truth class, NaN (with a warning) for a
+    class with no edge-step."""
+    none, interaction = metric.compute()
+    out = {f"{prefix}/none": none, f"{prefix}/interaction": interaction}
+    _warn_empty(out, "no ground-truth edge-step of this class")
+    return out
+
+
+def _warn_empty(values: dict[str, torch.Tensor], why: str) -> None:
+    if empty := [k for k, v in values.items() if bool(torch.isnan(v))]:
+        log.warning("%s: reported as NaN (%s)", ", ".join(empty), why)

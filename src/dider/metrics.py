@@ -54,7 +54,9 @@ class HorizonMSE(Metric):
         self.count += (m.sum(dim=(0, 2)) * pred.shape[-1]).double()
 
     def compute(self) -> torch.Tensor:
-        return (self.sum_sq / self.count.clamp_min(1)).float()
+        """[H] MSE per horizon; NaN for a horizon no present agent reached (an empty metric is not a perfect
+        0; :func:`dider.evaluation.horizon_values` warns naming it)."""
+        return (self.sum_sq / self.count).float()
 
 
 class DisplacementError(Metric):
@@ -113,7 +115,8 @@ class EdgeAccuracy(Metric):
         self.total += torch.bincount(truth[keep], minlength=2).double()
 
     def compute(self) -> torch.Tensor:
-        return (self.correct / self.total.clamp_min(1)).float()
+        """[2] recall of (none, interaction); NaN for a class with no edge-step."""
+        return (self.correct / self.total).float()
 
 
 def switches(types: torch.Tensor) -> torch.Tensor:

@@ -6,6 +6,7 @@ import hashlib
 import json
 import logging
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ from hydra.utils import instantiate
 from lightning.fabric.plugins import CheckpointIO
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
 from dider.checkpoint import AtomicCheckpointIO
@@ -78,6 +80,7 @@ def _build_list(group: DictConfig | None) -> list[Any]:
 
 
 MODES = ("train", "eval", "predict")
+TERMINATED = 143  # the exit status of a run stopped by SIGTERM (128 + 15, as a shell reports it)
 
 # The key holding the clip length of each data module that knows it from its config alone.
 CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
@@ -219,7 +222,13 @@ def train(cfg: DictConfig) -> dict[str, float]:
             lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in HPARAM_METRICS})
 
     if cfg.mode == "train":
-        trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+        try:
+            trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
+        except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
+            again = [o for o in _overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
+            print(f"terminated (SIGTERM); resume with: python -m dider.run {' '.join(again)} "
+                  f"hydra.run.dir={out_dir} ckpt_path=last", file=sys.stderr)
+            raise SystemExit(TERMINATED) from None
         best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
         trainer.test(model, datamodule=datamodule, ckpt_path=best or None)
     else:

@@ -16,10 +16,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from dider import __version__
-from dider.callbacks import EvalRandomState, FiniteGuard
+from dider.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.data.batch import Batch
 from dider.data.common import data_description
-from dider.evaluation import Forecast, TestMetrics, horizon_values
+from dider.evaluation import Forecast, TestMetrics, edge_acc_values, horizon_values
 from dider.graph import edge_mask
 from dider.metrics import EdgeAccuracy, HorizonMSE
 from dider.models.plugins import Progress
@@ -91,7 +91,7 @@ class RelationalVAEModule(L.LightningModule):
 
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []
-        return [EvalRandomState(self.hparams.eval_seed), *guard]
+        return [EvalRandomState(self.hparams.eval_seed), *guard, SaveOnTerminate()]
 
     def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
         """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""
@@ -144,8 +144,7 @@ class RelationalVAEModule(L.LightningModule):
         self.log_dict(horizon_values("val/mse", self.val_mse))
         self.val_mse.reset()
         if self.val_acc.update_count:
-            none, interaction = self.val_acc.compute()
-            self.log_dict({"val/edge_acc/posterior/none": none, "val/edge_acc/posterior/interaction": interaction})
+            self.log_dict(edge_acc_values("val/edge_acc/posterior", self.val_acc))
             self.val_acc.reset()
 
     def test_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
