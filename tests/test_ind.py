@@ -82,8 +82,13 @@ def test_batches_are_padded_masked_and_finite(root, tmp_path):
     dm = make_dm(root, tmp_path / "cache")
     ds = dm.datasets["train"]
     batch = next(iter(dm.train_dataloader()))
-    assert set(batch) == {"states", "mask"} and batch["states"].dtype == torch.float32
+    assert set(batch) == {"states", "mask", "source"} and batch["states"].dtype == torch.float32
     b, t, n, f = batch["states"].shape
+    # where each window came from: its recording (00 or 01 in train), its first frame, its track ids
+    source = batch["source"]
+    assert set(source) == {"clip", "scene", "frame", "agent"} and source["agent"].shape == (b, n)
+    assert set(source["scene"].tolist()) <= {0, 1} and (source["frame"] % dm.hparams.downsample == 0).all()
+    assert ((source["agent"] >= 0) == batch["mask"].any(1)).all()  # padded agents: id -1
     assert (b, t, f) == (4, 20, 4) and batch["mask"].shape == (b, t, n) and batch["mask"].dtype == torch.bool
     assert torch.isfinite(batch["states"]).all()
     assert (batch["states"][~batch["mask"]] == 0).all()  # absent / padded agents: zeros, never NaN

@@ -125,6 +125,12 @@ def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
         assert np.allclose(z["positions"][present], arrays["positions"][:, 1:][present], atol=1e-4)
         api = dider.load(ckpt).forecast(arrays["positions"], burn_in=5, steps=6, mask=arrays["mask"])
         assert np.allclose(z["forecast"], api, atol=1e-5)
+    # the explorer reads the prediction run's clips.npz: every clip, every present agent
+    from dider import explore
+
+    assert explore.main([str(tmp_path / "pred")]) == 0
+    page = (tmp_path / "pred" / "explorer.html").read_text()
+    assert page.count('"row":') == 7 and "dider" in page
     forecast = pd.read_csv(out / "forecast.csv")
     # every agent is present at the burn-in's last step (input frame 5; the fourth leaves at frame 6)
     assert len(forecast) == 7 * 6 * 4
@@ -171,3 +177,10 @@ def test_readme_example_runs(run, new_data):
     exec(compile(code, "README.md", "exec"), scope)
     assert isinstance(scope["segs"], pd.DataFrame) and len(scope["segs"]) > 0
     assert scope["future"].shape[1:3] == (10, 4)
+
+
+def test_predict_refuses_a_data_set_without_a_prediction_set(run, tmp_path):
+    cfg = compose_cfg(["experiment=smoke", "mode=predict", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"],
+                      tmp_path)
+    with pytest.raises(ConfigError, match="SynthDataModule has no prediction set"):
+        predict(cfg)

@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from dider.run import train
+from dider.run import predict, train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from fixtures import write_background, write_ind_root, write_trajectories, write_zhan  # noqa: E402
@@ -51,7 +51,7 @@ def test_short_run(make_cfg, roots, tmp_path, data, model):
     assert not any(k.startswith("test/edge_acc") for k in metrics)  # no ground-truth edges here
 
 
-def test_ind_command_line(roots, tmp_path, cache_dir):
+def test_ind_command_line(roots, tmp_path, cache_dir, make_cfg):
     """The README's inD usage line (model=dider data=ind model.num_edges=6), on the inD fixture."""
     cmd = [sys.executable, "-m", "dider.run", "model=dider", "data=ind", "model.num_edges=6",
            f"data.root={roots['ind']}", f"hydra.run.dir={tmp_path}", f"data.cache_dir={cache_dir}",
@@ -88,3 +88,22 @@ def test_ind_command_line(roots, tmp_path, cache_dir):
             xy = tracks.loc[(track, source["frame"] + 10 * step), ["xCenter", "yCenter"]].to_numpy(float)
             assert np.allclose(z["positions"][0, step, slot], xy, atol=1e-3), (track, step)
         assert z["background_of"][0] == 0 and z["background_0"].ndim == 3 and z["background_0_extent"].shape == (4,)
+
+    # mode=predict on every recording of the folder: rows name the recording, the tracks and their frames
+    cfg = make_cfg(["mode=predict", f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}", "data=ind",
+                    f"data.root={roots['ind']}", "data.split=[1,1,1]", "logger=none"], tiny=False,
+                   out=tmp_path / "predict")
+    predict(cfg)
+    table = pd.read_csv(tmp_path / "predict" / "predictions" / "segments.csv")
+    assert set(table["scene"]) == {0, 1, 2}  # every recording, no split
+    row = table.iloc[len(table) // 2]
+    both = tracks_of(roots["ind"], int(row["scene"])).loc[[row["sender_id"], row["receiver_id"]]]
+    frames = both.reset_index().groupby("trackId")["frame"]
+    # both tracks exist at the segment's first frame and up to its last transition (10 frames per step)
+    assert (frames.min() <= row["start_frame"]).all() and (frames.max() >= row["end_frame"] - 10).all()
+    with np.load(tmp_path / "predict" / "predictions" / "clips.npz", allow_pickle=False) as z:
+        assert z["background_of"].max() == 0 and (z["background_of"][z["scene"] == 2] == 0).all()
+
+
+def tracks_of(root: Path, recording: int) -> pd.DataFrame:
+    return pd.read_csv(root / f"{recording:02d}_tracks.csv").set_index(["trackId", "frame"])

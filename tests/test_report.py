@@ -69,6 +69,25 @@ def test_report_matches_jobs(sweep: Path, tmp_path: Path):
                                 "it still runs; missing: swept values that no job folder holds)\n\nnone")
 
 
+def test_runs_csv_has_one_row_per_job(sweep: Path, tmp_path: Path):
+    report.main([str(sweep), "--out", str(tmp_path)])
+    with (tmp_path / "runs.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert sorted((r["model"], int(r["seed"])) for r in rows) == sorted(job_dirs(sweep))
+    for r in rows:
+        record = json.loads((sweep / r["job"] / "metrics.json").read_text())
+        assert float(r["test/mse/h15"]) == record["metrics"]["test/mse/h15"]
+        assert r["data.num_train"] == "32"  # a setting of the sweep's command line
+
+
+@pytest.mark.parametrize("df, expected", [(1, 12.706), (3, 3.182), (30, 2.042), (31, 2.0395), (60, 2.0003),
+                                          (1000, 1.9623)])
+def test_t_quantile(df: int, expected: float):
+    """The 95% band uses Student's t (3.18 for 4 seeds, not 1.96); values from statistical tables."""
+    assert report.t975(df) == pytest.approx(expected, abs=6e-4)
+    assert np.isnan(report.t975(0))
+
+
 def test_failed_and_missing_jobs_listed(sweep: Path, tmp_path: Path):
     broken = tmp_path / "sweep"
     shutil.copytree(sweep, broken, ignore=shutil.ignore_patterns("checkpoints", "*.png", "csv"))

@@ -9,6 +9,7 @@ import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+import dider
 from dider.run import train
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -148,3 +149,18 @@ def test_best_checkpoint_is_chosen_after_the_kl_warm_up(make_cfg, tmp_path):
     rows = list(csv.DictReader((out / "csv" / "metrics.csv").open()))
     select = [float(r["val/select"]) for r in rows if r.get("val/select")]
     assert select[:2] == [float("inf")] * 2 and all(math.isfinite(v) for v in select[2:])
+
+
+def test_metrics_json_records_objective_and_provenance(make_cfg, tmp_path):
+    """main() returns optimized_metric (a validation metric: a sweeper never tunes on the test set), and
+    metrics.json says where the result came from."""
+    out = tmp_path / "run"
+    train(make_cfg(["model=dnri", "trainer.max_epochs=2", "logger=none"], out=out))
+    record = json.loads((out / "metrics.json").read_text())
+    ckpt = torch.load(record["checkpoint"], map_location="cpu", weights_only=True)
+    best = next(v["best_model_score"] for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint"))
+    assert record["config"]["optimized_metric"] == "val/select"
+    assert record["objective"] == pytest.approx(float(best)) and record["objective"] < float("inf")
+    prov = record["provenance"]
+    assert prov["dider"] == dider.__version__ and prov["torch"] == torch.__version__ and prov["device"] == "cpu"
+    assert prov["wall_s"] > 0 and len(prov.get("git_commit", "x" * 40).removesuffix("-dirty")) == 40

@@ -307,5 +307,10 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     return records
 
 
+def cli() -> None:
+    """The console script (``dider-bench``): ``main`` without its return value (an exit status of 0)."""
+    main()
+
+
 if __name__ == "__main__":
     main()

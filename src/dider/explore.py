@@ -69,6 +69,12 @@ def load_clips(path: Path) -> dict[str, np.ndarray]:
     for key in REQUIRED_KEYS:
         if key not in data:
             raise ExploreError(f"{path} lacks key {key!r} (has: {', '.join(sorted(data))})")
+    step_probs = data.get("step_probs")
+    if step_probs is not None and step_probs.ndim == 4 and "per_step" in data:
+        # Every type's per-step probability [S, E, T-1, K] (what prediction writes): the page shows the
+        # probability of the per-step type.
+        chosen = np.clip(data["per_step"].astype(np.int64), 0, step_probs.shape[-1] - 1)[..., None]
+        data["step_probs"] = np.take_along_axis(step_probs, chosen, axis=-1)[..., 0]
     check_shapes(data, path)
     return data
 

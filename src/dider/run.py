@@ -6,7 +6,10 @@ import hashlib
 import json
 import logging
 import math
+import platform
+import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -16,11 +19,12 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from lightning.fabric.plugins import CheckpointIO
-from lightning.pytorch.callbacks import ModelCheckpoint
+from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf
 
+from dider import __version__
 from dider.checkpoint import AtomicCheckpointIO
 from dider.io import atomic_write_text
 from dider.models.module import RelationalVAEModule
@@ -43,9 +47,31 @@ def job_name(override_dirname: str, limit: int = 120) -> str:
 
 OmegaConf.register_new_resolver("dider_job_name", job_name, replace=True)
 
-# The metrics shown in TensorBoard's HParams tab (those that a run produces).
-HPARAM_METRICS = ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/interaction",
-                  "test/edge_acc/prior/interaction", "val/nll")
+def hparam_metrics(cfg: DictConfig) -> list[str]:
+    """The metrics shown in TensorBoard's HParams tab: the forecast MSE at the data set's own horizons, the
+    edge recall (where the data have ground truth), the model-selection objective."""
+    horizons = OmegaConf.select(cfg, "data.horizons", default=None) or []
+    return [*(f"test/mse/h{int(h):02d}" for h in horizons), "test/ade", "test/fde",
+            "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "val/select"]
+
+
+def provenance(started: float, device: str) -> dict[str, Any]:
+    """Where a result came from: package, torch and lightning versions, the git commit (when the package runs
+    from a repository), the device and the wall time."""
+    record: dict[str, Any] = {"dider": __version__, "torch": torch.__version__, "lightning": L.__version__,
+                              "python": platform.python_version(), "device": device,
+                              "wall_s": round(time.time() - started, 1)}
+    try:
+        root = Path(__file__).resolve().parents[2]
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10)
+        if commit.returncode == 0:
+            dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                   capture_output=True, text=True, timeout=10).stdout.strip()
+            record["git_commit"] = commit.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):  # no git: an installed package
+        pass
+    return record
 
 
 def _overrides() -> list[str]:
@@ -181,6 +207,9 @@ def predict(cfg: DictConfig) -> list[Path]:
     trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
     out_dir = Path(cfg.output_dir)
     datamodule = instantiate(cfg.data, _convert_="all")
+    if not getattr(datamodule, "predicts", False):
+        raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
+                          f"data=trajectories (npz), table (CSV/Parquet), dnri_files or ind/round/unid")
     datamodule.use_normalizer(trained.normalizer)
     module = RelationalVAEModule.from_config(trained.config)
     module.model.load_state_dict(trained.network.state_dict())
@@ -199,6 +228,7 @@ def predict(cfg: DictConfig) -> list[Path]:
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit (mode=train) and test, or test a checkpoint (mode=eval). Returns the test metrics."""
     validate_config(cfg)
+    started = time.time()
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.output_dir)
@@ -209,17 +239,20 @@ def train(cfg: DictConfig) -> dict[str, float]:
     model = RelationalVAEModule.from_config(cfg.model)
     if cfg.get("compile"):
         compile_modules(model.model)
-    callbacks = _build_list(cfg.get("callbacks"))
     loggers: list[Logger] = _build_list(cfg.get("logger"))
+    # The learning-rate monitor needs a logger to write to: without one (logger=none) it has nothing to do.
+    callbacks = [c for c in _build_list(cfg.get("callbacks")) if loggers or not isinstance(c, LearningRateMonitor)]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
     ckpt = resolve_ckpt(cfg.ckpt_path, out_dir)
     if cfg.mode == "eval" and ckpt is None:
         raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
 
-    for lg in loggers:  # once, with the metric tags, so the HParams tab compares runs on them
-        if isinstance(lg, TensorBoardLogger) and trainer.is_global_zero:
-            lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in HPARAM_METRICS})
+    for lg in loggers if trainer.is_global_zero else []:  # every logger gets the settings worth comparing
+        if isinstance(lg, TensorBoardLogger):  # with the metric tags, so the HParams tab compares runs on them
+            lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in hparam_metrics(cfg)})
+        else:
+            lg.log_hyperparams(_hparams(cfg))
 
     if cfg.mode == "train":
         try:
@@ -242,6 +275,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
             "seed": int(cfg.seed),
             "model": cfg.model.get("name", "model"),
             "checkpoint": ckpt if cfg.mode == "eval" else (best or None),
+            "objective": _objective(cfg, trainer, callbacks, metrics),
+            "provenance": provenance(started, str(trainer.strategy.root_device)),
             "config": OmegaConf.to_container(cfg, resolve=True),
         }
         atomic_write_text(out_dir / "metrics.json", json.dumps(record, indent=2, default=str))
@@ -253,16 +288,32 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
+def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metrics: dict[str, float]) -> float | None:
+    """``optimized_metric``'s value: the best checkpoint's score when the checkpoint callback monitors it
+    (the value of the epoch whose weights were tested), else its last logged value; None if never logged."""
+    name = cfg.get("optimized_metric")
+    if not name:
+        return None
+    for c in callbacks:
+        if isinstance(c, ModelCheckpoint) and c.monitor == name and c.best_model_score is not None:
+            return float(c.best_model_score)
+    value = metrics.get(name, trainer.callback_metrics.get(name))
+    return None if value is None else float(value)
+
+
 @hydra.main(version_base="1.3", config_path="pkg://dider.conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
+    """The app. Returns ``optimized_metric`` (a validation metric by default), which Hydra sweepers
+    (e.g. the Optuna sweeper) minimise; never a test metric, so a search cannot tune on the test set."""
     tune_allocator()
     if cfg.mode == "predict":
         validate_config(cfg)
         L.seed_everything(cfg.seed, workers=True, verbose=False)
         predict(cfg)
         return None
-    metrics = train(cfg)
-    return metrics.get("test/mse/h01")
+    train(cfg)
+    record = json.loads((Path(cfg.output_dir) / "metrics.json").read_text()) if cfg.mode == "train" else {}
+    return record.get("objective")
 
 
 if __name__ == "__main__":

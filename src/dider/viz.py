@@ -13,7 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from lightning.pytorch.loggers import TensorBoardLogger  # noqa: E402
+from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger  # noqa: E402
 
 from dider.graph import edge_index, num_agents  # noqa: E402
 
@@ -87,10 +87,15 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
 
 
 def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> None:
+    """Save ``fig`` as ``path`` and send it to every logger that takes images."""
     fig.savefig(path, dpi=100)
-    tb = next((lg for lg in trainer.loggers if isinstance(lg, TensorBoardLogger)), None)
-    if tb is not None:
-        tb.experiment.add_figure(tag, fig, global_step=trainer.global_step, close=False)
+    for lg in trainer.loggers:
+        if isinstance(lg, TensorBoardLogger):
+            lg.experiment.add_figure(tag, fig, global_step=trainer.global_step, close=False)
+        elif isinstance(lg, MLFlowLogger):
+            lg.experiment.log_figure(lg.run_id, fig, f"figures/{tag.replace('/', '_')}.png")
+        elif isinstance(lg, WandbLogger):
+            lg.log_image(key=tag, images=[str(path)])
     plt.close(fig)
 
 

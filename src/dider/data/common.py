@@ -199,6 +199,7 @@ class ClipDataModule(L.LightningDataModule):
     """
 
     collate_fn = None  # None: torch's default collate (fixed agent count)
+    predicts = False  # True: setup("predict") builds every clip of the input (mode=predict, dider.load)
 
     def __init__(self) -> None:
         super().__init__()

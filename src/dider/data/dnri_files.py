@@ -121,6 +121,8 @@ class DNRIFilesDataModule(ClipDataModule):
     accepted for a uniform interface; nothing is cached.
     """
 
+    predicts = True
+
     def __init__(
         self,
         root: str | None = None,

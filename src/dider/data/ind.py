@@ -64,6 +64,8 @@ class InDDataModule(ClipDataModule):
     window_start, window_recording, recordings), ``dt`` (seconds per step).
     """
 
+    predicts = True
+
     collate_fn = staticmethod(pad_collate)
 
     def __init__(
@@ -181,34 +183,48 @@ class InDDataModule(ClipDataModule):
 
     def prepare_data(self) -> None:
         """Read, validate and cache every recording once (rank 0 only under DDP)."""
+        if self.normalizer is not None:  # prediction (use_normalizer): setup("predict") reads what it needs
+            return
         for split, recs in self.split_recordings().items():
             params = self.window_params(split)
             for files in recs:
                 if not self.cache_path(files, params).exists():
                     self._load_or_build(files, params)
 
+    def recordings_of(self, split: str) -> list[RecordingFiles]:
+        """The recordings of a split; ``predict``: every recording found (``data.recordings``), no split."""
+        if split == "predict":
+            h = self.hparams
+            return discover_recordings(self._root(), h.tracks_pattern, h.tracks_meta_pattern,
+                                       h.recording_meta_pattern, h.recordings)
+        return self.split_recordings()[split]
+
+    def _windows(self, split: str, recs: list[RecordingFiles], rates: dict[str, float]) -> dict[str, Any]:
+        """The packed windows of ``recs`` (cached per recording), capped for train / val / test."""
+        h = self.hparams
+        blobs = [self._load_or_build(f, self.window_params(split)) for f in recs]
+        rates.update({b["recording"]: b["frame_rate"] for b in blobs})
+        data = concat_windows(blobs)
+        if len(data["window_start"]) == 0:
+            raise ValueError(
+                f"{h.name} {split} split (recordings {[f.id for f in recs]}): no window of data.seq_len="
+                f"{h.seq_len} steps (x data.downsample={h.downsample} = "
+                f"{h.seq_len * h.downsample} frames) with >= data.min_agents={h.min_agents} agents: "
+                f"recordings too short or empty"
+                + (f", or data.classes={list(h.classes)} left too few tracks" if h.classes else ""))
+        cap = {"train": h.num_train, "val": h.num_val, "test": h.num_test}.get(split)
+        if cap is not None and cap < len(data["window_start"]):
+            data = select_windows(data, spread_indices(len(data["window_start"]), cap))
+        return data
+
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
         h = self.hparams
-        raw: dict[str, dict[str, Any]] = {}
+        # predict: every recording, no split, the trained model's normalisation
+        splits = ("predict",) if stage == "predict" else SPLITS
         rates: dict[str, float] = {}
-        for split, recs in self.split_recordings().items():
-            params = self.window_params(split)
-            blobs = [self._load_or_build(f, params) for f in recs]
-            rates.update({b["recording"]: b["frame_rate"] for b in blobs})
-            data = concat_windows(blobs)
-            if len(data["window_start"]) == 0:
-                raise ValueError(
-                    f"{h.name} {split} split (recordings {[f.id for f in recs]}): no window of data.seq_len="
-                    f"{h.seq_len} steps (x data.downsample={h.downsample} = "
-                    f"{h.seq_len * h.downsample} frames) with >= data.min_agents={h.min_agents} agents: "
-                    f"recordings too short or empty"
-                    + (f", or data.classes={list(h.classes)} left too few tracks" if h.classes else ""))
-            cap = {"train": h.num_train, "val": h.num_val, "test": h.num_test}[split]
-            if cap is not None and cap < len(data["window_start"]):
-                data = select_windows(data, spread_indices(len(data["window_start"]), cap))
-            raw[split] = data
+        raw = {split: self._windows(split, self.recordings_of(split), rates) for split in splits}
         if h.classes is not None:  # a misspelt class silently selects nothing: say so
             seen = set().union(*(d["class_names"] for d in raw.values()))
             if unknown := sorted(set(h.classes) - seen):
@@ -220,11 +236,14 @@ class InDDataModule(ClipDataModule):
                              f"{h.frame_rate_column}); select recordings of one rate with data.recordings")
         self.dt = h.downsample / next(iter(rates.values()))
         self.frame_step = h.downsample
-        try:
-            self.normalizer = Normalizer.fit(raw["train"]["states"], raw["train"]["mask"])
-        except ValueError as e:  # e.g. only parked vehicles left: a zero velocity range
-            raise ValueError(f"{h.name} train split (recordings {raw['train']['recordings']}): cannot fit "
-                             f"the normalisation: {e}") from None
+        if stage == "predict":
+            self.predict_normalizer(f"data.root={h.root}")
+        else:
+            try:
+                self.normalizer = Normalizer.fit(raw["train"]["states"], raw["train"]["mask"])
+            except ValueError as e:  # e.g. only parked vehicles left: a zero velocity range
+                raise ValueError(f"{h.name} train split (recordings {raw['train']['recordings']}): cannot "
+                                 f"fit the normalisation: {e}") from None
         for split, data in raw.items():
             states = fill_absent(self.normalizer.normalize(data["states"]), data["mask"])
             pairs = None
@@ -262,7 +281,7 @@ class InDDataModule(ClipDataModule):
         A pixel is orthoPxToMeter * background_scale metres (the released images are downscaled) and the
         image's y axis points down while the tracks' points up."""
         h, ds = self.hparams, self.datasets[split]
-        files = self.split_recordings()[split][int(ds.window_recording[index])]
+        files = self.recordings_of(split)[int(ds.window_recording[index])]
         image = files.tracks.parent / h.background_pattern.format(id=files.id)
         if not image.is_file() or "orthoPxToMeter" not in _header(files.recording_meta):
             return None

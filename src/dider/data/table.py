@@ -343,6 +343,8 @@ class TableDataModule(ClipDataModule):
     (table frames per step). ``cache_dir`` is accepted for a uniform interface; nothing is cached.
     """
 
+    predicts = True
+
     collate_fn = staticmethod(pad_collate)
 
     def __init__(

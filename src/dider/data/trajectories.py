@@ -166,6 +166,8 @@ class TrajectoryDataModule(ClipDataModule):
     uniform interface; nothing is cached (loading one npz is fast).
     """
 
+    predicts = True
+
     def __init__(
         self,
         path: str | None = None,

@@ -111,9 +111,6 @@ class RelationalVAEModule(L.LightningModule):
         self._log_segments("train", out, batch)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
-    def on_train_epoch_end(self) -> None:
-        self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"])
-
     def _forecast(self, batch: Batch, edges: torch.Tensor | None = None) -> Forecast:
         """Roll out over the whole clip after the burn-in (each agent's own burn-in in ``per_agent`` mode,
         where each target carries its own horizon; frame p is horizon p + 1 in ``global`` mode), with the
@@ -202,4 +199,5 @@ class RelationalVAEModule(L.LightningModule):
         if self.hparams.scheduler is None:
             return opt
         scheduler = instantiate(self.hparams.scheduler)(optimizer=opt)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch"}}
+        # name: the tag LearningRateMonitor logs the rate under (callbacks.lr_monitor)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "name": "train/lr"}}
