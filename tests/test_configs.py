@@ -64,3 +64,16 @@ def test_callbacks_and_data_instantiate(make_cfg):
 @pytest.mark.parametrize("experiment", options("experiment"))
 def test_experiments_compose(make_cfg, experiment):
     make_cfg([f"experiment={experiment}"], tiny=False)
+
+
+def test_console_scripts_and_one_version():
+    """dider-run, dider-report, dider-explore, dider-bench resolve to callables; the installed version is
+    dider.__version__ (pyproject reads it from there)."""
+    from importlib.metadata import entry_points, version
+
+    import dider
+
+    scripts = {e.name: e for e in entry_points(group="console_scripts") if e.name.startswith("dider-")}
+    assert set(scripts) == {"dider-run", "dider-report", "dider-explore", "dider-bench"}
+    assert all(callable(e.load()) for e in scripts.values())
+    assert version("dider") == dider.__version__

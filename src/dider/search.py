@@ -1,0 +1,123 @@
+"""Hyper-parameter search with Optuna around the app: `python -m dider.search hparams_search=dider [overrides]`.
+
+Each trial composes the app's config with the given overrides and the values Optuna suggests from the
+space in ``hparams_search`` (conf/hparams_search), trains in ``<out>/trial_<k>`` and reports the run's
+``optimized_metric`` (a validation metric by default, so the search never tunes on the test set). The
+trials go to ``<out>/search.csv`` after each one (atomic), the best to ``<out>/best.json``. ``<out>`` is
+``hydra.run.dir`` if given, else ``multirun/search/<date>_<time>``. Needs ``pip install optuna``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from dider.io import atomic_write_text
+from dider.run import train
+
+log = logging.getLogger(__name__)
+KINDS = ("float", "int", "categorical")
+
+
+def compose_run(overrides: Sequence[str], out: Path) -> DictConfig:
+    """The app's config for ``overrides``, with its run folder ``out`` (as ``python -m dider.run`` would)."""
+    GlobalHydra.instance().clear()
+    with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+        cfg = compose(config_name="config", overrides=list(overrides), return_hydra_config=True)
+    with open_dict(cfg):
+        cfg.hydra.runtime.output_dir = str(out)
+        cfg.hydra.job.num, cfg.hydra.job.id = 0, out.name
+    HydraConfig().set_config(cfg)
+    return cfg
+
+
+def check_space(space: Mapping[str, Any]) -> None:
+    """Each entry ``key -> {type, low, high, log | choices}``; raises naming the key."""
+    if not space:
+        raise ValueError("hparams_search.space is empty: nothing to search")
+    for key, spec in space.items():
+        kind = spec.get("type")
+        if kind not in KINDS:
+            raise ValueError(f"hparams_search.space.{key}.type={kind!r}: expected one of {list(KINDS)}")
+        if kind == "categorical":
+            if not spec.get("choices"):
+                raise ValueError(f"hparams_search.space.{key}: a categorical entry needs choices")
+        elif not (isinstance(spec.get("low"), (int, float)) and isinstance(spec.get("high"), (int, float))
+                  and spec["low"] < spec["high"]):
+            raise ValueError(f"hparams_search.space.{key}: needs numbers low < high, got {spec.get('low')!r}, "
+                             f"{spec.get('high')!r}")
+
+
+def suggest(trial: Any, space: Mapping[str, Any]) -> dict[str, Any]:
+    """The trial's value for each key of the space."""
+    values = {}
+    for key, spec in space.items():
+        if spec["type"] == "categorical":
+            values[key] = trial.suggest_categorical(key, list(spec["choices"]))
+        elif spec["type"] == "int":
+            values[key] = trial.suggest_int(key, int(spec["low"]), int(spec["high"]), log=bool(spec.get("log")))
+        else:
+            values[key] = trial.suggest_float(key, float(spec["low"]), float(spec["high"]), log=bool(spec.get("log")))
+    return values
+
+
+def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
+    """Run the search; returns the best trial ({"number", "value", "params", "dir"})."""
+    try:
+        import optuna
+    except ImportError as e:
+        raise ImportError("python -m dider.search needs optuna: pip install optuna") from e
+    base = compose_run(overrides, Path("."))
+    if base.get("hparams_search") is None:
+        raise ValueError("hparams_search is not set: add hparams_search=dider (or a space of your own in "
+                         "conf/hparams_search)")
+    spec = OmegaConf.to_container(base.hparams_search, resolve=True)
+    space = spec.get("space") or {}
+    check_space(space)
+    given_dir = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra.run.dir=")), None)
+    out = out or (Path(given_dir) if given_dir else Path("multirun/search") / time.strftime("%Y-%m-%d_%H-%M-%S"))
+    given = [o for o in overrides if not o.startswith("hydra.run.dir=")]
+    study = optuna.create_study(direction=spec.get("direction", "minimize"),
+                                sampler=optuna.samplers.TPESampler(seed=int(spec.get("seed", 1))))
+    rows: list[dict[str, Any]] = []
+
+    def objective(trial: Any) -> float:
+        values = suggest(trial, space)
+        run_dir = out / f"trial_{trial.number:03d}"
+        cfg = compose_run([*given, *(f"{k}={v}" for k, v in values.items())], run_dir)
+        train(cfg)
+        value = json.loads((run_dir / "metrics.json").read_text()).get("objective")
+        value = math.inf if value is None or not math.isfinite(value) else float(value)
+        rows.append({"trial": trial.number, "value": value, **values, "dir": str(run_dir)})
+        atomic_write_text(out / "search.csv", pd.DataFrame(rows).to_csv(index=False))
+        return value
+
+    study.optimize(objective, n_trials=int(spec.get("n_trials", 20)))
+    best = {"number": study.best_trial.number, "value": study.best_value, "params": study.best_params,
+            "dir": str(out / f"trial_{study.best_trial.number:03d}"),
+            "objective": base.get("optimized_metric"), "direction": spec.get("direction", "minimize")}
+    atomic_write_text(out / "best.json", json.dumps(best, indent=2))
+    print(f"best trial {best['number']}: {best['objective']} = {best['value']:.6g} with {best['params']}")
+    print(f"trials: {out / 'search.csv'}  best: {out / 'best.json'}")
+    return best
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
+    search(list(sys.argv[1:] if argv is None else argv))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,39 @@
+"""Hyper-parameter search with Optuna on a validation objective (optional extra: skipped without optuna)."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+
+from dider.search import check_space, search
+
+optuna = pytest.importorskip("optuna")
+
+SMOKE = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", "callbacks.timelines.num_clips=0",
+         "data.num_train=32", "data.num_val=8", "data.num_test=8", "trainer.max_epochs=2", "model.kl_warmup=0"]
+
+
+def test_two_trials_on_the_validation_objective(tmp_path, cache_dir):
+    out = tmp_path / "search"
+    best = search([*SMOKE, f"data.cache_dir={cache_dir}", "hparams_search=dider", "hparams_search.n_trials=2",
+                   f"hydra.run.dir={out}"])
+    trials = pd.read_csv(out / "search.csv")
+    assert list(trials["trial"]) == [0, 1] and trials["value"].notna().all()
+    assert trials["model.optimizer.lr"].between(1e-4, 3e-3).all() and trials["model.kl_warmup"].between(0, 0.5).all()
+    for _, row in trials.iterrows():
+        record = json.loads((out / f"trial_{int(row['trial']):03d}" / "metrics.json").read_text())
+        assert record["objective"] == pytest.approx(row["value"])  # the validation metric, not a test metric
+        assert record["config"]["optimized_metric"] == "val/select"
+        assert record["config"]["model"]["optimizer"]["lr"] == pytest.approx(row["model.optimizer.lr"])
+    assert best["value"] == trials["value"].min() and json.loads((out / "best.json").read_text())["number"] == \
+        int(trials.loc[trials["value"].idxmin(), "trial"])
+
+
+@pytest.mark.parametrize("space, key", [({}, "space is empty"), ({"a": {"type": "normal"}}, "space.a.type"),
+                                        ({"a": {"type": "float", "low": 1, "high": 0}}, "space.a: needs"),
+                                        ({"a": {"type": "categorical"}}, "needs choices")])
+def test_bad_space_is_named(space, key):
+    with pytest.raises(ValueError, match=key):
+        check_space(space)
