@@ -49,7 +49,11 @@ def test_trainers_compose(make_cfg, trainer):
 
 @pytest.mark.parametrize("logger", options("logger"))
 def test_loggers_instantiate(make_cfg, logger, tmp_path):
-    cfg = make_cfg([f"logger={logger}"])
+    if logger in ("mlflow", "wandb"):  # optional extras
+        pytest.importorskip(logger)
+    extra = {"mlflow": [f"logger.mlflow.tracking_uri=sqlite:///{tmp_path / 'mlflow.db'}",
+                        f"logger.mlflow.artifact_location={tmp_path / 'artifacts'}"]}.get(logger, [])
+    cfg = make_cfg([f"logger={logger}", *extra])
     for lg in (cfg.logger or {}).values():
         instantiate(lg)
 

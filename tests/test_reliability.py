@@ -2,7 +2,9 @@
 
 import json
 import os
+import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -233,6 +235,14 @@ BAD_CONFIGS = [
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
     (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
     (["compile=maybe"], r"compile='maybe': expected true or false"),
+    (["trainer.max_epochs=abc"], r"trainer.max_epochs='abc': must be an integer"),
+    (["model.optimizer.lr=abc"], r"model.optimizer.lr='abc': must be a number"),
+    (["model.optimizer.lr=-1"], r"model.optimizer.lr=-1: must be > 0"),
+    (["model.optimizer.lr=0"], r"model.optimizer.lr=0: must be > 0"),
+    (["model.num_edges=2.5"], r"model.num_edges=2.5: must be an integer"),
+    (["model.encoder.hidden=abc"], r"model.encoder.hidden='abc': must be an integer"),
+    (["seed=abc"], r"seed='abc': must be an integer"),
+    (["threads=-1"], r"threads=-1: must be >= 1"),
 ]
 
 
@@ -262,3 +272,162 @@ def test_valid_configs_pass(make_cfg, tmp_path):
     npz = tmp_path / "t.npz"
     npz.write_bytes(b"")
     validate_config(make_cfg(["data=trajectories", f"data.path={npz}"]))
+
+
+# ------------------------------------------------------------------------------------------ run folders
+
+
+def test_horizons_of_one_run_to_the_end(make_cfg, tmp_path):
+    metrics = train(make_cfg(["data.horizons=[1]", "model=dnri", "logger=none", "trainer.max_epochs=2"],
+                             out=tmp_path / "run"))
+    assert "test/mse/h01" in metrics and not any(k.startswith("test/mse/h15") for k in metrics)
+
+
+def test_a_fresh_run_does_not_overwrite_a_run(make_cfg, tmp_path):
+    out = tmp_path / "run"
+    train(make_cfg(["logger=none", "model=dnri"], out=out))
+    with pytest.raises(ConfigError, match=r"already holds a run \(metrics.json, checkpoints/.*ckpt_path=last"):
+        train(make_cfg(["logger=none", "model=dnri"], out=out))
+
+
+def test_a_live_run_locks_its_folder(make_cfg, tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (out / ".dider.lock").write_text(json.dumps({"pid": other.pid, "host": socket.gethostname()}))
+        with pytest.raises(ConfigError, match=rf"being written by another run \(pid {other.pid}"):
+            train(make_cfg(["logger=none", "model=dnri"], out=out))
+    finally:
+        other.kill()
+        other.wait()
+    train(make_cfg(["logger=none", "model=dnri"], out=out))  # its writer is gone: the stale lock is taken over
+    assert (out / "metrics.json").exists() and not (out / ".dider.lock").exists()
+
+
+def test_a_checkpoint_of_another_model_is_named(make_cfg, tmp_path):
+    train(make_cfg(["logger=none", "model=dider"], out=tmp_path / "run"))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    for overrides, expected in ((["model=dider_skid"], r"model.name: checkpoint 'dider', config 'dider_skid'"),
+                                (["model=dider", "model.num_edges=4"], r"model.num_edges: checkpoint 2, config 4"),
+                                (["model=dnri"], r"model.duration._target_: checkpoint")):
+        with pytest.raises(ConfigError, match=expected):
+            train(make_cfg([*overrides, "logger=none", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval"))
+    notes = tmp_path / "notes.txt"
+    notes.write_text("hello")
+    with pytest.raises(ConfigError, match=r"notes.txt: not a readable checkpoint"):
+        train(make_cfg(["logger=none", "mode=eval", f"ckpt_path={notes}"], out=tmp_path / "eval"))
+
+
+def test_resume_last_in_a_new_folder_is_an_error(make_cfg, tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"ckpt_path=last: no checkpoint in .*a new run folder"):
+        train(make_cfg(["ckpt_path=last"], out=tmp_path / "new"))
+    cfg = make_cfg(["ckpt_path=last", "logger=none", "model=dnri", f"hydra.run.dir={tmp_path / 'job'}"],
+                   out=tmp_path / "job")
+    assert "test/mse/h01" in train(cfg)  # a named folder with no run yet: a restartable job's first start
+
+
+def test_warnings_name_suspicious_settings(make_cfg, caplog):
+    with caplog.at_level("WARNING"):
+        validate_config(make_cfg(["trainer.max_epochs=0", "model.burn_in=4", "+foo=1"]))
+    assert "trainer.max_epochs=0: nothing is trained" in caplog.text
+    assert "model.burn_in=4 differs from data.burn_in=5" in caplog.text
+    assert "foo: top-level key(s) that nothing reads" in caplog.text
+
+
+def test_a_corrupt_cache_is_named_moved_aside_and_rebuilt(make_cfg, tmp_path, caplog):
+    from dider.data.cache import load_or_build
+
+    path = tmp_path / "cache" / "blob.pt"
+    path.parent.mkdir()
+    path.write_bytes(b"not a torch file")
+    with caplog.at_level("WARNING"):
+        assert load_or_build(path, lambda: {"x": torch.ones(2)})["x"].sum() == 2
+    assert "blob.pt cannot be read" in caplog.text and (tmp_path / "cache" / "blob.pt.corrupt").exists()
+    assert torch.load(path, weights_only=True)["x"].sum() == 2  # rebuilt, whole
+
+    class Planted:  # a pickle that would run code when loaded without weights_only
+        def __reduce__(self):
+            return (Path.touch, (tmp_path / "pwned",))
+
+    torch.save({"x": Planted()}, path)
+    assert load_or_build(path, lambda: {"x": torch.zeros(1)})["x"].sum() == 0
+    assert not (tmp_path / "pwned").exists()
+
+    stale = path.parent / ".blob.pt.abc.tmp"
+    stale.write_bytes(b"x" * 10)
+    os.utime(stale, (time.time() - 7200, time.time() - 7200))
+    fresh = path.parent / ".other.pt.def.tmp"
+    fresh.write_bytes(b"y")
+    load_or_build(path, lambda: {})
+    assert not stale.exists() and fresh.exists()  # a live writer's file (young) is left alone
+
+
+def test_a_corrupt_background_image_costs_no_results(make_cfg, tmp_path, caplog):
+    sys.path.insert(0, str(Path(__file__).parent))
+    from fixtures import write_ind_root
+
+    root = write_ind_root(tmp_path / "inD", num_recordings=3, num_frames=600, num_tracks=5)
+    (root / "02_background.png").write_bytes(b"garbage, not a PNG")
+    with caplog.at_level("WARNING"):
+        train(make_cfg(["data=ind", f"data.root={root}", "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4",
+                        "data.num_test=4", "logger=none", "model=dnri", "model.sparsity_mix=0"], out=tmp_path / "run"))
+    assert (tmp_path / "run" / "metrics.json").exists() and (tmp_path / "run" / "segments.json").exists()
+    assert "02_background.png: cannot read the background image" in caplog.text
+
+
+def test_a_failed_run_says_so_in_its_folder(tmp_path):
+    out, bad = tmp_path / "run", tmp_path / "bad.npz"
+    bad.write_bytes(b"garbage")  # passes the config check (the file exists), fails when read
+    proc = subprocess.run([sys.executable, "-m", "dider.run", "experiment=smoke", "data=trajectories",
+                           f"data.path={bad}", f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=300,
+                          env=dict(os.environ, HYDRA_FULL_ERROR="1"), cwd=tmp_path)
+    assert proc.returncode != 0
+    failed = json.loads((out / "failed.json").read_text())
+    assert failed["status"] == "failed" and "bad.npz" in failed["error"]
+    assert "bad.npz" in (out / "run.log").read_text()  # the traceback reaches the run's own log
+
+
+def _bad_npz(tmp: Path) -> list[str]:
+    import numpy as np
+
+    pos = np.random.default_rng(0).normal(size=(20, 12, 3, 2))
+    pos[3, 4, 1, 0] = 1e300  # finite in float64, inf in float32
+    np.savez(tmp / "big.npz", positions=pos)
+    return ["data=trajectories", f"data.path={tmp / 'big.npz'}", "data.horizons=[1,5]"]
+
+
+def _bad_csv(tmp: Path) -> list[str]:
+    from fixtures import edit_csv, write_ind_root
+
+    root = write_ind_root(tmp / "inD", num_recordings=3, num_frames=300, num_tracks=4)
+
+    def pad(df):
+        df["xCenter"] = df["xCenter"].astype(object)
+        df.loc[7, "xCenter"] = " nan"
+        return df
+
+    edit_csv(root / "01_tracks.csv", pad)
+    return ["data=ind", f"data.root={root}", "data.split=[1,1,1]"]
+
+
+PROBES = [  # (what the command line gets, what the error must name)
+    (lambda tmp: ["model.optimizer.lr=abc"], r"model.optimizer.lr='abc': must be a number"),
+    (_bad_npz, r"big.npz: key 'positions'.*beyond float32's range"),
+    (_bad_csv, r"01_tracks.csv: column 'xCenter', line 9: ' nan' is not a number"),
+]
+
+
+@pytest.mark.parametrize("make, named", PROBES, ids=["config", "npz-overflow", "csv-padded-nan"])
+def test_bad_input_fails_named_with_nothing_left_behind(tmp_path, make, named):
+    """The command line a user runs: a non-zero exit, the error naming the key or file (and cell), and no
+    checkpoint or metrics in the run folder."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "dider.run", "experiment=smoke", "logger=none", *make(tmp_path),
+                           f"hydra.run.dir={out}", f"data.cache_dir={tmp_path / 'cache'}"], capture_output=True,
+                          text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode != 0
+    assert re.search(named, proc.stderr), proc.stderr[-2000:]
+    assert not (out / "metrics.json").exists() and not list(out.glob("checkpoints/*.ckpt"))
+    assert not list((tmp_path / "cache").rglob("*.tmp"))  # no half-written cache

@@ -31,6 +31,7 @@ from dider.models.module import RelationalVAEModule
 from dider.perf import compile_modules, tune_allocator
 from dider.prediction import PredictionWriter
 from dider.protocol import horizons_problem
+from dider.runfolder import RunLock, check_checkpoint, check_fresh, is_rank_zero, mark_failed, resolve_ckpt
 from dider.trained import load
 from dider.validation import RULES, ConfigError, problem
 
@@ -170,6 +171,29 @@ def validate_config(cfg: DictConfig) -> None:
 
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    for warning in config_warnings(cfg):
+        log.warning(warning)
+
+
+# The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
+TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "compile", "output_dir", "optimized_metric",
+                  "predict", "data", "model", "trainer", "logger", "callbacks", "hydra", "hparams_search",
+                  "edges_per_model"}
+
+
+def config_warnings(cfg: DictConfig) -> list[str]:
+    """Settings that are valid but probably not meant, each named: a run that trains nothing, a burn-in the
+    model and the data disagree on, top-level keys nothing reads (a `+key=value` typo)."""
+    found = []
+    if cfg.get("mode") == "train" and OmegaConf.select(cfg, "trainer.max_epochs") == 0:
+        found.append("trainer.max_epochs=0: nothing is trained; the test scores the initial weights")
+    model_b, data_b = OmegaConf.select(cfg, "model.burn_in"), OmegaConf.select(cfg, "data.burn_in")
+    if model_b is not None and data_b is not None and model_b != data_b:
+        found.append(f"model.burn_in={model_b} differs from data.burn_in={data_b}: the model forecasts after "
+                     f"{model_b} frames, the data module's horizons count from {data_b}")
+    if unknown := sorted(set(cfg.keys()) - TOP_LEVEL_KEYS):
+        found.append(f"{', '.join(unknown)}: top-level key(s) that nothing reads (a typo of {sorted(TOP_LEVEL_KEYS)}?)")
+    return found
 
 
 def trainer_plugins(cfg: DictConfig) -> list[Any]:
@@ -179,18 +203,6 @@ def trainer_plugins(cfg: DictConfig) -> list[Any]:
     if not any(isinstance(p, CheckpointIO) for p in plugins):
         plugins.append(AtomicCheckpointIO())
     return plugins
-
-
-def resolve_ckpt(ckpt_path: str | None, output_dir: Path) -> str | None:
-    """'last' means this run folder's checkpoints/last.ckpt (absent on a fresh run: start from scratch)."""
-    if ckpt_path is None:
-        return None
-    if ckpt_path == "last":
-        last = output_dir / "checkpoints" / "last.ckpt"
-        return str(last) if last.exists() else None
-    if not Path(ckpt_path).is_file():
-        raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
-    return ckpt_path
 
 
 def format_table(metrics: dict[str, float]) -> str:
@@ -233,8 +245,30 @@ def train(cfg: DictConfig) -> dict[str, float]:
         torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    L.seed_everything(cfg.seed, workers=True, verbose=False)
+    ckpt = resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given())
+    if cfg.mode == "eval" and ckpt is None:
+        raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
+    if ckpt is not None:  # before any work: a checkpoint of another model fails naming both sides
+        check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
+    elif cfg.mode == "train" and is_rank_zero():
+        check_fresh(out_dir)
+    with RunLock(out_dir):
+        return _fit_and_test(cfg, ckpt, out_dir, started)
 
+
+def _run_dir_given() -> bool:
+    """Whether the run folder was chosen (hydra.run.dir on the command line, or a sweep's job folder), rather
+    than a new timestamped one."""
+    try:
+        hydra_cfg = HydraConfig.get()
+    except ValueError:  # composed outside a Hydra app: the caller set the folder
+        return True
+    return str(hydra_cfg.mode) == "RunMode.MULTIRUN" or any(
+        o.startswith(("hydra.run.dir=", "hydra.sweep.dir=")) for o in hydra_cfg.overrides.hydra)
+
+
+def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: float) -> dict[str, float]:
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
     model = RelationalVAEModule.from_config(cfg.model)
     if cfg.get("compile"):
@@ -244,10 +278,6 @@ def train(cfg: DictConfig) -> dict[str, float]:
     callbacks = [c for c in _build_list(cfg.get("callbacks")) if loggers or not isinstance(c, LearningRateMonitor)]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
-    ckpt = resolve_ckpt(cfg.ckpt_path, out_dir)
-    if cfg.mode == "eval" and ckpt is None:
-        raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
-
     for lg in loggers if trainer.is_global_zero else []:  # every logger gets the settings worth comparing
         if isinstance(lg, TensorBoardLogger):  # with the metric tags, so the HParams tab compares runs on them
             lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in hparam_metrics(cfg)})
@@ -311,7 +341,13 @@ def main(cfg: DictConfig) -> float | None:
         L.seed_everything(cfg.seed, workers=True, verbose=False)
         predict(cfg)
         return None
-    train(cfg)
+    try:
+        train(cfg)
+    except Exception as e:  # into the run's own log and a failed.json beside it, then out as ever
+        log.exception("run failed: %s", e)
+        if Path(cfg.output_dir).is_dir() and is_rank_zero():
+            mark_failed(Path(cfg.output_dir), e)
+        raise
     record = json.loads((Path(cfg.output_dir) / "metrics.json").read_text()) if cfg.mode == "train" else {}
     return record.get("objective")
 

@@ -42,6 +42,19 @@ def above(low: float) -> Rule:
     return _numeric(lambda v: v > low, f"must be > {low}")
 
 
+def integer(low: int, note: str = "", high: int | None = None) -> Rule:
+    """A whole number in [low, high] (2.5, "abc" and true are refused: they fail late and unnamed otherwise)."""
+
+    def rule(value: Any) -> str | None:
+        if not isinstance(value, int) or isinstance(value, bool):
+            return "must be an integer"
+        if high is not None and not low <= value <= high:
+            return f"must lie in [{low}, {high}]{note}"
+        return None if value >= low else f"must be >= {low}{note}"
+
+    return rule
+
+
 def within(low: float, high: float, what: str = "must lie in") -> Rule:
     return _numeric(lambda v: low <= v <= high, f"{what} [{low}, {high}]")
 
@@ -68,9 +81,20 @@ def boolean(value: Any) -> str | None:
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
+# The widths and depths of the networks: whole numbers, checked before the data are read.
+WIDTH_KEYS = ("model.encoder.hidden", "model.encoder.rnn_hidden", "model.encoder.head_hidden",
+              "model.encoder.head_layers", "model.encoder.input_dim", "model.prior.hidden", "model.prior.rnn_hidden",
+              "model.prior.num_layers", "model.decoder.input_dim")
+
 RULES: dict[str, Rule] = {
     "compile": boolean,
-    "model.num_edges": at_least(2, " (type 0 is 'no interaction': a relation needs another type)"),
+    "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
+    "threads": optional(integer(1, " (null: torch's default)")),
+    "trainer.max_epochs": integer(-1, " (-1: no limit)"),
+    "model.optimizer.lr": above(0),
+    **{key: integer(1) for key in WIDTH_KEYS},
+    "model.decoder.hidden": optional(integer(1)),  # the constant-velocity baseline has none
+    "model.num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
     "model.nll_variance": above(0),
     "model.gumbel_tau": above(0),
     "model.beta_edge": at_least(0),

@@ -3,6 +3,7 @@ clip's trajectories with its interaction segments drawn between the agents (over
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +17,8 @@ import torch  # noqa: E402
 from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger  # noqa: E402
 
 from dider.graph import edge_index, num_agents  # noqa: E402
+
+log = logging.getLogger(__name__)
 
 
 def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = "") -> plt.Figure:
@@ -126,9 +129,15 @@ class TimelineFigures(L.Callback):
             self.clips["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
 
     def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        data = self.clips
-        if not data or not trainer.is_global_zero:
+        if not self.clips or not trainer.is_global_zero:
             return
+        try:
+            self._draw(trainer, pl_module)
+        except Exception as e:  # figures are an extra: a failure here must never cost the run its results
+            log.warning("test figures not drawn (%s: %s); the metrics and exports are unaffected", type(e).__name__, e)
+
+    def _draw(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        data = self.clips
         self.output_dir.mkdir(parents=True, exist_ok=True)
         num_types = pl_module.model.num_types
         dm = getattr(trainer, "datamodule", None)

@@ -171,7 +171,9 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
         bad &= where
     if bad.any():
         first = tuple(int(i) for i in torch.nonzero(bad)[0])
-        raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first})")
+        value = float(array[first])
+        what = "NaN" if value != value else "inf (or beyond float32's range, |x| > 3.4e38)"
+        raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first}: {what})")
 
 
 def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:

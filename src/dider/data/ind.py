@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.cache import cache_key
+from dider.data.cache import cache_key, load_or_build
 from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, check_counts, pad_collate, spread_indices
 from dider.data.levelx.reading import _header, _read_columns
 from dider.data.levelx.recordings import RecordingFiles, _pattern_regex, discover_recordings, split_counts
@@ -47,7 +47,6 @@ from dider.data.levelx.windows import (
     select_windows,
 )
 from dider.data.pairs import PairRules, find_pairs
-from dider.io import atomic_torch_save
 from dider.protocol import fill_absent
 
 log = logging.getLogger(__name__)
@@ -172,14 +171,15 @@ class InDDataModule(ClipDataModule):
 
     def _load_or_build(self, files: RecordingFiles, params: WindowParams) -> dict[str, Any]:
         path = self.cache_path(files, params)
-        if path.exists():
-            return torch.load(path)
-        t0 = time.perf_counter()
-        blob = preprocess_recording(files, params)
-        atomic_torch_save(blob, path)
-        log.info("%s recording %s: %d windows from %d tracks in %.1f s -> %s", self.hparams.name, files.id,
-                 len(blob["window_start"]), blob["num_tracks"], time.perf_counter() - t0, path)
-        return blob
+
+        def build() -> dict[str, Any]:
+            t0 = time.perf_counter()
+            blob = preprocess_recording(files, params)
+            log.info("%s recording %s: %d windows from %d tracks in %.1f s -> %s", self.hparams.name, files.id,
+                     len(blob["window_start"]), blob["num_tracks"], time.perf_counter() - t0, path)
+            return blob
+
+        return load_or_build(path, build)
 
     def prepare_data(self) -> None:
         """Read, validate and cache every recording once (rank 0 only under DDP)."""
@@ -288,7 +288,12 @@ class InDDataModule(ClipDataModule):
         meters = float(_read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * h.background_scale
         if not (np.isfinite(meters) and meters > 0):
             return None
-        pixels = plt_image.imread(image)
+        try:
+            pixels = plt_image.imread(image)
+        except Exception as e:  # an optional extra (PIL raises SyntaxError for a damaged PNG): never lose a run
+            log.warning("%s: cannot read the background image (%s: %s); drawing without it", image,
+                        type(e).__name__, e)
+            return None
         rows, cols = pixels.shape[:2]
         return pixels, (0.0, cols * meters, -rows * meters, 0.0)
 

@@ -10,10 +10,9 @@ from pathlib import Path
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.cache import cache_key
+from dider.data.cache import cache_key, load_or_build
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_counts, default_cache_dir
 from dider.data.simulate import simulate_push
-from dider.io import atomic_torch_save
 
 log = logging.getLogger(__name__)
 
@@ -71,20 +70,21 @@ class SynthDataModule(ClipDataModule):
     def _path(self, split: str) -> Path:
         return self.cache_dir / f"synth_{split}_{cache_key(self._split_params(split))}.pt"
 
+    def _generate(self, split: str) -> dict:
+        p = self._split_params(split)
+        log.info("generating %d synthetic %s clips -> %s", p["num_samples"], split, self._path(split))
+        states, edges = simulate_push(p["num_samples"], p["num_steps"], p["push_factor"], seed=p["seed"])
+        return {"states": states, "edges": edges, "params": p}
+
     def prepare_data(self) -> None:
         for split in SPLITS:
-            path = self._path(split)
-            if path.exists():
-                continue
-            p = self._split_params(split)
-            log.info("generating %d synthetic %s clips -> %s", p["num_samples"], split, path)
-            states, edges = simulate_push(p["num_samples"], p["num_steps"], p["push_factor"], seed=p["seed"])
-            atomic_torch_save({"states": states, "edges": edges, "params": p}, path)
+            if not self._path(split).exists():
+                load_or_build(self._path(split), lambda split=split: self._generate(split))
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        raw = {split: torch.load(self._path(split)) for split in SPLITS}
+        raw = {split: load_or_build(self._path(split), lambda split=split: self._generate(split)) for split in SPLITS}
         self.normalizer = Normalizer.fit(raw["train"]["states"])
         for split, blob in raw.items():
             states = self.normalizer.normalize(blob["states"])

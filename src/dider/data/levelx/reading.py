@@ -39,8 +39,21 @@ def _read_columns(path: Path, numeric: Sequence[str], text: Sequence[str] = ()) 
     dtype: dict[str, Any] = {c: np.float64 for c in numeric} | {c: str for c in text}
     try:
         return pd.read_csv(path, usecols=[*numeric, *text], dtype=dtype, engine="c")
-    except ValueError as e:  # e.g. a word in a numeric column
-        raise ValueError(f"{path}: could not parse columns {[*numeric, *text]} as numbers: {e}") from e
+    except ValueError as e:  # e.g. a word, or a padded " nan", in a numeric column: find the cell
+        raise ValueError(_first_bad_number(path, numeric) or f"{path}: could not parse columns {list(numeric)} as "
+                         f"numbers: {e}") from e
+
+
+def _first_bad_number(path: Path, numeric: Sequence[str]) -> str | None:
+    """'file: column c, line n: 'value' is not a number' for the first cell of ``numeric`` that does not parse."""
+    raw = pd.read_csv(path, usecols=list(numeric), dtype=str, keep_default_na=False, engine="c")
+    for col in numeric:
+        parsed = pd.to_numeric(raw[col], errors="coerce")
+        bad = parsed.isna().to_numpy()
+        if bad.any():
+            row = int(np.argmax(bad))
+            return f"{path}: column {col!r}, line {row + 2}: {raw[col].iloc[row]!r} is not a number"
+    return None
 
 
 def _finite(path: Path, df: pd.DataFrame, columns: Sequence[str], integer: Sequence[str] = ()) -> None:

@@ -1,0 +1,166 @@
+"""A run folder's guarantees: one live run at a time, no fresh run over an old one, checkpoints that belong to
+the configured model, and a failed run that says so.
+
+A folder "holds a run" when it has a ``metrics.json`` or a checkpoint. Training into it is allowed only to
+resume it (``ckpt_path=last``); a lock file (``.dider.lock``, the writer's pid and host) keeps a second live
+process out, and is taken over when its writer is gone.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import socket
+import traceback
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from dider.io import atomic_write_text
+from dider.validation import ConfigError
+
+log = logging.getLogger(__name__)
+
+LOCK = ".dider.lock"
+# Settings that fix a network's parameter shapes (a checkpoint of another value cannot be loaded): the
+# model's name and edge types, and every plugin's target and integer sizes.
+PLUGINS = ("encoder", "prior", "duration", "decoder")
+
+
+def is_rank_zero() -> bool:
+    """False in the extra processes a DDP launcher starts (they run the app again with RANK set)."""
+    return os.environ.get("RANK", os.environ.get("LOCAL_RANK", "0")) == "0"
+
+
+def holds_run(folder: Path) -> list[str]:
+    """What in ``folder`` shows an earlier run: ``metrics.json`` and checkpoint names ([] for none)."""
+    found = ["metrics.json"] if (folder / "metrics.json").exists() else []
+    return found + sorted(f"checkpoints/{p.name}" for p in (folder / "checkpoints").glob("*.ckpt"))
+
+
+def check_fresh(folder: Path) -> None:
+    """A fresh training run must not mix its files with an earlier run's (a later ``ckpt_path=last`` would
+    resume the wrong one)."""
+    if found := holds_run(folder):
+        raise ConfigError(f"{folder} already holds a run ({', '.join(found[:3])}): resume it with ckpt_path=last, "
+                          f"or train into another folder (hydra.run.dir=...)")
+
+
+def resolve_ckpt(ckpt_path: str | None, folder: Path, folder_given: bool) -> str | None:
+    """``last``: this run folder's ``checkpoints/last.ckpt``. Absent, a fresh start only where that is clearly
+    meant (the folder was named on the command line: a restartable job's first start), with a notice; in a
+    new timestamped folder resuming can never work, so that is an error naming where it looked."""
+    if ckpt_path is None:
+        return None
+    if ckpt_path != "last":
+        if not Path(ckpt_path).is_file():
+            raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
+        return ckpt_path
+    last = folder / "checkpoints" / "last.ckpt"
+    if last.exists():
+        return str(last)
+    if not folder_given:
+        raise FileNotFoundError(f"ckpt_path=last: no checkpoint in {last.parent}, a new run folder; name the run "
+                                f"to resume with hydra.run.dir=THAT_RUN (ckpt_path=last looks in the run's own "
+                                f"folder)")
+    log.warning("ckpt_path=last: no checkpoint in %s yet: starting a fresh run there", last.parent)
+    return None
+
+
+def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(node, Mapping):
+        return {prefix: node}
+    out: dict[str, Any] = {}
+    for k, v in node.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def shape_settings(model: Mapping[str, Any]) -> dict[str, Any]:
+    """The settings of a model config that fix its parameter shapes (name, num_edges, each plugin's target and
+    integer sizes), flattened with dots."""
+    flat = _flat({k: model.get(k) for k in ("name", "num_edges", *PLUGINS)})
+    return {k: v for k, v in flat.items() if k in ("name", "num_edges") or k.endswith("_target_")
+            or (isinstance(v, int) and not isinstance(v, bool))}
+
+
+def check_checkpoint(path: str, model: Mapping[str, Any]) -> None:
+    """Fail before any work when ``path`` is not a training checkpoint, or one of another model than the
+    config's: the error names each differing setting with both values."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # torch raises many types for a foreign or damaged file
+        raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
+    saved = ckpt.get("hyper_parameters", {}).get("model") if isinstance(ckpt, dict) else None
+    if not isinstance(saved, Mapping):
+        raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
+                          f"hyper-parameters)")
+    mine, theirs = shape_settings(model), shape_settings(saved)
+    differ = [f"model.{k}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}"
+              for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
+    if differ:
+        raise ConfigError(f"ckpt_path={path} holds another model than the config's (pass the model it was trained "
+                          f"with, e.g. model={theirs.get('name')}):\n  - " + "\n  - ".join(differ))
+
+
+class RunLock:
+    """``folder/.dider.lock`` while a run writes the folder; a second live run there fails naming the first."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / LOCK
+        self.held = False
+
+    def __enter__(self) -> RunLock:
+        if not is_rank_zero():
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        me = {"pid": os.getpid(), "host": socket.gethostname()}
+        for _ in range(2):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                owner = self._owner()
+                if owner is not None and _alive(owner):
+                    raise ConfigError(f"{self.path.parent} is being written by another run (pid {owner['pid']} on "
+                                      f"{owner['host']}); wait for it, or use another hydra.run.dir") from None
+                log.warning("%s: taking over the lock of a run that is gone (%s)", self.path, owner)
+                self.path.unlink(missing_ok=True)
+                continue
+            with os.fdopen(fd, "w") as f:
+                json.dump(me, f)
+            self.held = True
+            return self
+        raise ConfigError(f"{self.path}: could not take the run folder's lock")
+
+    def _owner(self) -> dict[str, Any] | None:
+        try:
+            return json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            return None
+
+    def __exit__(self, *exc: object) -> None:
+        if self.held:
+            self.path.unlink(missing_ok=True)
+            self.held = False
+
+
+def _alive(owner: Mapping[str, Any]) -> bool:
+    if owner.get("host") != socket.gethostname():
+        return True  # another machine's process: cannot tell, so respect it
+    try:
+        os.kill(int(owner["pid"]), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, ValueError, KeyError, TypeError):
+        return True
+    return True
+
+
+def mark_failed(folder: Path, error: BaseException) -> None:
+    """``folder/failed.json``: the error and its traceback, so a failed run's folder explains itself."""
+    text = "".join(traceback.format_exception(error))
+    atomic_write_text(folder / "failed.json", json.dumps({"status": "failed", "error": repr(error),
+                                                          "traceback": text}, indent=2))
