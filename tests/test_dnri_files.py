@@ -130,7 +130,7 @@ def test_bad_input(root, tmp_path):
     cases = [
         ("feats", feats[..., :3], r"test_feats: shape \(5, 30, 3, 3\); expected \[S, T, N, 4\]"),
         ("feats", feats[:, :, :1], r"test_feats: 1 agent\(s\)"),
-        ("feats", nan, r"test_feats: 1 NaN/inf values \(first at index \(1, 2, 0, 3\)\)"),
+        ("feats", nan, r"test_feats: 1 NaN/inf values \(first at index \(1, 2, 0, 3\): NaN\)"),
         ("feats", feats > 0, r"test_feats: dtype torch.bool"),
         ("edges", edges[..., :5], r"test_edges: shape \(5, 30, 5\); expected \[S, T, N\(N-1\)\] = \(5, 30, 6\)"),
         ("edges", edges[:4], r"test_edges: shape \(4, 30, 6\)"),

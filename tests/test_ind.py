@@ -283,7 +283,7 @@ BAD = [
     ("00_tracks.csv", _set("yCenter", np.nan), ValueError, r"00_tracks.csv: column 'yCenter' .* line 5"),
     ("00_tracks.csv", _set("xVelocity", np.inf), ValueError, r"00_tracks.csv: column 'xVelocity'"),
     ("00_tracks.csv", _set("frame", 3.5), ValueError, r"00_tracks.csv: column 'frame'"),
-    ("00_tracks.csv", _set("frame", "abc"), ValueError, r"00_tracks.csv: could not parse"),
+    ("00_tracks.csv", _set("frame", "abc"), ValueError, r"00_tracks.csv: column 'frame', line \d+: 'abc' is not"),
     ("00_tracks.csv", lambda d: pd.concat([d, d.iloc[[7]]]), ValueError, r"duplicate row for \(trackId, fr"),
     ("00_tracksMeta.csv", lambda d: d.assign(numFrames=d.numFrames + 1), ValueError,
      r"00_tracksMeta.csv: column 'numFrames' inconsistent"),

@@ -431,3 +431,18 @@ def test_bad_input_fails_named_with_nothing_left_behind(tmp_path, make, named):
     assert re.search(named, proc.stderr), proc.stderr[-2000:]
     assert not (out / "metrics.json").exists() and not list(out.glob("checkpoints/*.ckpt"))
     assert not list((tmp_path / "cache").rglob("*.tmp"))  # no half-written cache
+
+
+def test_a_full_disk_is_named(tmp_path, monkeypatch):
+    """torch.save reports a full disk as 'inline_container.cc ... unexpected pos': the error names the file,
+    the free space and whether the folder is writable, and leaves no temporary file."""
+    from dider.io import atomic_torch_save
+
+    def full(*args, **kwargs):
+        raise RuntimeError("[enforce fail at inline_container.cc:626] . unexpected pos 64 vs 0")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(OSError, match=r"last.ckpt: could not be written \(RuntimeError: .*unexpected pos.*MiB free on "
+                                      r"its disk, folder writable"):
+        atomic_torch_save({"x": 1}, tmp_path / "last.ckpt")
+    assert list(tmp_path.iterdir()) == []

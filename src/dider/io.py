@@ -8,6 +8,7 @@ run, a report) see either the old file or the complete new one.
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -33,10 +34,24 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except (OSError, RuntimeError) as e:  # torch.save reports a full disk as "inline_container ... unexpected pos"
+        Path(tmp).unlink(missing_ok=True)
+        raise OSError(f"{path}: could not be written ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+                      f"{_space(path.parent)}") from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
     _fsync_dir(path.parent)
+
+
+def _space(folder: Path) -> str:
+    """What usually stops a write: the free space and whether the folder is writable."""
+    try:
+        free = shutil.disk_usage(folder).free
+    except OSError:
+        return "is the folder there and writable?"
+    writable = "writable" if os.access(folder, os.W_OK) else "NOT writable"
+    return f"{free / 2**20:.0f} MiB free on its disk, folder {writable}"
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -6,6 +6,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import platform
 import subprocess
 import sys
@@ -245,6 +246,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
         torch.set_num_threads(int(cfg.threads))
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    if not os.access(out_dir, os.W_OK):
+        raise ConfigError(f"{out_dir}: the run folder is not writable (choose another hydra.run.dir)")
     ckpt = resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given())
     if cfg.mode == "eval" and ckpt is None:
         raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
