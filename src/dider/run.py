@@ -282,9 +282,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
     for lg in loggers if trainer.is_global_zero else []:  # every logger gets the settings worth comparing
-        if isinstance(lg, TensorBoardLogger):  # with the metric tags, so the HParams tab compares runs on them
-            lg.log_hyperparams(_hparams(cfg), metrics={k: math.nan for k in hparam_metrics(cfg)})
-        else:
+        if not isinstance(lg, TensorBoardLogger):  # TensorBoard's HParams entry waits for the results (below)
             lg.log_hyperparams(_hparams(cfg))
 
     if cfg.mode == "train":
@@ -301,6 +299,9 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         trainer.test(model, datamodule=datamodule, ckpt_path=ckpt)
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    for lg in loggers if trainer.is_global_zero else []:
+        if isinstance(lg, TensorBoardLogger):  # only a finished run enters the HParams tab: no NaN rows of failed ones
+            lg.log_hyperparams(_hparams(cfg), metrics={k: metrics.get(k, math.nan) for k in hparam_metrics(cfg)})
     if trainer.is_global_zero:
         record = {
             "metrics": metrics,
