@@ -1,8 +1,17 @@
-"""The benchmark's derived figures: arithmetic counts, the matmul ceiling and the summary."""
+"""The benchmark's derived figures: arithmetic counts, the matmul ceiling and the summary; the comparison
+with the reference implementation timed in the same run."""
 
+import json
+import os
+from pathlib import Path
+
+import pytest
 import torch
 
 from dider import bench
+
+# A checkout of cgraber/cvpr_dNRI, named by $DIDER_DNRI_REFERENCE (the comparison is skipped without one).
+REFERENCE_CHECKOUT = Path(os.environ.get("DIDER_DNRI_REFERENCE", "/nonexistent/cvpr_dNRI"))
 
 
 def test_gemm_case_reports_its_arithmetic():
@@ -40,3 +49,66 @@ def test_summary_speedups_and_roofline():
     assert out["roofline/fp32/train/dnri/synth/max_samples_per_s"] == 128 * 200.0 / 100.0
     assert out["step_ratio/dider_over_dnri/synth"] == 2.0
     assert not any("recurrent" in key or "bf16/train" in key for key in out)  # failed or missing cases
+
+
+def test_interleaved_rounds_alternate_and_pair_the_speedups():
+    """Two fake steps on a fake clock: A costs 3 units, B 1; in round 2 the machine is twice as slow."""
+    now, calls, current_round = [0.0], [], [0]
+
+    def step(name, cost):
+        def fn():
+            calls.append(name)
+            now[0] += cost * (2 if current_round[0] == 2 else 1)
+        return fn
+
+    steps = {"A": step("A", 3.0), "B": step("B", 1.0)}
+
+    def clock():
+        current_round[0] = (len(calls) - 2) // 4  # 2 warm-up calls, then 4 calls (2 x 2 iterations) a round
+        return now[0]
+
+    per_round = bench.interleaved_timing(steps, rounds=3, iters=2, warmup=1, clock=clock)
+    assert calls == ["A", "B"] + ["A", "A", "B", "B"] + ["B", "B", "A", "A"] + ["A", "A", "B", "B"]
+    assert per_round == {"A": [3.0, 3.0, 6.0], "B": [1.0, 1.0, 2.0]}
+    out = bench.speedups(per_round, "A")
+    assert out["step_s"] == {"A": 3.0, "B": 1.0}  # medians
+    assert out["speedup_per_round"] == {"B": [3.0, 3.0, 3.0]}  # paired within the round: the slow spell cancels
+    assert out["speedup"] == {"B": 3.0}
+    assert out["step_s_per_round"] == per_round
+
+
+def test_summary_takes_measured_speedups_over_the_fixed_figures():
+    records = [{"name": "train/dnri/synth", "samples_per_s": 102.0, "step_s": 1.0, "settings": {"batch": 128}},
+               {"name": "train/dnri/recurrent", "samples_per_s": 30.0, "step_s": 1.0, "settings": {"batch": 128}}]
+    reference = {"cases": {"train/dnri/synth": {"speedup": {"fp32": 1.5, "bf16": 2.5}}}}
+    out = bench.summary(records, reference)
+    assert out["speedup_over_reference/train/dnri/synth"] == 1.5
+    assert out["speedup_over_reference/train/dnri/synth/bf16"] == 2.5
+    assert out["speedup_over_reference/train/dnri/recurrent"] == 2.0  # not measured: 30 / REFERENCE_SAMPLES_PER_S
+    assert bench.summary(records)["speedup_over_reference/train/dnri/synth"] == 2.0  # without --reference
+
+
+@pytest.mark.skipif(not (REFERENCE_CHECKOUT / "dnri" / "models" / "dnri.py").is_file(),
+                    reason=f"no checkout of cgraber/cvpr_dNRI at {REFERENCE_CHECKOUT} (set DIDER_DNRI_REFERENCE)")
+def test_reference_comparison_at_tiny_sizes(tmp_path):
+    out = tmp_path / "results.json"
+    bench.main(["--reference", str(REFERENCE_CHECKOUT), "--reference-size", "tiny", "--reference-rounds", "2",
+                "--reference-iters", "1", "--reference-threads", "1", "--only", "reference", "--out", str(out)])
+    doc = json.loads(out.read_text())
+    assert doc["records"] == []  # --only reference: the comparison alone
+    section = doc["reference"]
+    assert "error" not in section and Path(section["checkout"]) == REFERENCE_CHECKOUT.resolve()
+    assert set(section["cases"]) == set(bench.REFERENCE_CASES)
+    for name, case in section["cases"].items():
+        assert (case["batch"], case["steps"], case["size"], case["threads"]) == (4, 8, "tiny", 1)
+        assert case["torch"] == torch.__version__ and case["rounds"] == 2
+        for variant in ("reference", "fp32", "bf16"):
+            assert len(case["step_s_per_round"][variant]) == 2 and case["step_s"][variant] > 0
+        for variant in ("fp32", "bf16"):
+            ratios = case["speedup_per_round"][variant]
+            assert ratios == [r / o for r, o in zip(case["step_s_per_round"]["reference"],
+                                                    case["step_s_per_round"][variant], strict=True)]
+            suffix = "" if variant == "fp32" else "/bf16"
+            assert doc["summary"][f"speedup_over_reference/{name}{suffix}"] == case["speedup"][variant]
+    assert section["cases"]["train/dnri/synth"]["reference_params"]["decoder_type"] == "ref_mlp"
+    assert section["cases"]["train/dnri/recurrent"]["reference_params"]["add_uniform_prior"] is False

@@ -12,20 +12,32 @@ The roofline: every training record carries the step's matmul arithmetic (``gflo
 matmul rate on the model's dominant shape. The summary divides the two into the most samples/s a step could
 reach if it did nothing but its matmuls at that rate, and relates the measured rates to the public DNRI
 implementation's (``dider.bench_summary.REFERENCE_SAMPLES_PER_S``).
+
+The reference in the same run: ``--reference PATH`` (a checkout of cgraber/cvpr_dNRI, imported from PATH) also
+times the public DNRI code's training step against ours on the same random batch, in one process, in alternating
+rounds (:func:`compare_with_reference`). The results JSON then has a ``reference`` section and the summary's
+speed-ups come from it instead of ``REFERENCE_SAMPLES_PER_S``. ``--reference-size tiny`` runs the same at toy
+sizes (a check that it works, not a measurement). The ``memory/*`` cases record the peak memory of one DNRI
+training step at the paper's widths as N grows, with the activation checkpointing of the encoder and the
+decoder off and on.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import multiprocessing as mp
 import os
 import platform
 import resource
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import Empty
@@ -34,6 +46,7 @@ from typing import Any
 import torch
 from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
+from torch import nn
 
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
@@ -66,6 +79,11 @@ SCALE_STEPS = (50, 100, 200)
 SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", "model.sparsity_mix=0"]
 
 
+# Peak memory of one DNRI step at the paper's widths (batch 8), activation checkpointing off and on.
+MEMORY_AGENTS = (10, 20, 30)
+CHECKPOINTING = ["model.encoder.checkpoint=true", "model.decoder.checkpoint=true"]
+
+
 def cases() -> list[Case]:
     recurrent = ["model/decoder=recurrent", "model.sparsity_mix=0"]
     out = [Case(f"gemm/{dtype}", [], 1, 0, 0, iters=20, warmup=3, kind="gemm", settings={"dtype": dtype})
@@ -89,6 +107,10 @@ def cases() -> list[Case]:
         out.append(Case(f"scale/agents/N{n:02d}", SCALE_MODEL, 8, n, 50, iters=3, warmup=1))
     for t in SCALE_STEPS:
         out.append(Case(f"scale/steps/T{t:03d}", SCALE_MODEL, 8, 5, t, iters=3, warmup=1))
+    for n in MEMORY_AGENTS:  # one step each: the peak is the figure, and the largest step takes ~10 s on 2 cores
+        for saver, extra in (("off", []), ("on", CHECKPOINTING)):
+            out.append(Case(f"memory/dnri/N{n:02d}/checkpoint_{saver}", ["model=dnri", *extra], 8, n, 50, iters=1,
+                            warmup=0, settings={"count_flops": False, "checkpoint": saver == "on"}))
     return out
 
 
@@ -171,15 +193,189 @@ def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
         return _timed(step, case.iters, case.warmup, device), extra
     model.train()
     autocast = case.settings.get("autocast")
-    extra["gflop_per_step"] = step_gflop(model, batch, autocast)
+    if case.settings.get("count_flops", True):  # off for memory cases: the counting step would set the peak
+        extra["gflop_per_step"] = step_gflop(model, batch, autocast)
     if case.settings.get("compile"):
         compile_modules(model)
     opt = torch.optim.Adam(model.parameters(), lr=5e-4)
+    if "checkpoint" in case.settings:  # memory cases: the process's footprint before its step, to subtract
+        before = (torch.cuda.max_memory_allocated() if device == "cuda"
+                  else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+        extra["peak_before_step_mb"] = before / 2**20
     if case.settings.get("compile"):  # the first steps compile: report that cost on its own
         t0 = time.perf_counter()
         _train_step(model, opt, batch, autocast)
         extra["compile_s"] = time.perf_counter() - t0
     return _timed(lambda: _train_step(model, opt, batch, autocast), case.iters, case.warmup, device), extra
+
+
+# ------------------------------------------------------------------ the reference implementation, same run
+REFERENCE_CASES = ("train/dnri/synth", "train/dnri/recurrent")
+# --reference-size: "full" is the benchmark's cases as they are; "tiny" shrinks batch, clip and widths so the
+# comparison runs in seconds (a test of the machinery; its timings mean nothing).
+REFERENCE_SIZES: dict[str, dict[str, Any]] = {
+    "full": {},
+    "tiny": {"batch": 4, "steps": 8, "overrides": [
+        "model.encoder.hidden=16", "model.encoder.rnn_hidden=8", "model.encoder.head_hidden=8",
+        "model.prior.hidden=8", "model.decoder.hidden=16"]},
+}  # fmt: skip
+# What the reference's decoder_type is for each of our decoder classes.
+REFERENCE_DECODERS = {"MarkovDecoder": "ref_mlp", "RecurrentDecoder": "recurrent"}
+
+
+def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dict[str, Any]:
+    """The public DNRI code's ``params`` dict for the network of our model config ``model_cfg`` (``model=dnri``
+    with either decoder): the same widths and depths, teacher-forced training with soft Gumbel-softmax edges,
+    normalised Gaussian NLL and KL, and our ``sparsity_mix`` 0.5 as its ``add_uniform_prior`` (a fixed
+    0.5/0.5 mix with KL(mean q || [no_edge_prob, ...]))."""
+    enc, dec, prior = model_cfg.encoder, model_cfg.decoder, model_cfg.prior
+    decoder_class = str(dec._target_).rsplit(".", 1)[-1]
+    if decoder_class not in REFERENCE_DECODERS or model_cfg.sparsity_mix not in (0, 0.5):
+        raise ValueError(f"no reference counterpart of decoder {decoder_class}, sparsity_mix={model_cfg.sparsity_mix}")
+    return {
+        "num_vars": num_agents, "input_size": enc.input_dim, "num_edge_types": model_cfg.num_edges,
+        "skip_first": dec.skip_first, "gpu": device == "cuda",
+        "encoder_hidden": enc.hidden, "encoder_rnn_hidden": enc.rnn_hidden, "encoder_rnn_type": "lstm",
+        "encoder_mlp_num_layers": enc.head_layers, "encoder_mlp_hidden": enc.head_hidden,
+        "encoder_dropout": enc.dropout, "prior_num_layers": prior.num_layers, "prior_hidden_size": prior.hidden,
+        "decoder_type": REFERENCE_DECODERS[decoder_class], "decoder_hidden": dec.hidden,
+        "decoder_dropout": dec.dropout, "gumbel_temp": model_cfg.gumbel_tau, "train_hard_sample": False,
+        "teacher_forcing_steps": -1, "val_teacher_forcing_steps": -1, "normalize_kl": True, "normalize_nll": True,
+        "nll_loss_type": "gaussian", "prior_variance": model_cfg.nll_variance, "kl_coef": 1.0,
+        "add_uniform_prior": model_cfg.sparsity_mix > 0, "no_edge_prior": model_cfg.no_edge_prob,
+    }  # fmt: skip
+
+
+def interleaved_timing(
+    steps: Mapping[str, Callable[[], Any]],
+    rounds: int,
+    iters: int,
+    warmup: int,
+    device: str = "cpu",
+    clock: Callable[[], float] = time.perf_counter,
+) -> dict[str, list[float]]:
+    """Seconds per call of each function, one value per round: ``warmup`` untimed calls of each, then
+    ``rounds`` rounds of ``iters`` timed calls of each in turn. The order rotates by one every round, so no
+    function always runs first (or right after the same neighbour) and a slow spell of the machine falls on
+    all of them alike. -> {name: [s/call of round 0, round 1, ...]}."""
+    sync = torch.cuda.synchronize if device == "cuda" else (lambda: None)
+    names = list(steps)
+    for name in names:
+        for _ in range(warmup):
+            steps[name]()
+    out: dict[str, list[float]] = {name: [] for name in names}
+    for r in range(rounds):
+        k = r % len(names)
+        for name in names[k:] + names[:k]:
+            sync()
+            start = clock()
+            for _ in range(iters):
+                steps[name]()
+            sync()
+            out[name].append((clock() - start) / iters)
+    return out
+
+
+def speedups(per_round: Mapping[str, list[float]], baseline: str) -> dict[str, Any]:
+    """From :func:`interleaved_timing`'s rounds: each function's median s/call, and every other function's
+    speed-up over ``baseline`` (baseline time / its time) per round, paired within the round, and their median
+    (the headline: a pairing within rounds cancels the machine's slow drifts)."""
+    out: dict[str, Any] = {"step_s": {k: statistics.median(v) for k, v in per_round.items()},
+                           "step_s_per_round": {k: list(v) for k, v in per_round.items()},
+                           "speedup": {}, "speedup_per_round": {}}
+    for name, times in per_round.items():
+        if name != baseline:
+            ratios = [b / t for b, t in zip(per_round[baseline], times, strict=True)]
+            out["speedup_per_round"][name] = ratios
+            out["speedup"][name] = statistics.median(ratios)
+    return out
+
+
+def _reference_step(ref: nn.Module, opt: torch.optim.Optimizer, x: torch.Tensor) -> None:
+    """The reference's training step as its training script takes it (without gradient clipping, like ours).
+    x: [B, T, N, D]."""
+    loss = ref.calculate_loss(x, is_train=True, return_logits=True)[0]
+    loss.backward()
+    opt.step()
+    opt.zero_grad()
+
+
+@contextlib.contextmanager
+def _reference_on_path(checkout: Path) -> Any:
+    """The checkout's ``dnri`` package importable for the duration."""
+    sys.path.insert(0, str(checkout))
+    try:
+        yield
+    finally:
+        sys.path.remove(str(checkout))
+
+
+def _checkout_commit(checkout: Path) -> str | None:
+    try:
+        proc = subprocess.run(["git", "-C", str(checkout), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=10, check=False)
+    except OSError:
+        return None
+    return proc.stdout.strip() or None
+
+
+def compare_with_reference(
+    checkout: Path,
+    names: tuple[str, ...] = REFERENCE_CASES,
+    size: str = "full",
+    rounds: int = 4,
+    iters: int = 2,
+    warmup: int = 1,
+    device: str = "cpu",
+    threads: int | None = None,
+) -> dict[str, Any]:
+    """Time the public DNRI code's training step and ours on the same random clips, in this one process.
+
+    For each case of ``names`` (:func:`cases`' settings, shrunk by ``size``): the reference step is its training
+    script's (``calculate_loss(inputs, is_train=True)``'s loss, backward, an Adam step, zero_grad); ours is
+    :func:`_train_step` in fp32 and in bf16 autocast; both with Adam at lr 5e-4. The three alternate in rounds
+    (:func:`interleaved_timing`). -> the results JSON's ``reference`` section: per case the batch, N, T, the
+    median s/step of ``reference``, ``fp32`` and ``bf16`` with every round's value, and the speed-ups
+    (reference time / ours) with every round's value; the torch version and thread count (``threads``: set
+    it first; None keeps torch's default)."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+    checkout = Path(checkout).resolve()
+    if not (checkout / "dnri" / "models" / "dnri.py").is_file():
+        raise FileNotFoundError(f"{checkout}: not a checkout of cgraber/cvpr_dNRI (no dnri/models/dnri.py)")
+    scale = REFERENCE_SIZES[size]
+    by_name = {c.name: c for c in cases()}
+    out: dict[str, Any] = {}
+    with _reference_on_path(checkout):
+        from dnri.models.dnri import DNRI  # the reference, imported from the checkout
+
+        for name in names:
+            case = by_name[name]
+            batch_size, steps = scale.get("batch", case.batch), scale.get("steps", case.steps)
+            torch.manual_seed(0)
+            ours, model_cfg = build_model([*case.overrides, *scale.get("overrides", [])])
+            ours = ours.to(device).train()
+            params = reference_params(model_cfg, case.agents, device)
+            with contextlib.redirect_stdout(sys.stderr):  # it prints its prior on construction
+                ref = DNRI(params).to(device).train()
+            batch = _random_batch(Case(name, [], batch_size, case.agents, steps), device)
+            opt_ref = torch.optim.Adam([p for p in ref.parameters() if p.requires_grad], lr=5e-4)
+            opt_ours = torch.optim.Adam(ours.parameters(), lr=5e-4)
+
+            fns: dict[str, Callable[[], Any]] = {
+                "reference": lambda m=ref, o=opt_ref, x=batch["states"]: _reference_step(m, o, x),
+                "fp32": lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b),
+                "bf16": lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b, "bf16"),
+            }
+            timing = speedups(interleaved_timing(fns, rounds, iters, warmup, device), "reference")
+            out[name] = {
+                "batch": batch_size, "agents": case.agents, "steps": steps, "size": size,
+                "overrides": [*case.overrides, *scale.get("overrides", [])], "reference_params": params,
+                "rounds": rounds, "iters": iters, "warmup": warmup,
+                "samples_per_s": {k: batch_size / v for k, v in timing["step_s"].items()}, **timing,
+                "device": device, "threads": torch.get_num_threads(), "torch": torch.__version__,
+            }  # fmt: skip
+    return {"checkout": str(checkout), "commit": _checkout_commit(checkout), "cases": out}
 
 
 def benchmark_preprocess(tmpdir: str | Path | None = None, minutes: float = 20.0, num_tracks: int = 300,
@@ -250,18 +446,19 @@ def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, An
     }  # fmt: skip
 
 
-def _worker(case: Case, device: str, queue: mp.Queue) -> None:
+def _worker(fn: Callable[..., dict[str, Any]], args: tuple[Any, ...], failed: dict[str, Any], queue: mp.Queue) -> None:
     tune_allocator()
     try:
-        queue.put(run_case(case, device))
+        queue.put(fn(*args))
     except Exception as e:  # noqa: BLE001 - a failed case is reported as such and the others still run
-        queue.put({"name": case.name, "kind": case.kind, "error": f"{type(e).__name__}: {e}"})
+        queue.put({**failed, "error": f"{type(e).__name__}: {e}"})
 
 
-def _run_isolated(case: Case, device: str) -> dict[str, Any]:
+def _isolated(fn: Callable[..., dict[str, Any]], args: tuple[Any, ...], failed: dict[str, Any]) -> dict[str, Any]:
+    """``fn(*args)`` in a fresh subprocess; on failure ``failed`` with an ``error``."""
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    proc = ctx.Process(target=_worker, args=(case, device, queue))
+    proc = ctx.Process(target=_worker, args=(fn, args, failed, queue))
     proc.start()
     while True:
         try:
@@ -269,10 +466,14 @@ def _run_isolated(case: Case, device: str) -> dict[str, Any]:
             break
         except Empty:
             if not proc.is_alive():  # killed (e.g. out of memory) before it could report
-                record = {"name": case.name, "kind": case.kind, "error": f"worker exited with code {proc.exitcode}"}
+                record = {**failed, "error": f"worker exited with code {proc.exitcode}"}
                 break
     proc.join()
     return record
+
+
+def _run_isolated(case: Case, device: str) -> dict[str, Any]:
+    return _isolated(run_case, (case, device), {"name": case.name, "kind": case.kind})
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -281,12 +482,47 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
     parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--reference", type=Path, default=None,
+                        help="a checkout of cgraber/cvpr_dNRI: also time its training step against ours (the "
+                        "comparisons are named reference/<case>, so --only reference runs them alone)")
+    parser.add_argument("--reference-size", choices=sorted(REFERENCE_SIZES), default="full",
+                        help="full: the benchmark's sizes; tiny: toy sizes, a quick check that the comparison runs")
+    parser.add_argument("--reference-rounds", type=int, default=4, help="alternating rounds of the comparison")
+    parser.add_argument("--reference-iters", type=int, default=2, help="timed steps of each per round")
+    parser.add_argument("--reference-threads", type=int, default=None,
+                        help="torch threads of the comparison (default: torch's, as the other cases)")
     args = parser.parse_args(argv)
     meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None}
+
+    def selected(name: str) -> bool:
+        return not args.only or any(s in name for s in args.only)
+
+    reference: dict[str, Any] | None = None
+    names = tuple(n for n in REFERENCE_CASES if selected(f"reference/{n}"))
+    if args.reference is not None and names:
+        reference = _isolated(compare_with_reference, (args.reference, names, args.reference_size,
+                                                       args.reference_rounds, args.reference_iters, 1, args.device,
+                                                       args.reference_threads),
+                              {"checkout": str(args.reference)})
+        if "error" in reference:
+            print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
+        for name, r in reference.get("cases", {}).items():
+            print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours "
+                  f"{r['step_s']['fp32'] * 1000:.1f} (fp32) {r['step_s']['bf16'] * 1000:.1f} (bf16): speed-up "
+                  f"{r['speedup']['fp32']:.2f} / {r['speedup']['bf16']:.2f}", flush=True)
+
+    def write(records: list[dict[str, Any]]) -> None:
+        document = {"meta": meta, "summary": summary(records, reference), "records": records}
+        if reference is not None:
+            document["reference"] = reference
+        atomic_write_text(args.out, json.dumps(document, indent=2))
+
     records: list[dict[str, Any]] = []
+    if reference is not None:
+        write(records)
     for case in cases():
-        if args.only and not any(s in case.name for s in args.only):
+        if not selected(case.name):
             continue
         record = _run_isolated(case, args.device)
         records.append(record)
@@ -295,10 +531,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         else:
             print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
                   f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
-        # Written after every case: an interrupted benchmark keeps what it measured.
-        atomic_write_text(args.out, json.dumps({"meta": meta, "summary": summary(records), "records": records},
-                                               indent=2))
-    derived = summary(records)
+        write(records)  # after every case: an interrupted benchmark keeps what it measured
+    derived = summary(records, reference)
     for key, value in derived.items():
         print(f"{key:<44} {value:.2f}")
     if any(r["name"].startswith("scale/") for r in records):

@@ -9,20 +9,28 @@ from typing import Any
 
 import numpy as np
 
-# The public DNRI implementation's training throughput, measured by running it on the same 2-core CPU.
+# The public DNRI implementation's training throughput, measured by running it on the same 2-core CPU on
+# another day: the speed-ups' fallback when a run did not time the reference itself (``--reference``).
 REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 51.0, "train/dnri/recurrent": 15.0}
 
 
-def summary(records: list[dict[str, Any]]) -> dict[str, Any]:
+def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = None) -> dict[str, Any]:
     """Derived figures: DIDER's step time over DNRI's (same run); the growth exponents of the step time in
     N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets: N^2, i.e. 1 in
     edges, and 1 in T); speed-ups over the reference implementation; and the roofline, the samples/s a
-    step would reach doing only its matmuls at the measured ``gemm/*`` rate."""
+    step would reach doing only its matmuls at the measured ``gemm/*`` rate.
+
+    ``reference``: the results JSON's ``reference`` section (:func:`dider.bench.compare_with_reference`).
+    A case it measured takes its speed-ups from there (reference and ours timed in the same process,
+    alternating); the others divide this run's samples/s by :data:`REFERENCE_SAMPLES_PER_S`."""
     by = {r["name"]: r for r in records if "error" not in r}
+    measured = (reference or {}).get("cases", {})
     out: dict[str, Any] = {}
     for name, ref in REFERENCE_SAMPLES_PER_S.items():
         for variant in ("", "/bf16"):
-            if name + variant in by:
+            if name in measured:  # ours in bf16 against the reference in fp32, as the fallback's
+                out[f"speedup_over_reference/{name}{variant}"] = measured[name]["speedup"][variant[1:] or "fp32"]
+            elif name + variant in by:
                 out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
     for dtype in ("fp32", "bf16"):
         if f"gemm/{dtype}" not in by:

@@ -111,6 +111,8 @@ RULES: dict[str, Rule] = {
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.decoder_edges": boolean,
+    "model.encoder.checkpoint": boolean,
+    "model.decoder.checkpoint": boolean,
     "model.duration.max_segments": at_least(1),
     "model.duration.source": one_of("past", "future"),
     "model.duration.min_duration": at_least(1, " step"),

@@ -1,6 +1,8 @@
 """Decoder plugins: predict x_{t+1} from x_t and the sampled edge types z_t.
 
 Edge type 0 is "no interaction" when ``skip_first``: it sends no message and its MLP is never built.
+With ``checkpoint``, teacher-forced training recomputes each step's message passing in the backward pass
+instead of storing its edge-sized activations ([B, E, H] per step): only the per-agent aggregate is kept.
 Shapes: x [B, T, N, D], z [B, T, E, K] (one-hot or soft), mask [B, T, N] bool or None.
 """
 
@@ -10,7 +12,8 @@ import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_mask
-from dider.models.layers import PairLinear, TypedLinear
+from dider.models.layers import PairLinear, TypedLinear, checkpointed
+from dider.validation import require
 
 
 class _MessagePassing(nn.Module):
@@ -47,9 +50,17 @@ class MarkovDecoder(nn.Module):
     stateless = True
 
     def __init__(
-        self, num_types: int, input_dim: int = 4, hidden: int = 256, skip_first: bool = True, dropout: float = 0.0
+        self,
+        num_types: int,
+        input_dim: int = 4,
+        hidden: int = 256,
+        skip_first: bool = True,
+        dropout: float = 0.0,
+        checkpoint: bool = False,
     ) -> None:
         super().__init__()
+        require({"model.decoder.checkpoint": checkpoint})
+        self.checkpoint = checkpoint
         self.messages = _MessagePassing(num_types, input_dim, hidden, skip_first, nn.ReLU(), dropout)
         self.out = nn.Sequential(
             nn.Linear(input_dim + hidden, hidden), nn.ReLU(), nn.Dropout(dropout),
@@ -57,12 +68,24 @@ class MarkovDecoder(nn.Module):
             nn.Linear(hidden, input_dim),
         )  # fmt: skip
 
-    def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Teacher-forced prediction of every next state. x [B, T, N, D], z [B, T, E, K] -> [B, T, N, D]."""
+    def _aggregate(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """Messages summed over senders: x [..., N, D], z [..., E, K], mask [..., N] or None -> [..., N, H]."""
         msg = self.messages(x, z)
         if mask is not None:
             msg = msg * edge_mask(mask).unsqueeze(-1).to(msg.dtype)
-        agg = aggregate_to_receivers(msg, x.shape[-2])
+        return aggregate_to_receivers(msg, x.shape[-2])
+
+    def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Teacher-forced prediction of every next state. x [B, T, N, D], z [B, T, E, K] -> [B, T, N, D]."""
+        if self.checkpoint and torch.is_grad_enabled():
+            # One checkpoint per step, so that the backward pass re-creates one step's edge activations at a
+            # time, not the whole clip's at once. unbind, not [:, s]: see RecurrentDecoder.forward. With dropout
+            # the per-step calls draw other (equally distributed) masks than the one batched call would.
+            masks = [None] * x.shape[1] if mask is None else mask.unbind(1)
+            steps = zip(x.unbind(1), z.unbind(1), masks, strict=True)
+            agg = torch.stack([checkpointed(self._aggregate, *step) for step in steps], dim=1)
+        else:
+            agg = self._aggregate(x, z, mask)
         return x + self.out(torch.cat([x, agg], dim=-1))
 
     def init_state(self, batch: int, num_agents: int, ref: torch.Tensor) -> None:
@@ -72,7 +95,7 @@ class MarkovDecoder(nn.Module):
         self, x_t: torch.Tensor, z_t: torch.Tensor, state: None, mask_t: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, None]:
         """One step: x_t [B, N, D], z_t [B, E, K] -> prediction of x_{t+1} [B, N, D]."""
-        return self.forward(x_t, z_t, mask_t), None
+        return x_t + self.out(torch.cat([x_t, self._aggregate(x_t, z_t, mask_t)], dim=-1)), None
 
 
 class RecurrentDecoder(nn.Module):
@@ -82,9 +105,17 @@ class RecurrentDecoder(nn.Module):
     stateless = False
 
     def __init__(
-        self, num_types: int, input_dim: int = 4, hidden: int = 256, skip_first: bool = True, dropout: float = 0.0
+        self,
+        num_types: int,
+        input_dim: int = 4,
+        hidden: int = 256,
+        skip_first: bool = True,
+        dropout: float = 0.0,
+        checkpoint: bool = False,
     ) -> None:
         super().__init__()
+        require({"model.decoder.checkpoint": checkpoint})
+        self.checkpoint = checkpoint
         self.messages = _MessagePassing(num_types, hidden, hidden, skip_first, nn.Tanh(), dropout)
         self.type_norm = float(num_types - 1 if skip_first else num_types)
         self.input_gates = nn.Linear(input_dim, 3 * hidden)  # W_r, W_i, W_n with bias
@@ -99,18 +130,26 @@ class RecurrentDecoder(nn.Module):
     def init_state(self, batch: int, num_agents: int, ref: torch.Tensor) -> torch.Tensor:
         return ref.new_zeros(batch, num_agents, self.hidden)
 
-    def _update(
-        self, gates_x: torch.Tensor, z_t: torch.Tensor, h: torch.Tensor, mask_t: torch.Tensor | None
-    ) -> torch.Tensor:
-        """gates_x [B, N, 3H] (input projections), z_t [B, E, K], h [B, N, H] -> new h [B, N, H]."""
+    def _aggregate(self, h: torch.Tensor, z_t: torch.Tensor, mask_t: torch.Tensor | None) -> torch.Tensor:
+        """Mean message over present senders: h [B, N, H], z_t [B, E, K], mask_t [B, N] or None -> [B, N, H]."""
         n = h.shape[-2]
         msg = self.messages(h, z_t) / self.type_norm
         if mask_t is None:
-            agg = aggregate_to_receivers(msg, n) / max(n - 1, 1)
-        else:
-            em = edge_mask(mask_t).unsqueeze(-1).to(msg.dtype)
-            count = aggregate_to_receivers(em, n).clamp_min(1.0)
-            agg = aggregate_to_receivers(msg * em, n) / count
+            return aggregate_to_receivers(msg, n) / max(n - 1, 1)
+        em = edge_mask(mask_t).unsqueeze(-1).to(msg.dtype)
+        count = aggregate_to_receivers(em, n).clamp_min(1.0)
+        return aggregate_to_receivers(msg * em, n) / count
+
+    def _update(
+        self,
+        gates_x: torch.Tensor,
+        z_t: torch.Tensor,
+        h: torch.Tensor,
+        mask_t: torch.Tensor | None,
+        checkpoint: bool = False,
+    ) -> torch.Tensor:
+        """gates_x [B, N, 3H] (input projections), z_t [B, E, K], h [B, N, H] -> new h [B, N, H]."""
+        agg = checkpointed(self._aggregate, h, z_t, mask_t) if checkpoint else self._aggregate(h, z_t, mask_t)
         xr, xi, xn = gates_x.chunk(3, dim=-1)
         mr, mi, mn = self.message_gates(agg).chunk(3, dim=-1)
         r, i = torch.sigmoid(xr + mr), torch.sigmoid(xi + mi)
@@ -128,8 +167,9 @@ class RecurrentDecoder(nn.Module):
         gates_x, z_steps = self.input_gates(x).unbind(1), z.unbind(1)
         mask_steps = [None] * t if mask is None else mask.unbind(1)
         hs = []
+        checkpoint = self.checkpoint and torch.is_grad_enabled()
         for s in range(t):
-            h = self._update(gates_x[s], z_steps[s], h, mask_steps[s])
+            h = self._update(gates_x[s], z_steps[s], h, mask_steps[s], checkpoint)
             hs.append(h)
         return x + self.out(torch.stack(hs, dim=1))
 

@@ -12,8 +12,9 @@ import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_mask
-from dider.models.layers import MLP, PairLinear, head
+from dider.models.layers import MLP, PairLinear, checkpointed, head
 from dider.models.rnn import bidirectional_lstm
+from dider.validation import require
 
 LSTMState = tuple[torch.Tensor, torch.Tensor]
 
@@ -71,8 +72,13 @@ class GNNLSTMEncoder(nn.Module):
         head_layers: int = 3,
         dropout: float = 0.0,
         batch_norm: bool = True,
+        checkpoint: bool = False,
     ) -> None:
+        """checkpoint: in training, recompute the GNN embedding's activations in the backward pass instead of
+        storing them (less memory for large scenes, one more embedding forward per step; same gradients)."""
         super().__init__()
+        require({"model.encoder.checkpoint": checkpoint})
+        self.checkpoint = checkpoint
         self.embed = GNNEdgeEmbedding(input_dim, hidden, dropout, batch_norm)
         self.forward_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
         self.reverse_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
@@ -84,7 +90,14 @@ class GNNLSTMEncoder(nn.Module):
 
         The GNN runs time-major so that every frame's edge rows are contiguous for the LSTMs: no transposed
         copy forwards, and no transposed gradient into the batch norms backwards."""
-        emb = self.embed(x.transpose(0, 1), None if mask is None else mask.transpose(0, 1))  # [T, B, E, H]
+        x, mask = x.transpose(0, 1), None if mask is None else mask.transpose(0, 1)
+        if self.checkpoint and torch.is_grad_enabled():
+            # All frames in one checkpoint, not one per frame: the batch norms' statistics span every frame,
+            # and this call comes first in the forward pass, so its re-run in the backward pass comes last,
+            # when the decoder's and the LSTMs' activations are already freed.
+            emb = checkpointed(self.embed, x, mask)  # [T, B, E, H]
+        else:
+            emb = self.embed(x, mask)
         return emb.flatten(1, 2)
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> EncoderOutput:

@@ -7,10 +7,13 @@ instead of N(N-1) times, which is where most of the encoder's and decoders' arit
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable, Iterator
 
 import torch
 from torch import nn
+from torch.utils.checkpoint import checkpoint
 
 from dider.graph import pair_sum
 
@@ -33,6 +36,32 @@ class _ContiguousGrad(torch.autograd.Function):
         return grad.contiguous()
 
 
+class _Recompute:
+    """Whether a checkpointed forward is being re-run for its backward (see :func:`checkpointed`)."""
+
+    depth = 0
+
+
+@contextlib.contextmanager
+def _recomputing() -> Iterator[None]:
+    _Recompute.depth += 1
+    try:
+        yield
+    finally:
+        _Recompute.depth -= 1
+
+
+def checkpointed(fn: Callable[..., torch.Tensor], *args: torch.Tensor | None) -> torch.Tensor:
+    """``fn(*args)`` without storing its intermediate activations: the backward pass re-runs ``fn`` for them.
+
+    Non-reentrant checkpointing: the RNG (dropout) and autocast state of the first run are restored for the
+    re-run, so the gradients are those of the plain call. Batch norms in ``fn`` normalise the re-run with the
+    same batch statistics but leave their running statistics alone: they were updated once, by the first run.
+    """
+    return checkpoint(fn, *args, use_reentrant=False,
+                      context_fn=lambda: (contextlib.nullcontext(), _recomputing()))
+
+
 class FlatBatchNorm(nn.BatchNorm1d):
     """BatchNorm1d over every leading dimension: [..., F] -> [..., F].
 
@@ -42,7 +71,14 @@ class FlatBatchNorm(nn.BatchNorm1d):
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = super().forward(x.reshape(-1, x.shape[-1]))
+        flat = x.reshape(-1, x.shape[-1])
+        if self.training and self.track_running_stats and _Recompute.depth:
+            # The re-run updates throw-away copies of the running statistics, not the statistics themselves
+            # (copies rather than None: the re-run must save the same tensors for backward as the first run).
+            out = nn.functional.batch_norm(flat, self.running_mean.clone(), self.running_var.clone(), self.weight,
+                                           self.bias, True, self.momentum or 0.0, self.eps)
+        else:
+            out = super().forward(flat)
         return _ContiguousGrad.apply(out).view(x.shape)
 
 
