@@ -38,6 +38,9 @@ def test_run_exports_every_test_clip(make_cfg, tmp_path):
     train(make_cfg(["model=dider", "trainer.max_epochs=1"], out=out))
     blob = json.loads((out / "segments.json").read_text())
     record = json.loads((out / "metrics.json").read_text())
+    from dider import explore  # the explorer reads the test clips of a synthetic run (no source ids)
+
+    assert explore.main([str(out)]) == 0 and (out / "explorer.html").stat().st_size > 0
     assert len(blob["clips"]) == record["config"]["data"]["num_test"]
     steps = record["config"]["data"]["num_steps"] - 1
     for clip in blob["clips"]:

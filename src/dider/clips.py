@@ -193,6 +193,8 @@ def explore_arrays(arrays: Mapping[str, torch.Tensor], dm: Any) -> dict[str, tor
     """Stacked clips as ``clips.npz`` holds them: ``states`` become ``positions`` [S, T, N, 2] in the data's
     units (the data module's normaliser undone; zeros where absent); other keys are kept."""
     out = {k: v for k, v in arrays.items() if k != "states"}
+    if "clip" not in out:  # a data set without source ids (synthetic): the clip's position in its split
+        out["clip"] = torch.arange(arrays["mask"].shape[0])
     if "states" in arrays:
         norm = getattr(dm, "normalizer", None)
         states = norm.denormalize(arrays["states"]) if norm is not None else arrays["states"]
