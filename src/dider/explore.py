@@ -22,14 +22,15 @@ import base64
 import io
 import json
 import math
-import os
 import sys
-import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from dider.graph import edge_index
+from dider.io import atomic_write_text
 
 REQUIRED_KEYS = ("positions", "mask", "segments", "probs", "per_step", "prior", "clip", "num_types", "model")
 # Timeline strip order: the reference first, then the posterior before and after segmentation, then the prior.
@@ -113,12 +114,6 @@ def type_colors(num_types: int) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------------- encoding
-
-
-def edge_pairs(num_agents: int) -> tuple[np.ndarray, np.ndarray]:
-    """Sender and receiver of every directed edge, sender-major without self edges (as :mod:`dider.graph`)."""
-    send, recv = np.nonzero(~np.eye(num_agents, dtype=bool))
-    return send, recv
 
 
 def rle(values: np.ndarray) -> list[int | list[int]]:
@@ -211,7 +206,7 @@ def clip_payload(data: dict[str, np.ndarray], s: int) -> dict[str, Any]:
     decimals = coord_decimals(pos[mask])
     agents = [agent_payload(pos[:, k], mask[:, k], k, int(ids[k]) if ids[k] >= 0 else k, decimals)
               for k in range(num_agents) if mask[:, k].any()]  # fmt: skip
-    send, recv = edge_pairs(num_agents)
+    send, recv = (v.numpy() for v in edge_index(num_agents))
     edges = [edge_payload(data, s, e, int(a), int(b)) for e, (a, b) in enumerate(zip(send, recv, strict=True))]
     background = optional_int(data, "background_of", s)
     return {"row": s, "clip": int(data["clip"][s]), "scene": optional_int(data, "scene", s),
@@ -275,21 +270,6 @@ def render_html(payload: dict[str, Any], title: str) -> str:
     return PAGE.replace("__TITLE__", escaped).replace("/*__DATA__*/null", blob)
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Temp file + rename: a reader never sees half a page. (Not dider.io: that imports torch, which this
-    tool does not need and which takes seconds to load.)"""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the page from a web server or another user
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_explorer(run_dir: Path, out: Path | None = None, max_clips: int = 50,
                    clips: list[int] | None = None) -> Path:
     """Build the explorer page of ``run_dir``; returns its path."""
@@ -299,7 +279,7 @@ def write_explorer(run_dir: Path, out: Path | None = None, max_clips: int = 50,
     rows, note = select_rows(data["positions"].shape[0], clips, max_clips)
     out = Path(out) if out is not None else run_dir / "explorer.html"
     title = f"{data['model']} interactions: {run_dir.resolve().name}"
-    write_text_atomic(out, render_html(page_payload(data, path, rows, note), title))
+    atomic_write_text(out, render_html(page_payload(data, path, rows, note), title))
     return out
 
 

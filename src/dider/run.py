@@ -216,6 +216,8 @@ def format_table(metrics: dict[str, float]) -> str:
 def predict(cfg: DictConfig) -> list[Path]:
     """mode=predict: the checkpoint's model (its own config and normaliser, whatever ``model=`` says) on every
     clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.prediction`). Returns them."""
+    validate_config(cfg)
+    L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = Path(str(cfg.ckpt_path)).expanduser()
     trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
     out_dir = Path(cfg.output_dir)
@@ -240,6 +242,11 @@ def predict(cfg: DictConfig) -> list[Path]:
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit (mode=train) and test, or test a checkpoint (mode=eval). Returns the test metrics."""
+    return fit_and_score(cfg)[0]
+
+
+def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
+    """:func:`train`, also returning ``optimized_metric``'s value (metrics.json's ``objective``)."""
     validate_config(cfg)
     started = time.time()
     if cfg.threads:
@@ -270,7 +277,8 @@ def _run_dir_given() -> bool:
         o.startswith(("hydra.run.dir=", "hydra.sweep.dir=")) for o in hydra_cfg.overrides.hydra)
 
 
-def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: float) -> dict[str, float]:
+def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
+                  started: float) -> tuple[dict[str, float], float | None]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
     model = RelationalVAEModule.from_config(cfg.model)
@@ -302,6 +310,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     for lg in loggers if trainer.is_global_zero else []:
         if isinstance(lg, TensorBoardLogger):  # only a finished run enters the HParams tab: no NaN rows of failed ones
             lg.log_hyperparams(_hparams(cfg), metrics={k: metrics.get(k, math.nan) for k in hparam_metrics(cfg)})
+    objective = _objective(cfg, trainer, callbacks, metrics)
     if trainer.is_global_zero:
         record = {
             "metrics": metrics,
@@ -309,7 +318,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
             "seed": int(cfg.seed),
             "model": cfg.model.get("name", "model"),
             "checkpoint": ckpt if cfg.mode == "eval" else (best or None),
-            "objective": _objective(cfg, trainer, callbacks, metrics),
+            "objective": objective,
             "provenance": provenance(started, str(trainer.strategy.root_device)),
             "config": OmegaConf.to_container(cfg, resolve=True),
         }
@@ -319,7 +328,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         figs = out_dir / "figures"
         if figs.exists():
             print(f"figures: {figs}  (TensorBoard: tensorboard --logdir {out_dir})")
-    return metrics
+    return metrics, objective
 
 
 def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metrics: dict[str, float]) -> float | None:
@@ -340,20 +349,17 @@ def main(cfg: DictConfig) -> float | None:
     """The app. Returns ``optimized_metric`` (a validation metric by default), which Hydra sweepers
     (e.g. the Optuna sweeper) minimise; never a test metric, so a search cannot tune on the test set."""
     tune_allocator()
-    if cfg.mode == "predict":
-        validate_config(cfg)
-        L.seed_everything(cfg.seed, workers=True, verbose=False)
-        predict(cfg)
-        return None
     try:
-        train(cfg)
+        if cfg.mode == "predict":
+            predict(cfg)
+            return None
+        objective = fit_and_score(cfg)[1]
     except Exception as e:  # into the run's own log and a failed.json beside it, then out as ever
         log.exception("run failed: %s", e)
         if Path(cfg.output_dir).is_dir() and is_rank_zero():
             mark_failed(Path(cfg.output_dir), e)
         raise
-    record = json.loads((Path(cfg.output_dir) / "metrics.json").read_text()) if cfg.mode == "train" else {}
-    return record.get("objective")
+    return objective if cfg.mode == "train" else None
 
 
 if __name__ == "__main__":

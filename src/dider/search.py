@@ -25,7 +25,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dider.io import atomic_write_text
-from dider.run import train
+from dider.run import fit_and_score
 
 log = logging.getLogger(__name__)
 KINDS = ("float", "int", "categorical")
@@ -97,8 +97,7 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
         values = suggest(trial, space)
         run_dir = out / f"trial_{trial.number:03d}"
         cfg = compose_run([*given, *(f"{k}={v}" for k, v in values.items())], run_dir)
-        train(cfg)
-        value = json.loads((run_dir / "metrics.json").read_text()).get("objective")
+        value = fit_and_score(cfg)[1]
         value = math.inf if value is None or not math.isfinite(value) else float(value)
         rows.append({"trial": trial.number, "value": value, **values, "dir": str(run_dir)})
         atomic_write_text(out / "search.csv", pd.DataFrame(rows).to_csv(index=False))

@@ -156,13 +156,11 @@ class TrainedModel:
         if steps < 1:
             raise ValueError(f"steps={steps}: must be >= 1")
         self.network.eval()
-        last = m[:, burn_in - 1 : burn_in]
-        future_mask = torch.cat([m[:, :burn_in], last.expand(-1, steps, -1)], dim=1)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.config.get("eval_seed", 0) if seed is None else seed)
-            pred = self.network.rollout(states[:, :burn_in], future_mask, burn_in, steps)[0]
+            pred = self.network.forecast_after(states, m, burn_in, steps)
         xy = self.normalizer.denormalize(pred.float().cpu())[..., :2]
-        return xy.masked_fill(~last.cpu()[..., None], float("nan")).numpy()
+        return xy.masked_fill(~m[:, burn_in - 1, None, :, None].cpu(), float("nan")).numpy()
 
 
 def _numpy(value: ArrayLike) -> np.ndarray:

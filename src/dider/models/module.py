@@ -175,10 +175,7 @@ class RelationalVAEModule(L.LightningModule):
         x, mask = batch["states"], batch["mask"]
         out: dict[str, Any] = {"states": x, "mask": mask, "source": batch.get("source", {})}
         if self.predict_forecast is not None:  # first: its sampled edges are the first draws from eval_seed
-            burn_in, steps = self.predict_forecast
-            future = mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)
-            out["forecast"] = self.model.rollout(x[:, :burn_in], torch.cat([mask[:, :burn_in], future], 1),
-                                                 burn_in, steps)[0]
+            out["forecast"] = self.model.forecast_after(x, mask, *self.predict_forecast)
         return out | self.model.describe(self.model.infer(batch, hard=True), mask)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:

@@ -335,6 +335,13 @@ class RelationalVAE(nn.Module):
                 cur = out
         return torch.stack(preds, dim=1), torch.stack(types, dim=2)
 
+    @torch.no_grad()
+    def forecast_after(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, steps: int) -> torch.Tensor:
+        """Forecast where nothing after the burn-in is known (new data, prediction): the agents present at the
+        burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D]."""
+        future = mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)
+        return self.rollout(x[:, :burn_in], torch.cat([mask[:, :burn_in], future], dim=1), burn_in, steps)[0]
+
     def forward(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"
     ) -> torch.Tensor:
