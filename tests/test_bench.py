@@ -112,3 +112,58 @@ def test_reference_comparison_at_tiny_sizes(tmp_path):
             assert doc["summary"][f"speedup_over_reference/{name}{suffix}"] == case["speedup"][variant]
     assert section["cases"]["train/dnri/synth"]["reference_params"]["decoder_type"] == "ref_mlp"
     assert section["cases"]["train/dnri/recurrent"]["reference_params"]["add_uniform_prior"] is False
+
+
+def test_largest_agents_finds_the_exact_bound_of_a_quadratic_peak():
+    """A fake step whose peak is 500 + 2 N (N - 1) MB: the largest N within 3000 MB is 35 (2880; 36: 3020)."""
+    from dider.bench_memory import largest_agents
+
+    probed = []
+
+    def probe(n):
+        probed.append(n)
+        return 500.0 + 2.0 * n * (n - 1)
+
+    found = largest_agents(probe, 3000.0, ceiling_mb=1e9, start={10: probe(10), 20: probe(20)})
+    assert found["largest_agents"] == 35 and found["bound"] == "measured"
+    assert found["probes"][35] <= 3000 < found["probes"][36]
+    assert len(probed) <= 2 + 4  # the fitted line aims at the bound: a few probes, not a scan
+
+
+def test_largest_agents_never_runs_a_probe_predicted_over_the_machine():
+    """With the machine's ceiling at 2000 MB, N = 36 (predicted 3020 MB) must not run: the bound is predicted."""
+    from dider.bench_memory import largest_agents
+
+    def probe(n):
+        assert 500.0 + 2.0 * n * (n - 1) <= 2000.0, f"N = {n} was run"
+        return 500.0 + 2.0 * n * (n - 1)
+
+    found = largest_agents(probe, 3000.0, ceiling_mb=2000.0, start={10: probe(10)})
+    assert found["largest_agents"] == 27  # 500 + 2 * 27 * 26 = 1904; N = 28: 2012 > the ceiling, not run
+    assert found["bound"] == "predicted" and 28 in found["predicted"] and 28 not in found["probes"]
+    none = largest_agents(probe, 100.0, ceiling_mb=2000.0, start={10: probe(10)})
+    assert none["largest_agents"] is None  # even the smallest measured N is over the budget
+
+
+def test_time_to_result_runs_the_documented_job_and_reads_its_metrics(tmp_path, capsys):
+    """``--only result/demo --quick``: the demo's job at toy sizes, as its own process; the record has the wall
+    time and the model's edge recall and forecast error read back from the run's metrics.json."""
+    from dider.bench_result import RESULT_METRICS
+
+    out = tmp_path / "bench.json"
+    bench.main(["--only", "result/demo", "--quick", "--out", str(out)])
+    (record,) = json.loads(out.read_text())["records"]
+    assert record["name"] == "result/demo" and "error" not in record, record.get("error")
+    assert record["wall_s"] > 0 and record["runs"] == 1 and record["failed_runs"] == 0 and record["complete"]
+    assert record["command"] == "python -m dider.run experiment=demo" and record["quick"]
+    (label, values), = record["models"].items()
+    assert label == "dider"
+    assert set(RESULT_METRICS) <= set(values) and 0 <= values["test/edge_acc/posterior/none"] <= 1
+    assert "result/demo" in capsys.readouterr().out
+
+
+def test_result_cases_run_only_when_named(monkeypatch, tmp_path):
+    """A plain ``make bench`` must not start whole training jobs."""
+    monkeypatch.setattr(bench, "cases", lambda: [bench.Case("result/demo", [], 0, 0, 0, kind="result")])
+    monkeypatch.setattr(bench, "time_to_result", lambda *a, **k: pytest.fail("a result case ran unnamed"))
+    assert bench.main(["--out", str(tmp_path / "b.json")]) == []

@@ -15,7 +15,15 @@ import torch
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_sum
 
-from dider.metrics import BoundaryF1, DisplacementError, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+from dider.metrics import (
+    BoundaryF1,
+    DisplacementError,
+    EdgeAccuracy,
+    HorizonMSE,
+    InteractionRunLength,
+    PairConsistency,
+    SegmentStats,
+)
 
 L = torch.long
 
@@ -57,7 +65,9 @@ def assert_same_states(a: Metric, b: Metric) -> None:
 
 @pytest.mark.parametrize("make", [
     lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3), DisplacementError,
-], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "DisplacementError"])
+    InteractionRunLength,
+], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "DisplacementError",
+        "InteractionRunLength"])
 def test_every_state_is_a_sum(make: Callable[[], Metric]) -> None:
     """The module promises DDP safety by summing every state: what makes merge_state (and the all-reduce)
     exact, and what the by-hand merges below rely on."""
@@ -494,3 +504,22 @@ def test_displacement_error_empty_is_nan_and_merges() -> None:
     target = torch.randn(2, 3, 2, 4)
     first, second = [(pred[:1], target[:1], mask[:1])], [(pred[1:], target[1:], mask[1:])]
     assert_same_states(merged(DisplacementError, first, second), whole(DisplacementError, *first, *second))
+
+
+# ------------------------------------------------------------------------------------- InteractionRunLength
+def test_interaction_run_length_by_hand() -> None:
+    """Runs of one non-zero type, counted per edge; a type change inside a run starts a new run; -1 (absent)
+    and 0 are no run; a masked edge counts nothing."""
+    types = torch.tensor([[[0, 1, 1, 1, 0, 0],     # one run of 3
+                           [2, 2, 1, 1, 1, 0],     # runs of 2 (type 2) and 3 (type 1), from t = 0
+                           [-1, 1, -1, 0, 0, 1],   # two runs of 1
+                           [1, 1, 1, 1, 1, 1]]])   # masked below: must not count
+    m = InteractionRunLength()
+    m.update(types, torch.tensor([[True, True, True, False]]))
+    # steps 3 + 5 + 2 = 10, runs 1 + 2 + 2 = 5 -> 2.0
+    assert m.compute().item() == 2.0
+    m.update(torch.tensor([[[0, 0, 1, 1, 1, 1]]]))  # + 4 steps, + 1 run: 14 / 6
+    assert m.compute().item() == pytest.approx(14 / 6)
+    empty = InteractionRunLength()
+    empty.update(torch.zeros(2, 3, 5, dtype=torch.long))
+    assert empty.compute().isnan()

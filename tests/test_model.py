@@ -145,3 +145,21 @@ def test_checkpoint_flags_must_be_booleans(make_cfg):
         build(make_cfg, "model.encoder.checkpoint=yes")
     with pytest.raises(Exception, match="model.decoder.checkpoint=1"):
         build(make_cfg, "model.decoder.checkpoint=1")
+
+
+def test_prior_per_step_is_dnris_online_prior_and_dider_holds_its_segments(make_cfg):
+    """``test/edge_acc/prior_per_step`` reads the prior at every step: for DNRI exactly its online types; for
+    DIDER the online types hold each segment's first type, so they change only at segment starts."""
+    dnri = build(make_cfg, "model=dnri").eval()
+    h = dnri.encoder(*clip(b=8).values()).h_fwd
+    torch.testing.assert_close(dnri.online_types(h), dnri.prior(h).argmax(-1), rtol=0, atol=0)
+
+    dider = build(make_cfg, "model=dider").eval()
+    with torch.no_grad():  # a prior whose type follows the state, so per-step types vary within a segment
+        dider.prior.net[-1].weight.normal_(0, 5.0)
+    h = dider.encoder(*clip(b=8).values()).h_fwd
+    held, per_step = dider.online_types(h), dider.prior(h).argmax(-1)
+    changes = held[..., 1:] != held[..., :-1]
+    assert not torch.equal(held, per_step)
+    # every change of a held type is where the per-step prior picks a new segment's type
+    assert torch.equal(held[..., 1:][changes], per_step[..., 1:][changes])

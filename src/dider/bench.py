@@ -19,7 +19,10 @@ rounds (:func:`compare_with_reference`). The results JSON then has a ``reference
 speed-ups come from it instead of ``REFERENCE_SAMPLES_PER_S``. ``--reference-size tiny`` runs the same at toy
 sizes (a check that it works, not a measurement). The ``memory/*`` cases record the peak memory of one DNRI
 training step at the paper's widths as N grows, with the activation checkpointing of the encoder and the
-decoder off and on.
+decoder off and on, and ``memory/dnri/largest_N/*`` searches for the largest N whose step fits
+``--memory-limit-gb`` (:mod:`dider.bench_memory`). The ``result/*`` cases time a whole documented job, ``make
+demo``'s or the CPU-sized synthetic table, beside the edge accuracy it produced (:mod:`dider.bench_result`);
+they run only when ``--only`` names them.
 """
 
 from __future__ import annotations
@@ -48,6 +51,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 from torch import nn
 
+from dider.bench_memory import largest_agents
+from dider.bench_result import JOBS, time_to_result
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
@@ -66,7 +71,7 @@ class Case:
     iters: int = 5
     warmup: int = 2
     settings: dict[str, Any] = field(default_factory=dict)
-    kind: str = "train"  # train | rollout | generate | preprocess | load | gemm
+    kind: str = "train"  # train | rollout | generate | preprocess | load | gemm | largest | result
 
 
 # The encoder's edge-MLP matmul at batch 128, N = 3, T = 50: [B*T*E, 256] x [256, 256].
@@ -82,6 +87,41 @@ SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64
 # Peak memory of one DNRI step at the paper's widths (batch 8), activation checkpointing off and on.
 MEMORY_AGENTS = (10, 20, 30)
 CHECKPOINTING = ["model.encoder.checkpoint=true", "model.decoder.checkpoint=true"]
+
+
+def memory_case(agents: int, checkpoint: bool) -> Case:
+    """One DNRI training step at the paper's widths, batch 8, T 50: its peak is the figure."""
+    return Case(f"memory/dnri/N{agents:02d}/checkpoint_{'on' if checkpoint else 'off'}",
+                ["model=dnri", *(CHECKPOINTING if checkpoint else [])], 8, agents, 50, iters=1, warmup=0,
+                settings={"count_flops": False, "checkpoint": checkpoint})
+
+
+def _machine_memory_mb(device: str) -> float:
+    if device == "cuda":
+        return torch.cuda.get_device_properties(0).total_memory / 2**20
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**20
+
+
+def largest_case(case: Case, records: list[dict[str, Any]], device: str, limit_gb: float) -> dict[str, Any]:
+    """The largest N whose training step peaks within ``limit_gb`` (:func:`dider.bench_memory.largest_agents`),
+    starting from this run's fixed-N memory records of the same setting."""
+    checkpoint = bool(case.settings["checkpoint"])
+    saver = "on" if checkpoint else "off"
+    start = {r["settings"]["agents"]: r["peak_memory_mb"] for r in records
+             if r["name"].startswith("memory/dnri/N") and r["name"].endswith(saver) and "error" not in r}
+
+    def probe(n: int) -> float:
+        record = _run_isolated(memory_case(n, checkpoint), device)
+        print(f"    N = {n}: " + (f"peak {record['peak_memory_mb']:.0f} MiB" if "error" not in record
+                                  else f"FAILED: {record['error']}"), flush=True)
+        return float("inf") if "error" in record else record["peak_memory_mb"]  # killed: did not fit
+
+    t0 = time.perf_counter()
+    found = largest_agents(probe, limit_gb * 1024, 0.85 * _machine_memory_mb(device), start)
+    return {"name": case.name, "kind": case.kind, "device": device, "torch": torch.__version__,
+            "limit_gb": limit_gb, "search_s": time.perf_counter() - t0, **found,
+            "settings": {"batch": case.batch, "steps": case.steps, "overrides": ["model=dnri"]
+                         + (CHECKPOINTING if checkpoint else []), "checkpoint": checkpoint}}
 
 
 def cases() -> list[Case]:
@@ -107,10 +147,13 @@ def cases() -> list[Case]:
         out.append(Case(f"scale/agents/N{n:02d}", SCALE_MODEL, 8, n, 50, iters=3, warmup=1))
     for t in SCALE_STEPS:
         out.append(Case(f"scale/steps/T{t:03d}", SCALE_MODEL, 8, 5, t, iters=3, warmup=1))
-    for n in MEMORY_AGENTS:  # one step each: the peak is the figure, and the largest step takes ~10 s on 2 cores
-        for saver, extra in (("off", []), ("on", CHECKPOINTING)):
-            out.append(Case(f"memory/dnri/N{n:02d}/checkpoint_{saver}", ["model=dnri", *extra], 8, n, 50, iters=1,
-                            warmup=0, settings={"count_flops": False, "checkpoint": saver == "on"}))
+    for n in MEMORY_AGENTS:  # one step each: the peak is the figure (N = 30 takes about 40 s on 2 cores)
+        for saver in ("off", "on"):
+            out.append(memory_case(n, saver == "on"))
+    for saver in ("off", "on"):  # after the fixed N above, whose peaks start the search
+        out.append(Case(f"memory/dnri/largest_N/checkpoint_{saver}", [], 8, 0, 50, iters=1, warmup=0,
+                        kind="largest", settings={"checkpoint": saver == "on"}))
+    out += [Case(name, [], 0, 0, 0, iters=1, warmup=0, kind="result") for name in JOBS]
     return out
 
 
@@ -472,7 +515,13 @@ def _isolated(fn: Callable[..., dict[str, Any]], args: tuple[Any, ...], failed: 
     return record
 
 
-def _run_isolated(case: Case, device: str) -> dict[str, Any]:
+def _run_isolated(case: Case, device: str, quick: bool = False) -> dict[str, Any]:
+    if case.kind == "result":  # the job is its own process already
+        try:
+            record = time_to_result(JOBS[case.name], quick=quick)
+        except RuntimeError as e:
+            return {"name": case.name, "kind": case.kind, "error": str(e)}
+        return {"name": case.name, "kind": case.kind, "device": device, "torch": torch.__version__, **record}
     return _isolated(run_case, (case, device), {"name": case.name, "kind": case.kind})
 
 
@@ -480,7 +529,13 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
     parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
-    parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these")
+    parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these; the "
+                        "time-to-result cases (result/demo, result/synth_cpu_table: whole jobs, minutes) run only "
+                        "when named here")
+    parser.add_argument("--memory-limit-gb", type=float, default=16.0,
+                        help="memory/dnri/largest_N/*: the budget a training step's peak must fit")
+    parser.add_argument("--quick", action="store_true",
+                        help="result/* cases at toy sizes: a check that the measurement runs, not a measurement")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--reference", type=Path, default=None,
                         help="a checkout of cgraber/cvpr_dNRI: also time its training step against ours (the "
@@ -522,12 +577,23 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     if reference is not None:
         write(records)
     for case in cases():
-        if not selected(case.name):
+        if not selected(case.name) or (case.kind == "result" and not args.only):
             continue
-        record = _run_isolated(case, args.device)
+        if case.kind == "largest":
+            print(f"{case.name:<32} searching (budget {args.memory_limit_gb:g} GB)", flush=True)
+            record = largest_case(case, records, args.device, args.memory_limit_gb)
+        else:
+            record = _run_isolated(case, args.device, args.quick)
         records.append(record)
         if "error" in record:
             print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
+        elif case.kind == "largest":
+            print(f"{record['name']:<32} largest N {record['largest_agents']} (next N: {record['bound']})", flush=True)
+        elif case.kind == "result":
+            print(f"{record['name']:<32} {record['wall_s']:9.1f} s for {record['runs']} run(s)", flush=True)
+            for model, values in record["models"].items():
+                print(f"    {model:<28} " + "  ".join(f"{k.removeprefix('test/')} {v:.3g}" for k, v in values.items()
+                                                   if k != "runs"), flush=True)
         else:
             print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
                   f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)

@@ -17,7 +17,15 @@ from torchmetrics import Metric
 from dider.data.batch import Batch, Normalizer
 from dider.data.pairs import KIND_NAMES
 from dider.graph import edge_mask
-from dider.metrics import BoundaryF1, DisplacementError, EdgeAccuracy, HorizonMSE, PairConsistency, SegmentStats
+from dider.metrics import (
+    BoundaryF1,
+    DisplacementError,
+    EdgeAccuracy,
+    HorizonMSE,
+    InteractionRunLength,
+    PairConsistency,
+    SegmentStats,
+)
 
 log = logging.getLogger(__name__)
 
@@ -47,14 +55,22 @@ class TestMetrics(nn.Module):
         self.displacement = DisplacementError()  # ADE / FDE of positions in data units
         self.mse_by_edges = nn.ModuleDict({k: HorizonMSE(horizons) for k in EDGE_SOURCES})
         self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
+        # The prior read at every step, as if it could re-decide each step (for DNRI it is ``prior``): beside
+        # ``prior`` it shows what the online segments' holding costs and what the prior itself knows.
+        self.acc_prior_per_step = EdgeAccuracy()
         self.segments = SegmentStats()
+        # Mean interaction run length of the segments, the online prior and the truth: runs that go on past
+        # the truth's end show here while they barely move the recalls.
+        self.run_length = nn.ModuleDict({k: InteractionRunLength() for k in ("posterior", "prior", "truth")})
         self.boundary = BoundaryF1(tolerance=2)
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
 
     def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
-               normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None) -> None:
+               normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
+               prior_per_step: torch.Tensor | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
-        by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`)."""
+        by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
+        prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held)."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
@@ -64,10 +80,15 @@ class TestMetrics(nn.Module):
             self.displacement.update(pred, target, forecast.mask)
         present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
         self.segments.update(posterior, present.any(1))
+        self.run_length["posterior"].update(posterior, present.any(1))
+        self.run_length["prior"].update(prior, present.any(1))
         if "edges" in batch:
             self.acc_posterior.update(posterior.transpose(1, 2), batch["edges"], present)
             self.acc_prior.update(prior.transpose(1, 2), batch["edges"], present)
+            if prior_per_step is not None:
+                self.acc_prior_per_step.update(prior_per_step.transpose(1, 2), batch["edges"], present)
             self.boundary.update(posterior, batch["edges"].transpose(1, 2))
+            self.run_length["truth"].update(batch["edges"].transpose(1, 2), present.any(1))
         if "pair_kind" in batch:
             self.pairs.update(posterior, batch["pair_kind"], present.transpose(1, 2))
 
@@ -83,7 +104,11 @@ class TestMetrics(nn.Module):
         out["test/segments_per_edge"], out["test/switches_per_100"] = self.segments.compute()
         if self.boundary.update_count:
             out["test/boundary_f1"] = self.boundary.compute()
-        for name, metric in {"posterior": self.acc_posterior, "prior": self.acc_prior}.items():
+        runs = {f"test/run_length/{k}": m.compute() for k, m in self.run_length.items() if m.update_count}
+        _warn_empty(runs, "no step of any interaction type")
+        out |= runs
+        for name, metric in {"posterior": self.acc_posterior, "prior": self.acc_prior,
+                             "prior_per_step": self.acc_prior_per_step}.items():
             if metric.update_count:
                 out |= edge_acc_values(f"test/edge_acc/{name}", metric)
         if self.pairs.update_count:

@@ -151,6 +151,33 @@ class SegmentStats(Metric):
         return torch.stack([per_edge, per_100]).float()
 
 
+class InteractionRunLength(Metric):
+    """Mean length, in steps, of a run of one interaction type (any type but 0, "none"): comparing it with the
+    ground truth's shows whether inferred interactions end too early or run on.
+
+    update(types [B, E, T] long, edge_mask [B, E] bool or None); compute() -> scalar (NaN without any run).
+    """
+
+    is_differentiable = False
+    full_state_update = False
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        for name in ("steps", "runs"):
+            self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, types: torch.Tensor, edge_mask: torch.Tensor | None = None) -> None:
+        active = types > 0  # [B, E, T]
+        starts = active.clone()
+        starts[..., 1:] &= switches(types)  # a run starts at t = 0 or where the type changes
+        keep = torch.ones(types.shape[:2], dtype=torch.bool, device=types.device) if edge_mask is None else edge_mask
+        self.steps += active[keep].sum()
+        self.runs += starts[keep].sum()
+
+    def compute(self) -> torch.Tensor:
+        return (self.steps / self.runs if self.runs > 0 else torch.tensor(float("nan"))).float()
+
+
 class BoundaryF1(Metric):
     """F1 of inferred switch times against ground-truth switch times, matched within +-``tolerance`` steps.
 

@@ -158,7 +158,8 @@ class RelationalVAEModule(L.LightningModule):
         by_edges = {"posterior": self._forecast(batch, posterior)}
         if "edges" in batch:
             by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
-        self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges)
+        prior_per_step = self.model.prior(out.h_fwd).argmax(-1)
+        self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step)
         absent = ~edge_mask(batch["mask"][:, :-1]).transpose(1, 2)  # [B, E, T-1]
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
