@@ -18,18 +18,22 @@ def _edges(n: int) -> int:
     return n * (n - 1)
 
 
-def _predict(probes: dict[int, float], n: int) -> float:
-    """Peak at N = n from the line through the two largest measured N (in edges)."""
+def _line(probes: dict[int, float]) -> tuple[int, float, float]:
+    """The line through the two largest measured N, in edges: (N, its peak, MB per edge)."""
     (n1, p1), (n0, p0) = sorted(probes.items(), reverse=True)[:2]
-    slope = (p1 - p0) / (_edges(n1) - _edges(n0))
+    return n1, p1, (p1 - p0) / max(_edges(n1) - _edges(n0), 1)
+
+
+def _predict(probes: dict[int, float], n: int) -> float:
+    """Peak at N = n from :func:`_line`."""
+    n1, p1, slope = _line(probes)
     return p1 + slope * (_edges(n) - _edges(n1))
 
 
 def _aim(probes: dict[int, float], limit_mb: float, lo: int) -> int:
     """The N the fitted line puts at the budget (at least lo + 1)."""
-    (n1, p1), (n0, p0) = sorted(probes.items(), reverse=True)[:2]
-    slope = max((p1 - p0) / max(_edges(n1) - _edges(n0), 1), 1e-9)
-    edges = _edges(n1) + (limit_mb - p1) / slope
+    n1, p1, slope = _line(probes)
+    edges = _edges(n1) + (limit_mb - p1) / max(slope, 1e-9)
     return max(lo + 1, int((1 + math.sqrt(1 + 4 * max(edges, 0.0))) / 2))
 
 
