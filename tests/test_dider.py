@@ -19,9 +19,9 @@ def clip(b=4, t=30, n=3, seed=0):
 
 @pytest.mark.parametrize("source", ["past", "future"])
 @pytest.mark.parametrize("training", [True, False])
-@pytest.mark.parametrize("max_segments", [1, 3, 8, 40])
+@pytest.mark.parametrize("max_segments", [1, 3, 8, 40, None])
 def test_segments_tile_the_clip(source, training, max_segments):
-    torch.manual_seed(max_segments)
+    torch.manual_seed(max_segments or 0)
     dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, max_segments=max_segments).train(training)
     with torch.no_grad():  # spread the durations: some long, some short
         dur.head[-1].bias.copy_(torch.tensor([0.0, 1.0]))
@@ -30,7 +30,7 @@ def test_segments_tile_the_clip(source, training, max_segments):
     h_fwd, h_rev = torch.randn(3, 6, t, 8), torch.randn(3, 6, t, 8)
     seg = dur.segment(h_fwd, h_rev, torch.zeros(3, t + 1, 3, 4))
     a = seg.assign.detach()
-    assert a.shape[-1] == min(max_segments, t)
+    assert a.shape[-1] <= min(max_segments or t, t)  # the slots stop once every edge's cover the clip
     assert torch.equal(a.sum(-1), torch.ones(3, 6, t))  # every step in exactly one slot (exact one-hot)
     assert set(a.unique().tolist()) <= {0.0, 1.0}
     slot = a.argmax(-1)
@@ -42,8 +42,26 @@ def test_segments_tile_the_clip(source, training, max_segments):
     first = torch.where(seg.valid, seg.start, -1)
     expected = torch.stack([(slot == k).float().argmax(-1) for k in range(a.shape[-1])], -1)
     assert torch.equal(first[seg.valid], expected[seg.valid])  # latents are read at the slot's first step
-    if max_segments > 1:
+    if max_segments is None or max_segments > 1:
         assert seg.valid.sum(-1).float().mean() > 1.2  # the test exercises real splits
+
+
+def test_short_segments_are_not_forced_into_one_last_slot():
+    """A head that cuts the shortest segments: without a cap every step is its own slot to the clip's end;
+    with a cap of 8 the last slot holds the rest of the clip (the earlier default, which ran pushes on)."""
+    t = 30
+    h = torch.randn(2, 6, t, 8)
+    lengths = {}
+    for cap in (None, 8):
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, max_segments=cap, burn_in=5).eval()
+        with torch.no_grad():
+            dur.head[-1].weight.zero_()
+            dur.head[-1].bias.copy_(torch.tensor([-20.0, -5.0]))  # rho = 0: one-step slots
+        lengths[cap] = dur.segment(h, h, torch.zeros(2, t + 1, 3, 4)).num_steps_per_slot
+    uncapped = lengths[None]
+    assert uncapped.shape[-1] == 1 + (t - 4) and (uncapped[..., 1:] == 1).all()  # the burn-in span, then steps
+    capped = lengths[8]
+    assert (capped[..., 1:-1] == 1).all() and (capped[..., -1] == t - 4 - 7).all()
 
 
 def test_unit_durations_reproduce_dnri_exactly(make_cfg):
@@ -212,3 +230,4 @@ def test_segment_kl_per_step_counts_each_segment_once_per_step(make_cfg):
     dnri_steps.load_state_dict(dnri.state_dict())
     with torch.no_grad():  # one-step segments: both are DNRI's mean over (step, edge)
         assert torch.equal(dnri.infer(batch, hard=True).kl_edge, dnri_steps.infer(batch, hard=True).kl_edge)
+

@@ -509,17 +509,18 @@ def test_displacement_error_empty_is_nan_and_merges() -> None:
 # ------------------------------------------------------------------------------------- InteractionRunLength
 def test_interaction_run_length_by_hand() -> None:
     """Runs of one non-zero type, counted per edge; a type change inside a run starts a new run; -1 (absent)
-    and 0 are no run; a masked edge counts nothing."""
+    and 0 are no run; a masked edge counts nothing. The rate is per present (>= 0) edge-step."""
     types = torch.tensor([[[0, 1, 1, 1, 0, 0],     # one run of 3
                            [2, 2, 1, 1, 1, 0],     # runs of 2 (type 2) and 3 (type 1), from t = 0
-                           [-1, 1, -1, 0, 0, 1],   # two runs of 1
+                           [-1, 1, -1, 0, 0, 1],   # two runs of 1; 4 present steps
                            [1, 1, 1, 1, 1, 1]]])   # masked below: must not count
     m = InteractionRunLength()
     m.update(types, torch.tensor([[True, True, True, False]]))
-    # steps 3 + 5 + 2 = 10, runs 1 + 2 + 2 = 5 -> 2.0
-    assert m.compute().item() == 2.0
-    m.update(torch.tensor([[[0, 0, 1, 1, 1, 1]]]))  # + 4 steps, + 1 run: 14 / 6
-    assert m.compute().item() == pytest.approx(14 / 6)
+    # steps 3 + 5 + 2 = 10, runs 1 + 2 + 2 = 5 -> 2.0; present steps 6 + 6 + 4 = 16 -> rate 10 / 16
+    assert m.compute().tolist() == [2.0, 10 / 16]
+    m.update(torch.tensor([[[0, 0, 1, 1, 1, 1]]]))  # + 4 steps, + 1 run, + 6 present: 14 / 6 and 14 / 22
+    torch.testing.assert_close(m.compute(), torch.tensor([14 / 6, 14 / 22]))
     empty = InteractionRunLength()
     empty.update(torch.zeros(2, 3, 5, dtype=torch.long))
-    assert empty.compute().isnan()
+    length, rate = empty.compute()
+    assert length.isnan() and rate.item() == 0.0

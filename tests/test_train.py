@@ -30,7 +30,8 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     for key in ("test/mse/h01", "test/mse/h15", "test/mse/h25", "test/edge_acc/posterior/none",
                 "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "test/nll",
                 "test/mse_posterior/h25", "test/mse_oracle/h25", "test/nelbo",
-                "test/edge_acc/prior_per_step/interaction", "test/run_length/posterior", "test/run_length/truth"):
+                "test/edge_acc/prior_per_step/interaction", "test/run_length/posterior", "test/run_length/truth",
+                "test/interaction_rate/posterior", "test/interaction_rate/truth"):
         assert key in record["metrics"] and record["metrics"][key] == pytest.approx(metrics[key])
     assert record["seed"] == 7 and record["config"]["data"]["num_train"] == 64
     assert (out / "checkpoints" / "last.ckpt").exists()

@@ -59,8 +59,8 @@ class TestMetrics(nn.Module):
         # ``prior`` it shows what the online segments' holding costs and what the prior itself knows.
         self.acc_prior_per_step = EdgeAccuracy()
         self.segments = SegmentStats()
-        # Mean interaction run length of the segments, the online prior and the truth: runs that go on past
-        # the truth's end show here while they barely move the recalls.
+        # Mean interaction run length and rate of the segments, the online prior and the truth: runs that go
+        # on past the truth's end show here while they barely move the recalls.
         self.run_length = nn.ModuleDict({k: InteractionRunLength() for k in ("posterior", "prior", "truth")})
         self.boundary = BoundaryF1(tolerance=2)
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
@@ -104,9 +104,10 @@ class TestMetrics(nn.Module):
         out["test/segments_per_edge"], out["test/switches_per_100"] = self.segments.compute()
         if self.boundary.update_count:
             out["test/boundary_f1"] = self.boundary.compute()
-        runs = {f"test/run_length/{k}": m.compute() for k, m in self.run_length.items() if m.update_count}
-        _warn_empty(runs, "no step of any interaction type")
-        out |= runs
+        runs = {k: m.compute() for k, m in self.run_length.items() if m.update_count}
+        lengths = {f"test/run_length/{k}": v[0] for k, v in runs.items()}
+        _warn_empty(lengths, "no step of any interaction type")
+        out |= lengths | {f"test/interaction_rate/{k}": v[1] for k, v in runs.items()}
         for name, metric in {"posterior": self.acc_posterior, "prior": self.acc_prior,
                              "prior_per_step": self.acc_prior_per_step}.items():
             if metric.update_count:

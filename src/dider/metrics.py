@@ -152,10 +152,13 @@ class SegmentStats(Metric):
 
 
 class InteractionRunLength(Metric):
-    """Mean length, in steps, of a run of one interaction type (any type but 0, "none"): comparing it with the
-    ground truth's shows whether inferred interactions end too early or run on.
+    """How long and how often edges interact: the mean length, in steps, of a run of one interaction type (any
+    type but 0, "none"), and the share of edge-steps with an interaction. Against the ground truth's, the
+    first shows whether inferred interactions end too early or run on, the second whether a model marks
+    interactions as often as the data have them (a sparsity prior asks for its own rate, e.g. DNRI's 10%).
 
-    update(types [B, E, T] long, edge_mask [B, E] bool or None); compute() -> scalar (NaN without any run).
+    update(types [B, E, T] long, edge_mask [B, E] bool or None); compute() -> [run length, rate] (the run
+    length NaN without any run).
     """
 
     is_differentiable = False
@@ -163,7 +166,7 @@ class InteractionRunLength(Metric):
 
     def __init__(self, **kwargs) -> None:
         super().__init__(**kwargs)
-        for name in ("steps", "runs"):
+        for name in ("steps", "runs", "total"):
             self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
 
     def update(self, types: torch.Tensor, edge_mask: torch.Tensor | None = None) -> None:
@@ -173,9 +176,11 @@ class InteractionRunLength(Metric):
         keep = torch.ones(types.shape[:2], dtype=torch.bool, device=types.device) if edge_mask is None else edge_mask
         self.steps += active[keep].sum()
         self.runs += starts[keep].sum()
+        self.total += (types[keep] >= 0).sum()  # -1: an absent edge-step
 
     def compute(self) -> torch.Tensor:
-        return (self.steps / self.runs if self.runs > 0 else torch.tensor(float("nan"))).float()
+        length = self.steps / self.runs if self.runs > 0 else torch.tensor(float("nan"), dtype=torch.float64)
+        return torch.stack([length, self.steps / self.total.clamp_min(1)]).float()
 
 
 class BoundaryF1(Metric):

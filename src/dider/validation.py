@@ -113,7 +113,7 @@ RULES: dict[str, Rule] = {
     "model.decoder_edges": boolean,
     "model.encoder.checkpoint": boolean,
     "model.decoder.checkpoint": boolean,
-    "model.duration.max_segments": at_least(1),
+    "model.duration.max_segments": optional(at_least(1)),
     "model.duration.source": one_of("past", "future"),
     "model.duration.min_duration": at_least(1, " step"),
     "model.duration.rho_min": within(0.0, 1.0),

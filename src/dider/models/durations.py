@@ -55,11 +55,13 @@ class LearnedDuration(nn.Module):
     """DIDER's duration module: a Gaussian latent per segment sets the fraction of the remaining steps
     that the segment lasts.
 
-    For each edge and slot k (a Python loop over at most ``max_segments`` slots, vectorised over B x E):
+    For each edge and slot k (a Python loop over the slots, vectorised over B x E, that ends once every
+    edge's slots cover the clip):
     features at the slot's first step give mu = tanh(f_mu(h)), sigma = sigma_min + (1 - sigma_min) *
     sigmoid(f_sigma(h)); z = mu + sigma * eps (z = mu in eval); rho = clamp((z + 1) / 2, rho_min, 1);
     d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
-    the fixed prior N(prior_mu, prior_sigma^2).
+    the fixed prior N(prior_mu, prior_sigma^2). ``max_segments`` caps the slots per edge (None: one per
+    step at most, no cap); with a cap, the last slot holds whatever the others leave, however long.
 
     How this implementation settles what the paper leaves open:
     - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
@@ -83,7 +85,7 @@ class LearnedDuration(nn.Module):
         rnn_hidden: int = 64,
         hidden: int = 64,
         source: str = "past",
-        max_segments: int = 8,
+        max_segments: int | None = None,
         min_duration: float = 1.0,
         rho_min: float = 0.0,
         sigma_min: float = 1e-2,
@@ -147,36 +149,42 @@ class LearnedDuration(nn.Module):
         fixed = self.fixed_duration
         span = min(self.observed, t)  # the observed burn-in span: slot 0, no duration latent
         learned = t - span
-        slots = (min(self.max_segments, learned) if fixed is None else -(-t // fixed)) if learned > 0 else 0
+        cap = learned if self.max_segments is None else min(self.max_segments, learned)
+        slots = (cap if fixed is None else -(-t // fixed)) if learned > 0 else 0
         s = h_fwd.new_zeros(b, e)  # continuous start of the current slot
-        bounds, starts, kls, sigmas = [s], [], [], []
+        bounds, starts, mus, sigmas = [s], [], [], []
         if span > 0:
             starts.append(s.long())
             s = s + span
             bounds.append(s)
+        if fixed is None and slots > 0:  # the head at every step in one call; each slot reads its first step's
+            mu_all, sigma_all = self.gaussian(feats)  # [B, E, T]
         for k in range(slots):
+            if k > 0 and not bool((s < t).any()):  # every edge's slots already cover the clip
+                break
             start = s.detach().ceil().long().clamp(max=t - 1)  # first integer step of the slot
             starts.append(start)
             remaining = t - s
             if fixed is not None:
                 d = torch.full_like(s, float(fixed))
             else:
-                h = feats.gather(2, start[..., None, None].expand(b, e, 1, feats.shape[-1])).squeeze(2)
-                mu, sigma = self.gaussian(h)
+                at = start.unsqueeze(-1)
+                mu, sigma = mu_all.gather(2, at).squeeze(2), sigma_all.gather(2, at).squeeze(2)
                 z = mu + sigma * torch.randn_like(mu) if self.training else mu
                 d = torch.maximum(self.fraction(z) * remaining, torch.full_like(s, self.min_duration))
-                kls.append(gaussian_kl(mu, sigma, self.prior_mu, self.prior_sigma))
-                sigmas.append(sigma.detach())
+                mus.append(mu)
+                sigmas.append(sigma)
             d = remaining if k == slots - 1 else torch.minimum(d, remaining)
             s = s + d
             bounds.append(s)
         assign, hard = self._assignment(torch.stack(bounds, dim=-1), t, self.tau(progress))
         valid = hard.sum(2) > 0  # slots holding at least one step (a slot past the end holds none)
         kl, sigma = h_fwd.new_zeros(b), None
-        if kls:  # summed over an edge's segments, divided by its steps: the edge KL's convention
-            learned_valid = valid[..., len(starts) - len(kls):]
-            kl = (torch.stack(kls, -1) * learned_valid).flatten(1).sum(1) / (e * t)
-            sigma = (torch.stack(sigmas, -1) * learned_valid).sum() / learned_valid.sum().clamp_min(1)
+        if mus:  # summed over an edge's segments, divided by its steps: the edge KL's convention
+            learned_valid = valid[..., len(starts) - len(mus):]
+            mu, sd = torch.stack(mus, -1), torch.stack(sigmas, -1)
+            kl = (gaussian_kl(mu, sd, self.prior_mu, self.prior_sigma) * learned_valid).flatten(1).sum(1) / (e * t)
+            sigma = (sd.detach() * learned_valid).sum() / learned_valid.sum().clamp_min(1)
         return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma)
 
     def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
