@@ -96,7 +96,8 @@ def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     Chance: types drawn independently of the truth give interaction recall = 1 - none recall (Youden's
     J = 0, balanced accuracy 0.5), whatever their rate. Edges mislabelled, shifted in time or collapsed
     onto the prior (the failure of the paper's start-of-segment readout in our runs) give J <= 0.
-    Measured with this config: J = 0.37, 0.38, 0.48 for seeds 1 (the default, run here), 2 and 3.
+    Measured with this config (no cap on the slots per edge): J = 0.32, 0.49, 0.52 for seeds 1 (the default,
+    run here), 2 and 3.
     """
     cfg = make_cfg(
         ["model=dider", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
@@ -107,7 +108,7 @@ def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     metrics = train(cfg)
     none, inter = metrics["test/edge_acc/posterior/none"], metrics["test/edge_acc/posterior/interaction"]
     assert inter - (1 - none) > 0.2, metrics
-    assert metrics["test/segments_per_edge"] < 2.0, metrics  # readable: few segments per 49-step edge (1.14-1.21)
+    assert metrics["test/segments_per_edge"] < 2.0, metrics  # readable: few segments per 49-step edge (1.31-1.54)
 
 
 @pytest.mark.slow
