@@ -30,7 +30,7 @@ from dider.models.segments import Segmentation
 from dider.protocol import burn_in_mask, fill_absent
 from dider.validation import require
 
-LOSS_TERMS = ("nll", "kl_edge", "kl_duration")
+LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit")
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
 
@@ -49,6 +49,7 @@ class Inference:
     nll: torch.Tensor  # [B]
     kl_edge: torch.Tensor  # [B]
     kl_duration: torch.Tensor  # [B]
+    prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
@@ -70,7 +71,7 @@ def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
 
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
-    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|)."""
+    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ prior_fit x the prior's per-step fit, off by default)."""
 
     def __init__(
         self,
@@ -94,6 +95,7 @@ class RelationalVAE(nn.Module):
         forecast_edges: str = "prior",
         segment_kl: str = "per_segment",
         decoder_edges: bool = True,
+        prior_fit: float = 0.0,
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -105,7 +107,10 @@ class RelationalVAE(nn.Module):
         one type per edge held for the whole roll-out: NRI). segment_kl: a segment's edge KL counted once
         (``per_segment``, the paper's sum over segments) or once per step it holds (``per_step``, DNRI's
         weight for a type held that long). decoder_edges: False switches every edge off for the decoder
-        (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
+        (the ``static_decoder`` baseline: the learned per-agent dynamics alone). prior_fit: weight of a term
+        outside the ELBO that fits the learned prior at every step to the posterior type held there, the
+        posterior's gradient stopped; with segments the ELBO's KL trains the prior at segment starts only
+        (0: the paper's loss)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -113,7 +118,7 @@ class RelationalVAE(nn.Module):
             "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
-            "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges,
+            "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -129,6 +134,7 @@ class RelationalVAE(nn.Module):
         self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
         self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
+        self.prior_fit = prior_fit
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -155,7 +161,8 @@ class RelationalVAE(nn.Module):
         seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
         # The prior always reads a segment's first step, so it stays online.
-        p_seg = seg.gather(self.prior(enc.h_fwd))
+        p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
+        p_seg = seg.gather(p_step)
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
@@ -176,7 +183,11 @@ class RelationalVAE(nn.Module):
             mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
             kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
             kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * kl_sparse
-        return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl)
+        # Between segment starts the ELBO leaves the prior untrained: prior_fit fits it at every step.
+        q_held = seg.spread(F.log_softmax(q_seg, dim=-1)).detach()
+        prior_fit = (categorical_kl(q_held, p_step) * present).flatten(1).sum(1) / steps
+        return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
+                         prior_fit)
 
     def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
         """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
@@ -203,7 +214,11 @@ class RelationalVAE(nn.Module):
         w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
-        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "nelbo": (nll + kl_e + kl_d).detach()}
+        fit = out.prior_fit.mean()
+        if self.prior_fit > 0:
+            loss = loss + self.prior_fit * fit
+        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "prior_fit": fit,
+                "nelbo": (nll + kl_e + kl_d).detach()}
 
     @torch.no_grad()
     def describe(self, out: Inference, mask: torch.Tensor) -> dict[str, torch.Tensor]:
