@@ -39,8 +39,7 @@ def push_distances(states: torch.Tensor) -> torch.Tensor:
     NaN on the other edges, which never push."""
     pos = states[:, :-1, :, :2]  # [S, T-1, 3, 2]
     dist = torch.full((states.shape[0], 6, states.shape[1] - 1), math.nan, dtype=states.dtype)
-    for edge, sender in ((EDGE_0_TO_2, 0), (EDGE_1_TO_2, 1)):
-        dist[:, edge] = (pos[:, :, 2] - pos[:, :, sender]).norm(dim=-1)
+    dist[:, [EDGE_0_TO_2, EDGE_1_TO_2]] = (pos[:, :, 2:3] - pos[:, :, :2]).norm(dim=-1).transpose(1, 2)
     return dist
 
 
@@ -70,14 +69,15 @@ def score(path: str | Path, clips: int = 400, seed: int = 4242, bins: Sequence[f
     states, edges = simulate_push(clips, int(model.data["num_steps"]), float(model.data["push_factor"]), seed=seed)
     x = model.normalizer.normalize(states)
     mask = torch.ones(x.shape[:3], dtype=torch.bool)
-    torch.manual_seed(0)
-    said = model.describe(x, mask)
+    said = model.describe(x, mask)  # argmax types in eval mode: no random draw
     truth = edges[:, 1:].transpose(1, 2)  # transition t -> t+1 is labelled edges[t+1]
     dist = push_distances(states.double())
     out: dict[str, Any] = {"run": str(path), "checkpoint": str(model.path), "clips": clips, "seed": seed}
     for key in ("segments", "prior"):
         out[key] = recall_by_distance(said[key], truth, dist, bins)
-        out[f"{key}_none_recall"] = float((said[key][truth == 0] == 0).float().mean())
+        overall = EdgeAccuracy()
+        overall.update(said[key], truth)
+        out[f"{key}_none_recall"] = float(overall.compute()[0])
     return out
 
 

@@ -184,8 +184,9 @@ class RelationalVAE(nn.Module):
             kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
             kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * kl_sparse
         # Between segment starts the ELBO leaves the prior untrained: prior_fit fits it at every step.
-        q_held = seg.spread(F.log_softmax(q_seg, dim=-1)).detach()
-        prior_fit = (categorical_kl(q_held, p_step) * present).flatten(1).sum(1) / steps
+        q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
+        kl_fit = (q_held * (q_held.clamp_min(1e-16).log() - F.log_softmax(p_step, dim=-1))).sum(-1)
+        prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
                          prior_fit)
 
