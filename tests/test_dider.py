@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from dider.models.durations import LearnedDuration
+from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
 
 
@@ -254,3 +255,19 @@ def test_prior_fit_trains_the_prior_at_every_step_and_leaves_the_posterior(make_
     with torch.no_grad():
         out = dnri.infer(batch, hard=True)
     assert torch.allclose(out.prior_fit, out.kl_edge, rtol=1e-5, atol=1e-7)
+
+
+def test_prior_fit_ramps_with_the_kl_warm_up(make_cfg):
+    """prior_fit_warmup (the default) gives the fit the KL terms' weight w: none at step 0, w at a quarter of
+    training; false gives it its full weight from the first step."""
+    out = build(make_cfg, "model=dider").train().infer(clip(), hard=True)
+    for warm in (True, False):
+        model = build(make_cfg, "model=dider", "model.prior_fit=2", f"model.prior_fit_warmup={warm}")
+        for step in (0, 25):
+            progress = Progress(step, total=100)  # kl_warmup 0.3: w = step / 30
+            w = model.schedule(progress)["kl_weight"]
+            terms = model.loss(out, progress)
+            elbo = terms["nll"] + w * (terms["kl_edge"] + terms["kl_duration"])  # no capacities by default
+            fit_weight = 2 * (w if warm else 1.0)
+            assert torch.allclose(terms["loss"], elbo + fit_weight * terms["prior_fit"]), (warm, step)
+            assert terms["prior_fit"] > 0 and (w == 0) == (step == 0)

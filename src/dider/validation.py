@@ -105,6 +105,7 @@ RULES: dict[str, Rule] = {
     "model.kl_warmup": FRACTION_OF_TRAINING,
     "model.sparsity_mix": within(0.0, 1.0),
     "model.prior_fit": at_least(0),
+    "model.prior_fit_warmup": boolean,
     "model.posterior_readout": one_of("start", "mean"),
     "model.rollout_edges": one_of("sample", "argmax"),
     "model.forecast_edges": one_of("prior", "burn_in"),

@@ -71,7 +71,7 @@ def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
 
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
-    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ prior_fit x the prior's per-step fit, off by default)."""
+    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by default)."""
 
     def __init__(
         self,
@@ -96,6 +96,7 @@ class RelationalVAE(nn.Module):
         segment_kl: str = "per_segment",
         decoder_edges: bool = True,
         prior_fit: float = 0.0,
+        prior_fit_warmup: bool = True,
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -110,7 +111,9 @@ class RelationalVAE(nn.Module):
         (the ``static_decoder`` baseline: the learned per-agent dynamics alone). prior_fit: weight of a term
         outside the ELBO that fits the learned prior at every step to the posterior type held there, the
         posterior's gradient stopped; with segments the ELBO's KL trains the prior at segment starts only
-        (0: the paper's loss)."""
+        (0: the paper's loss). prior_fit_warmup: the fit's weight ramps up with the KL warm-up, as the ELBO's
+        KL terms do (False: full weight from the first step, when the fit, through the encoder the posterior
+        shares, can settle the posterior on an edge type that does no harm)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -119,6 +122,7 @@ class RelationalVAE(nn.Module):
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
             "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
+            "model.prior_fit_warmup": prior_fit_warmup,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -134,7 +138,7 @@ class RelationalVAE(nn.Module):
         self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
         self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
-        self.prior_fit = prior_fit
+        self.prior_fit, self.prior_fit_warmup = prior_fit, prior_fit_warmup
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -209,7 +213,8 @@ class RelationalVAE(nn.Module):
     def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:
         """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
         et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
-        al.), so the posterior carries information before the prior may pull it in. -> scalar terms, and
+        al.), so the posterior carries information before the prior may pull it in; the optional prior fit is
+        added with weight prior_fit (times w with ``prior_fit_warmup``). -> scalar terms, and
         ``nelbo`` = NLL + KL_e + KL_d, the objective free of schedules (for model selection)."""
         sched = self.schedule(progress)
         w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
@@ -217,7 +222,7 @@ class RelationalVAE(nn.Module):
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
         fit = out.prior_fit.mean()
         if self.prior_fit > 0:
-            loss = loss + self.prior_fit * fit
+            loss = loss + (w if self.prior_fit_warmup else 1.0) * self.prior_fit * fit
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "prior_fit": fit,
                 "nelbo": (nll + kl_e + kl_d).detach()}
 
