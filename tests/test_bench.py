@@ -90,11 +90,17 @@ def test_summary_takes_measured_speedups_over_the_fixed_figures():
 
 @pytest.mark.skipif(not (REFERENCE_CHECKOUT / "dnri" / "models" / "dnri.py").is_file(),
                     reason=f"no checkout of cgraber/cvpr_dNRI at {REFERENCE_CHECKOUT} (set DIDER_DNRI_REFERENCE)")
-def test_reference_comparison_at_tiny_sizes(tmp_path):
+@pytest.mark.parametrize("bf16", ["yes", "no"])
+def test_reference_comparison_at_tiny_sizes(tmp_path, bf16):
+    """The comparison at toy sizes; ``--bf16 no`` (auto's choice on a CPU without native bf16) leaves ours in
+    bf16 out of the rounds and the summary."""
     out = tmp_path / "results.json"
     bench.main(["--reference", str(REFERENCE_CHECKOUT), "--reference-size", "tiny", "--reference-rounds", "2",
-                "--reference-iters", "1", "--reference-threads", "1", "--only", "reference", "--out", str(out)])
+                "--reference-iters", "1", "--reference-threads", "1", "--only", "reference", "--out", str(out),
+                "--bf16", bf16])
     doc = json.loads(out.read_text())
+    variants = ("fp32", "bf16") if bf16 == "yes" else ("fp32",)
+    assert doc["meta"]["bf16"] is (bf16 == "yes")
     assert doc["records"] == []  # --only reference: the comparison alone
     section = doc["reference"]
     assert "error" not in section and Path(section["checkout"]) == REFERENCE_CHECKOUT.resolve()
@@ -102,14 +108,16 @@ def test_reference_comparison_at_tiny_sizes(tmp_path):
     for name, case in section["cases"].items():
         assert (case["batch"], case["steps"], case["size"], case["threads"]) == (4, 8, "tiny", 1)
         assert case["torch"] == torch.__version__ and case["rounds"] == 2
-        for variant in ("reference", "fp32", "bf16"):
+        assert set(case["step_s"]) == {"reference", *variants} and set(case["speedup"]) == set(variants)
+        for variant in ("reference", *variants):
             assert len(case["step_s_per_round"][variant]) == 2 and case["step_s"][variant] > 0
-        for variant in ("fp32", "bf16"):
+        for variant in variants:
             ratios = case["speedup_per_round"][variant]
             assert ratios == [r / o for r, o in zip(case["step_s_per_round"]["reference"],
                                                     case["step_s_per_round"][variant], strict=True)]
             suffix = "" if variant == "fp32" else "/bf16"
             assert doc["summary"][f"speedup_over_reference/{name}{suffix}"] == case["speedup"][variant]
+        assert (f"speedup_over_reference/{name}/bf16" in doc["summary"]) is (bf16 == "yes")
     assert section["cases"]["train/dnri/synth"]["reference_params"]["decoder_type"] == "ref_mlp"
     assert section["cases"]["train/dnri/recurrent"]["reference_params"]["add_uniform_prior"] is False
 

@@ -343,6 +343,16 @@ def test_warnings_name_suspicious_settings(make_cfg, caplog):
     assert "foo: top-level key(s) that nothing reads" in caplog.text
 
 
+@pytest.mark.parametrize("native", [True, False])
+def test_bf16_on_a_cpu_that_emulates_it_is_named(make_cfg, caplog, monkeypatch, native):
+    import dider.run
+
+    monkeypatch.setattr(dider.run, "native_bf16", lambda device: native)
+    with caplog.at_level("WARNING"):
+        validate_config(make_cfg(["trainer.precision=bf16-mixed", "trainer.accelerator=cpu"]))
+    assert ("trainer.precision=bf16-mixed: this CPU has no native bf16" in caplog.text) is not native
+
+
 def test_a_corrupt_cache_is_named_moved_aside_and_rebuilt(make_cfg, tmp_path, caplog):
     from dider.data.cache import load_or_build
 

@@ -56,7 +56,7 @@ from dider.bench_result import JOBS, time_to_result
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
-from dider.perf import compile_modules, tune_allocator
+from dider.perf import compile_modules, native_bf16, tune_allocator
 
 log = logging.getLogger(__name__)
 
@@ -371,6 +371,7 @@ def compare_with_reference(
     warmup: int = 1,
     device: str = "cpu",
     threads: int | None = None,
+    bf16: bool = True,
 ) -> dict[str, Any]:
     """Time the public DNRI code's training step and ours on the same random clips, in this one process.
 
@@ -380,7 +381,8 @@ def compare_with_reference(
     (:func:`interleaved_timing`). -> the results JSON's ``reference`` section: per case the batch, N, T, the
     median s/step of ``reference``, ``fp32`` and ``bf16`` with every round's value, and the speed-ups
     (reference time / ours) with every round's value; the torch version and thread count (``threads``: set
-    it first; None keeps torch's default)."""
+    it first; None keeps torch's default). ``bf16=False`` leaves ours in bf16 out (a device that emulates it
+    would take most of the run)."""
     if threads is not None:
         torch.set_num_threads(threads)
     checkout = Path(checkout).resolve()
@@ -408,8 +410,9 @@ def compare_with_reference(
             fns: dict[str, Callable[[], Any]] = {
                 "reference": lambda m=ref, o=opt_ref, x=batch["states"]: _reference_step(m, o, x),
                 "fp32": lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b),
-                "bf16": lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b, "bf16"),
             }
+            if bf16:
+                fns["bf16"] = lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b, "bf16")
             timing = speedups(interleaved_timing(fns, rounds, iters, warmup, device), "reference")
             out[name] = {
                 "batch": batch_size, "agents": case.agents, "steps": steps, "size": size,
@@ -546,26 +549,34 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--reference-iters", type=int, default=2, help="timed steps of each per round")
     parser.add_argument("--reference-threads", type=int, default=None,
                         help="torch threads of the comparison (default: torch's, as the other cases)")
+    parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
+                        help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
+                        "AVX-512 emulates it, over 15x slower than fp32)")
     args = parser.parse_args(argv)
+    native = native_bf16(args.device)
+    bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
     meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
-            "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None}
+            "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
+            "bf16": bf16, "native_bf16": native}
+    if not bf16:
+        print(f"bf16 cases left out (--bf16 {args.bf16}; native bf16 on {args.device}: {native})", flush=True)
 
     def selected(name: str) -> bool:
-        return not args.only or any(s in name for s in args.only)
+        return (not args.only or any(s in name for s in args.only)) and (bf16 or "bf16" not in name)
 
     reference: dict[str, Any] | None = None
     names = tuple(n for n in REFERENCE_CASES if selected(f"reference/{n}"))
     if args.reference is not None and names:
         reference = _isolated(compare_with_reference, (args.reference, names, args.reference_size,
                                                        args.reference_rounds, args.reference_iters, 1, args.device,
-                                                       args.reference_threads),
+                                                       args.reference_threads, bf16),
                               {"checkout": str(args.reference)})
         if "error" in reference:
             print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
         for name, r in reference.get("cases", {}).items():
-            print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours "
-                  f"{r['step_s']['fp32'] * 1000:.1f} (fp32) {r['step_s']['bf16'] * 1000:.1f} (bf16): speed-up "
-                  f"{r['speedup']['fp32']:.2f} / {r['speedup']['bf16']:.2f}", flush=True)
+            ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f})" for k in r["speedup"])
+            print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours {ours}",
+                  flush=True)
 
     def write(records: list[dict[str, Any]]) -> None:
         document = {"meta": meta, "summary": summary(records, reference), "records": records}

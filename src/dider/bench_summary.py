@@ -29,7 +29,8 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
     for name, ref in REFERENCE_SAMPLES_PER_S.items():
         for variant in ("", "/bf16"):
             if name in measured:  # ours in bf16 against the reference in fp32, as the fallback's
-                out[f"speedup_over_reference/{name}{variant}"] = measured[name]["speedup"][variant[1:] or "fp32"]
+                if (dtype := variant[1:] or "fp32") in measured[name]["speedup"]:  # bf16 may be left out
+                    out[f"speedup_over_reference/{name}{variant}"] = measured[name]["speedup"][dtype]
             elif name + variant in by:
                 out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
     for dtype in ("fp32", "bf16"):

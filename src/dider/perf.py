@@ -38,6 +38,14 @@ def tune_allocator() -> bool:
     return _applied
 
 
+def native_bf16(device: str = "cpu") -> bool:
+    """Whether ``device`` computes in bf16 natively. A CPU without AVX-512 (oneDNN's test) emulates bf16
+    autocast: on a 2-core AVX2 CPU a synthetic DNRI step took over 38 s in bf16 against 2.2 s in fp32."""
+    if device.startswith("cuda"):
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def compile_modules(model: torch.nn.Module) -> None:
     """``torch.compile`` a RelationalVAE's hot plugins in place: the encoder and decoder (the GNN and its
     element-wise chains). The segment logic stays eager: its slot boundaries change every step. Shapes are

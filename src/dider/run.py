@@ -29,7 +29,7 @@ from dider import __version__
 from dider.checkpoint import AtomicCheckpointIO
 from dider.io import atomic_write_text
 from dider.models.module import RelationalVAEModule
-from dider.perf import compile_modules, tune_allocator
+from dider.perf import compile_modules, native_bf16, tune_allocator
 from dider.prediction import PredictionWriter
 from dider.protocol import horizons_problem
 from dider.runfolder import RunLock, check_checkpoint, check_fresh, is_rank_zero, mark_failed, resolve_ckpt
@@ -192,6 +192,11 @@ def config_warnings(cfg: DictConfig) -> list[str]:
     if model_b is not None and data_b is not None and model_b != data_b:
         found.append(f"model.burn_in={model_b} differs from data.burn_in={data_b}: the model forecasts after "
                      f"{model_b} frames, the data module's horizons count from {data_b}")
+    precision, accelerator = OmegaConf.select(cfg, "trainer.precision"), OmegaConf.select(cfg, "trainer.accelerator")
+    on_cpu = accelerator == "cpu" or (accelerator in (None, "auto") and not torch.cuda.is_available())
+    if "bf16" in str(precision) and on_cpu and not native_bf16("cpu"):
+        found.append(f"trainer.precision={precision}: this CPU has no native bf16 (no AVX-512), so autocast "
+                     "emulates it, many times slower than fp32 (trainer.precision=32-true)")
     if unknown := sorted(set(cfg.keys()) - TOP_LEVEL_KEYS):
         found.append(f"{', '.join(unknown)}: top-level key(s) that nothing reads (a typo of {sorted(TOP_LEVEL_KEYS)}?)")
     return found
