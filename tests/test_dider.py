@@ -233,7 +233,6 @@ def test_segment_kl_per_step_counts_each_segment_once_per_step(make_cfg):
         assert torch.equal(dnri.infer(batch, hard=True).kl_edge, dnri_steps.infer(batch, hard=True).kl_edge)
 
 
-
 def test_prior_fit_trains_the_prior_at_every_step_and_leaves_the_posterior(make_cfg):
     batch = clip()
     off = build(make_cfg, "model=dider").train()

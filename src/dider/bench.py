@@ -551,7 +551,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                         help="torch threads of the comparison (default: torch's, as the other cases)")
     parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
                         help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
-                        "AVX-512 emulates it, over 15x slower than fp32)")
+                        "AVX-512 emulates it, about 20x slower than fp32)")
     args = parser.parse_args(argv)
     native = native_bf16(args.device)
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
