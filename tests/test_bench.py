@@ -80,10 +80,14 @@ def test_interleaved_rounds_alternate_and_pair_the_speedups():
 def test_summary_takes_measured_speedups_over_the_fixed_figures():
     records = [{"name": "train/dnri/synth", "samples_per_s": 102.0, "step_s": 1.0, "settings": {"batch": 128}},
                {"name": "train/dnri/recurrent", "samples_per_s": 30.0, "step_s": 1.0, "settings": {"batch": 128}}]
-    reference = {"cases": {"train/dnri/synth": {"speedup": {"fp32": 1.5, "bf16": 2.5}}}}
+    reference = {"cases": {"train/dnri/synth": {"speedup": {"fp32": 1.5, "bf16": 2.5},
+                                                "ceiling": {"speedup": {"fp32": 1.9, "bf16": 4.7}}}}}
     out = bench.summary(records, reference)
     assert out["speedup_over_reference/train/dnri/synth"] == 1.5
     assert out["speedup_over_reference/train/dnri/synth/bf16"] == 2.5
+    assert out["ceiling_over_reference/train/dnri/synth"] == 1.9
+    assert out["ceiling_over_reference/train/dnri/synth/bf16"] == 4.7
+    assert "ceiling_over_reference/train/dnri/recurrent" not in out  # not measured in this run
     assert out["speedup_over_reference/train/dnri/recurrent"] == 2.0  # not measured: 30 / REFERENCE_SAMPLES_PER_S
     assert bench.summary(records)["speedup_over_reference/train/dnri/synth"] == 2.0  # without --reference
 
@@ -118,6 +122,13 @@ def test_reference_comparison_at_tiny_sizes(tmp_path, bf16):
             suffix = "" if variant == "fp32" else "/bf16"
             assert doc["summary"][f"speedup_over_reference/{name}{suffix}"] == case["speedup"][variant]
         assert (f"speedup_over_reference/{name}/bf16" in doc["summary"]) is (bf16 == "yes")
+        ceiling = case["ceiling"]  # the matmul-only ceiling, from this run's step arithmetic and matmul rates
+        assert set(ceiling["speedup"]) == set(variants) and ceiling["gflop_per_step"] > 0
+        for variant in variants:
+            step = ceiling["gflop_per_step"] / ceiling["gemm_gflop_per_s"][variant]
+            assert ceiling["speedup"][variant] == pytest.approx(case["step_s"]["reference"] / step)
+            suffix = "" if variant == "fp32" else "/bf16"
+            assert doc["summary"][f"ceiling_over_reference/{name}{suffix}"] == ceiling["speedup"][variant]
     assert section["cases"]["train/dnri/synth"]["reference_params"]["decoder_type"] == "ref_mlp"
     assert section["cases"]["train/dnri/recurrent"]["reference_params"]["add_uniform_prior"] is False
 

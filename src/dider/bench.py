@@ -202,15 +202,23 @@ def step_gflop(model: Any, batch: dict[str, torch.Tensor], autocast: str | None 
     return counter.get_total_flops() / 1e9
 
 
+GEMM_DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+
+
+def _gemm_seconds(dtype: str, device: str, iters: int, warmup: int) -> float:
+    """Seconds per matmul of :data:`GEMM_SHAPE` in ``dtype`` ("fp32" or "bf16") into a preallocated output."""
+    m, k, n = GEMM_SHAPE
+    a = torch.randn(m, k, device=device, dtype=GEMM_DTYPES[dtype])
+    b = torch.randn(k, n, device=device, dtype=GEMM_DTYPES[dtype])
+    out = torch.empty(m, n, device=device, dtype=GEMM_DTYPES[dtype])
+    return _timed(lambda: torch.mm(a, b, out=out), iters, warmup, device)
+
+
 def _gemm_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
     """The device's matmul rate on :data:`GEMM_SHAPE`, into a preallocated output (the compute ceiling)."""
     m, k, n = GEMM_SHAPE
-    dtype = {"fp32": torch.float32, "bf16": torch.bfloat16}[case.settings["dtype"]]
-    a, b = torch.randn(m, k, device=device, dtype=dtype), torch.randn(k, n, device=device, dtype=dtype)
-    out = torch.empty(m, n, device=device, dtype=dtype)
-    seconds = _timed(lambda: torch.mm(a, b, out=out), case.iters, case.warmup, device)
-    gflop = 2 * m * k * n / 1e9
-    return seconds, {"unit": "matmuls", "gflop_per_step": gflop, "shape": [m, k, n]}
+    seconds = _gemm_seconds(case.settings["dtype"], device, case.iters, case.warmup)
+    return seconds, {"unit": "matmuls", "gflop_per_step": 2 * m * k * n / 1e9, "shape": [m, k, n]}
 
 
 def _random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
@@ -414,6 +422,7 @@ def compare_with_reference(
             if bf16:
                 fns["bf16"] = lambda m=ours, o=opt_ours, b=batch: _train_step(m, o, b, "bf16")
             timing = speedups(interleaved_timing(fns, rounds, iters, warmup, device), "reference")
+            timing["ceiling"] = matmul_ceiling(ours, batch, timing["step_s"]["reference"], list(fns)[1:], device)
             out[name] = {
                 "batch": batch_size, "agents": case.agents, "steps": steps, "size": size,
                 "overrides": [*case.overrides, *scale.get("overrides", [])], "reference_params": params,
@@ -422,6 +431,20 @@ def compare_with_reference(
                 "device": device, "threads": torch.get_num_threads(), "torch": torch.__version__,
             }  # fmt: skip
     return {"checkout": str(checkout), "commit": _checkout_commit(checkout), "cases": out}
+
+
+def matmul_ceiling(model: Any, batch: dict[str, torch.Tensor], reference_s: float, dtypes: list[str],
+                   device: str, iters: int = 10) -> dict[str, Any]:
+    """The speed-up over the reference that a step of our arithmetic would reach if it did nothing but its
+    matrix products at this device's matmul rate (:data:`GEMM_SHAPE`, timed here, in this process), per
+    dtype of ``dtypes``: reference_s / (GFLOP per step / GFLOP/s). A target above it cannot be met on the
+    device by any implementation of this arithmetic. -> ``gflop_per_step``, ``gemm_gflop_per_s`` and
+    ``speedup`` by dtype."""
+    m, k, n = GEMM_SHAPE
+    gflop = step_gflop(model, batch)
+    rate = {d: 2 * m * k * n / 1e9 / _gemm_seconds(d, device, iters, 2) for d in dtypes}
+    return {"gflop_per_step": gflop, "gemm_gflop_per_s": rate,
+            "speedup": {d: reference_s / (gflop / r) for d, r in rate.items()}}
 
 
 def benchmark_preprocess(tmpdir: str | Path | None = None, minutes: float = 20.0, num_tracks: int = 300,
@@ -574,7 +597,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         if "error" in reference:
             print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
         for name, r in reference.get("cases", {}).items():
-            ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f})" for k in r["speedup"])
+            ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f}, matmul-only "
+                             f"ceiling {r['ceiling']['speedup'][k]:.2f})" for k in r["speedup"])
             print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours {ours}",
                   flush=True)
 

@@ -22,7 +22,8 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
 
     ``reference``: the results JSON's ``reference`` section (:func:`dider.bench.compare_with_reference`).
     A case it measured takes its speed-ups from there (reference and ours timed in the same process,
-    alternating); the others divide this run's samples/s by :data:`REFERENCE_SAMPLES_PER_S`."""
+    alternating), with the matmul-only ceiling of the same run beside them; the others divide this run's
+    samples/s by :data:`REFERENCE_SAMPLES_PER_S`."""
     by = {r["name"]: r for r in records if "error" not in r}
     measured = (reference or {}).get("cases", {})
     out: dict[str, Any] = {}
@@ -31,6 +32,9 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
             if name in measured:  # ours in bf16 against the reference in fp32, as the fallback's
                 if (dtype := variant[1:] or "fp32") in measured[name]["speedup"]:  # bf16 may be left out
                     out[f"speedup_over_reference/{name}{variant}"] = measured[name]["speedup"][dtype]
+                    ceiling = measured[name].get("ceiling", {}).get("speedup", {})  # absent in older JSON
+                    if dtype in ceiling:  # the most any implementation of our arithmetic reaches here
+                        out[f"ceiling_over_reference/{name}{variant}"] = ceiling[dtype]
             elif name + variant in by:
                 out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
     for dtype in ("fp32", "bf16"):

@@ -185,7 +185,9 @@ NPZ_DTYPES = {"segments": np.int8, "per_step": np.int8, "prior": np.int8, "truth
 def write_clips_npz(path: Path, arrays: Mapping[str, torch.Tensor], extra: Mapping[str, np.ndarray]) -> None:
     """Stacked clips and ``extra`` arrays (``num_types``, ``model``, backgrounds...) -> ``path``, compressed,
     atomically; every key is a plain array (readable with ``allow_pickle=False``)."""
-    out = {k: v.numpy().astype(NPZ_DTYPES.get(k, v.numpy().dtype)) for k, v in arrays.items()} | dict(extra)
+    # numpy has no bf16: a run trained in bf16 autocast may hand such tensors on
+    plain = {k: v.float() if v.dtype == torch.bfloat16 else v for k, v in arrays.items()}
+    out = {k: v.numpy().astype(NPZ_DTYPES.get(k, v.numpy().dtype)) for k, v in plain.items()} | dict(extra)
     atomic_write(path, lambda f: np.savez_compressed(f, **out))
 
 

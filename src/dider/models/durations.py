@@ -30,7 +30,7 @@ class PerStepDuration(nn.Module):
         b, e, t, _ = h_fwd.shape
         start = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         valid = torch.ones(b, e, t, dtype=torch.bool, device=h_fwd.device)
-        return Segmentation(start, valid, None, h_fwd.new_zeros(b))
+        return Segmentation(start, valid, None, h_fwd.new_zeros(b, dtype=torch.float32))
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         return torch.ones(h_t.shape[:2], dtype=torch.long, device=h_t.device)
@@ -44,8 +44,8 @@ class StaticDuration(nn.Module):
         b, e, t, _ = h_fwd.shape
         start = torch.zeros(b, e, 1, dtype=torch.long, device=h_fwd.device)
         valid = torch.ones(b, e, 1, dtype=torch.bool, device=h_fwd.device)
-        assign = h_fwd.new_ones(b, e, t, 1)
-        return Segmentation(start, valid, assign, h_fwd.new_zeros(b))
+        assign = h_fwd.new_ones(b, e, t, 1, dtype=torch.float32)
+        return Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32))
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         return torch.full(h_t.shape[:2], max(end - t, 1), dtype=torch.long, device=h_t.device)
@@ -136,7 +136,8 @@ class LearnedDuration(nn.Module):
 
     def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """h [..., R] -> mu, sigma [...] of the duration latent."""
-        raw_mu, raw_sigma = self.head(h).unbind(-1)
+        # fp32 under autocast: in bf16 a boundary near step 49 would move in quarter steps
+        raw_mu, raw_sigma = self.head(h).float().unbind(-1)
         return torch.tanh(raw_mu), self.sigma_min + (1 - self.sigma_min) * torch.sigmoid(raw_sigma)
 
     def fraction(self, z: torch.Tensor) -> torch.Tensor:
@@ -151,7 +152,7 @@ class LearnedDuration(nn.Module):
         learned = t - span
         cap = learned if self.max_segments is None else min(self.max_segments, learned)
         slots = (cap if fixed is None else -(-t // fixed)) if learned > 0 else 0
-        s = h_fwd.new_zeros(b, e)  # continuous start of the current slot
+        s = h_fwd.new_zeros(b, e, dtype=torch.float32)  # continuous start of the current slot
         bounds, starts, mus, sigmas = [s], [], [], []
         if span > 0:
             starts.append(s.long())
@@ -179,7 +180,7 @@ class LearnedDuration(nn.Module):
             bounds.append(s)
         assign, hard = self._assignment(torch.stack(bounds, dim=-1), t, self.tau(progress))
         valid = hard.sum(2) > 0  # slots holding at least one step (a slot past the end holds none)
-        kl, sigma = h_fwd.new_zeros(b), None
+        kl, sigma = h_fwd.new_zeros(b, dtype=torch.float32), None
         if mus:  # summed over an edge's segments, divided by its steps: the edge KL's convention
             learned_valid = valid[..., len(starts) - len(mus):]
             mu, sd = torch.stack(mus, -1), torch.stack(sigmas, -1)

@@ -25,7 +25,7 @@ class EncoderOutput:
 
     h_fwd: torch.Tensor  # [B, E, T-1, R] forward LSTM: transition t has seen x_0..x_t (the prior's input)
     h_rev: torch.Tensor  # [B, E, T-1, R] reverse LSTM: transition t has seen x_{t+1}..x_{T-1}
-    posterior_logits: torch.Tensor  # [B, E, T-1, K] from [h_rev, h_fwd]
+    posterior_logits: torch.Tensor  # [B, E, T-1, K] from [h_rev, h_fwd]; fp32 under autocast too
 
 
 class GNNEdgeEmbedding(nn.Module):
@@ -112,7 +112,7 @@ class GNNLSTMEncoder(nn.Module):
         # at frame t+1 has seen x_{t+1}..x_{T-1}.
         h_fwd, h_rev = bidirectional_lstm(self._embed(x, mask), self.forward_rnn, self.reverse_rnn)
         h_fwd, h_rev = h_fwd[:, :-1].unflatten(0, (b, -1)), h_rev[:, 1:].unflatten(0, (b, -1))
-        logits = self.posterior_head(torch.cat([h_rev, h_fwd], dim=-1))
+        logits = self.posterior_head(torch.cat([h_rev, h_fwd], dim=-1)).float()  # softmax, KL and Gumbel in fp32
         return EncoderOutput(h_fwd, h_rev, logits)
 
     def past(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, LSTMState]:

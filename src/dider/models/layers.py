@@ -129,9 +129,12 @@ class PairLinear(nn.Module):
     def forward(self, nodes: torch.Tensor, extra: torch.Tensor | None = None) -> torch.Tensor:
         f = self.node_dim
         # One matmul for both halves on the node rows, then a broadcast sum onto the edges. The bias takes
-        # the matmul's dtype: an fp32 bias would promote an autocast matmul's bf16 output to fp32.
+        # the matmul's dtype: an fp32 bias would promote an autocast matmul's bf16 output to fp32. The halves
+        # are split by unbind, whose backward stacks their gradients into one tensor; two slices would each
+        # zero-fill a gradient of the whole [..., N, 2 x out] product and add them.
         both = nodes @ torch.cat([self.weight[:, :f], self.weight[:, f : 2 * f]], dim=0).T
-        out = pair_sum(both[..., : self.out_dim] + self.bias.to(both.dtype), both[..., self.out_dim :])
+        send, recv = both.unflatten(-1, (2, self.out_dim)).unbind(-2)
+        out = pair_sum(send + self.bias.to(both.dtype), recv)
         if extra is not None:
             out = out + extra @ self.weight[:, 2 * f :].T
         return out

@@ -1,4 +1,8 @@
-"""Prior plugins: edge-type logits from the forward (past-only) LSTM state. h: [..., R] -> [..., K]."""
+"""Prior plugins: edge-type logits from the forward (past-only) LSTM state. h: [..., R] -> [..., K].
+
+Logits are fp32 under autocast too: the softmaxes and KL terms computed from them lose the prior's small
+probabilities in bf16.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +22,7 @@ class LearnedPrior(nn.Module):
         self.net = head(rnn_hidden, hidden, num_types, num_layers)
 
     def forward(self, h_fwd: torch.Tensor) -> torch.Tensor:
-        return self.net(h_fwd)
+        return self.net(h_fwd).float()
 
 
 class FixedPrior(nn.Module):

@@ -10,6 +10,13 @@ from dataclasses import dataclass, field
 import torch
 
 
+def _einsum_fp32(equation: str, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``einsum`` outside autocast: the slot sums hold logits, probabilities and the boundaries' gradients,
+    which bf16 would round (the operands are small: [B, E, T, S] and [B, E, S, K])."""
+    with torch.autocast(a.device.type, enabled=False):
+        return torch.einsum(equation, a.float(), b.float())
+
+
 @dataclass
 class Segmentation:
     start: torch.Tensor  # [B, E, S] long: first step of each slot
@@ -36,14 +43,14 @@ class Segmentation:
         """Mean of per-step values over each slot's steps: [B, E, T, F] -> [B, E, S, F] (0 for empty slots)."""
         if self.assign is None:
             return values
-        total = torch.einsum("bets,betf->besf", self.assign, values)
+        total = _einsum_fp32("bets,betf->besf", self.assign, values)
         return total / self.assign.sum(2).unsqueeze(-1).clamp_min(1.0)
 
     def spread(self, per_slot: torch.Tensor) -> torch.Tensor:
         """Hold each slot's value over its steps: [B, E, S, F] -> [B, E, T, F]."""
         if self.assign is None:
             return per_slot
-        return torch.einsum("bets,besf->betf", self.assign, per_slot)
+        return _einsum_fp32("bets,besf->betf", self.assign, per_slot)
 
     def stats(self, present: torch.Tensor) -> dict[str, torch.Tensor]:
         """Monitoring: segments per present edge, mean segment length in steps and (if any) the duration
