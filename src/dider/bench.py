@@ -56,7 +56,7 @@ from dider.bench_result import JOBS, time_to_result
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
-from dider.perf import compile_modules, native_bf16, tune_allocator
+from dider.perf import ALLOCATORS, compile_modules, native_bf16, tune_allocator
 
 log = logging.getLogger(__name__)
 
@@ -572,15 +572,20 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--reference-iters", type=int, default=2, help="timed steps of each per round")
     parser.add_argument("--reference-threads", type=int, default=None,
                         help="torch threads of the comparison (default: torch's, as the other cases)")
+    parser.add_argument("--allocator", choices=ALLOCATORS, default=None,
+                        help="glibc's allocator settings in every case's process (default: $DIDER_ALLOCATOR, else "
+                        "heap, as training runs; dider.perf.tune_allocator)")
     parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
                         help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
                         "AVX-512 emulates it, about 20x slower than fp32)")
     args = parser.parse_args(argv)
+    if args.allocator:  # the spawned case processes read it at start (_worker)
+        os.environ["DIDER_ALLOCATOR"] = args.allocator
     native = native_bf16(args.device)
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
     meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
-            "bf16": bf16, "native_bf16": native}
+            "bf16": bf16, "native_bf16": native, "allocator": os.environ.get("DIDER_ALLOCATOR", "heap")}
     if not bf16:
         print(f"bf16 cases left out (--bf16 {args.bf16}; native bf16 on {args.device}: {native})", flush=True)
 

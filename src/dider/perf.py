@@ -3,8 +3,10 @@
 On Linux/glibc every tensor above the mmap threshold (128 KiB to 32 MiB, adaptive) is a fresh
 mmap whose pages fault in on first touch and are unmapped on free. Training allocates and frees
 tens-of-MiB activations many times per step, so on the 2-core CPU a third of a DNRI step went to
-page faults (measured: 3.5 s -> 2.4 s per synthetic step of batch 128 with the settings below).
-Raising the thresholds lets glibc keep and reuse that memory.
+page faults (measured: 3.5 s -> 2.4 s per synthetic step of batch 128 with the thresholds raised).
+Raising the thresholds lets glibc keep and reuse that memory, but only up to 32 MiB, glibc's largest
+threshold: the recurrent step's 100-200 MiB edge tensors still came fresh from mmap every time (one backward
+stack of its LSTM gates' gradients, 210 MiB, took 313 ms). ``heap`` serves every size from the heap.
 """
 
 from __future__ import annotations
@@ -16,26 +18,39 @@ import sys
 
 import torch
 
-_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD = -1, -2, -3
-_applied = False
+_M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -2, -3, -4
+# heap: thresholds raised and no mmap at all, every freed block reused (measured on the 2-core CPU, interleaved:
+# recurrent DNRI step 4.4-4.6 -> 3.8-4.0 s in fp32, the synthetic one about 4% faster; peak RSS 5-15% higher,
+# the price of a heap that is never returned); thresholds: the thresholds only (the default until then);
+# system: glibc's own settings.
+ALLOCATORS = ("heap", "thresholds", "system")
+_applied: str | None = None
 
 
-def tune_allocator() -> bool:
-    """Keep freed heap memory for reuse (glibc only; a no-op elsewhere or with DIDER_NO_MALLOPT=1)."""
+def tune_allocator(mode: str | None = None) -> bool:
+    """Keep freed memory for reuse (glibc only; a no-op elsewhere). ``mode``: one of :data:`ALLOCATORS`;
+    None takes ``$DIDER_ALLOCATOR``, else ``heap``; ``DIDER_NO_MALLOPT=1`` means ``system``. Settings only
+    grow more permissive within a process: glibc applies them to later allocations. -> whether applied."""
     global _applied
-    if _applied or not sys.platform.startswith("linux") or os.environ.get("DIDER_NO_MALLOPT"):
-        return _applied
+    mode = "system" if os.environ.get("DIDER_NO_MALLOPT") else mode or os.environ.get("DIDER_ALLOCATOR") or "heap"
+    if mode not in ALLOCATORS:
+        raise ValueError(f"allocator={mode!r}: expected one of {list(ALLOCATORS)}")
+    if mode == "system" or not sys.platform.startswith("linux"):
+        return False
+    if _applied in (mode, "heap"):
+        return True
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
         ok = all([
             libc.mallopt(_M_MMAP_THRESHOLD, 32 * 2**20),  # glibc's maximum
             libc.mallopt(_M_TRIM_THRESHOLD, 2**30),
             libc.mallopt(_M_TOP_PAD, 256 * 2**20),
+            *([libc.mallopt(_M_MMAP_MAX, 0)] if mode == "heap" else []),
         ])  # fmt: skip
     except (OSError, AttributeError):
         return False
-    _applied = bool(ok)
-    return _applied
+    _applied = mode if ok else None
+    return ok
 
 
 def native_bf16(device: str = "cpu") -> bool:

@@ -177,9 +177,9 @@ def validate_config(cfg: DictConfig) -> None:
 
 
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
-TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "compile", "output_dir", "optimized_metric",
-                  "predict", "data", "model", "trainer", "logger", "callbacks", "hydra", "hparams_search",
-                  "edges_per_model"}
+TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
+                  "optimized_metric", "predict", "data", "model", "trainer", "logger", "callbacks", "hydra",
+                  "hparams_search", "edges_per_model"}
 
 
 def config_warnings(cfg: DictConfig) -> list[str]:
@@ -353,8 +353,8 @@ def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metric
 def main(cfg: DictConfig) -> float | None:
     """The app. Returns ``optimized_metric`` (a validation metric by default), which Hydra sweepers
     (e.g. the Optuna sweeper) minimise; never a test metric, so a search cannot tune on the test set."""
-    tune_allocator()
     try:
+        tune_allocator(cfg.get("allocator"))
         if cfg.mode == "predict":
             predict(cfg)
             return None

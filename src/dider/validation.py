@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from dider.perf import ALLOCATORS
 from dider.protocol import BURN_IN_MODES
 
 Rule = Callable[[Any], "str | None"]  # a value -> what is wrong with it, or None
@@ -88,6 +89,7 @@ WIDTH_KEYS = ("model.encoder.hidden", "model.encoder.rnn_hidden", "model.encoder
 
 RULES: dict[str, Rule] = {
     "compile": boolean,
+    "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
     "threads": optional(integer(1, " (null: torch's default)")),
     "trainer.max_epochs": integer(-1, " (-1: no limit)"),
