@@ -19,10 +19,10 @@ import sys
 import torch
 
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -2, -3, -4
-# heap: thresholds raised and no mmap at all, every freed block reused (measured on the 2-core CPU, interleaved:
-# recurrent DNRI step 4.4-4.6 -> 3.8-4.0 s in fp32, the synthetic one about 4% faster; peak RSS 5-15% higher,
-# the price of a heap that is never returned); thresholds: the thresholds only (the default until then);
-# system: glibc's own settings.
+# heap: thresholds raised and no mmap at all, every freed block reused (the bench's DNRI training cases on the
+# 2-core CPU, fresh processes, alternating: recurrent step -8%, synthetic -5.5%; peak memory 5-14% higher, the
+# price of a heap that is never returned; docs/performance.md); thresholds: the thresholds only (the default
+# until 2026-11-24); system: glibc's own settings.
 ALLOCATORS = ("heap", "thresholds", "system")
 _applied: str | None = None
 

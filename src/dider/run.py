@@ -74,6 +74,7 @@ def default_precision(accelerator: str | None) -> str:
 
 OmegaConf.register_new_resolver("dider_precision", default_precision, replace=True)
 
+
 def hparam_metrics(cfg: DictConfig) -> list[str]:
     """The metrics shown in TensorBoard's HParams tab: the forecast MSE at the data set's own horizons, the
     edge recall (where the data have ground truth), the model-selection objective."""
