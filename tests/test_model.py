@@ -167,3 +167,17 @@ def test_prior_per_step_is_dnris_online_prior_and_dider_holds_its_segments(make_
     assert not torch.equal(held, per_step)
     # every change of a held type is where the per-step prior picks a new segment's type
     assert torch.equal(held[..., 1:][changes], per_step[..., 1:][changes])
+
+
+def test_training_after_inference_in_the_same_process(make_cfg):
+    """The edge indices are cached per agent count: first built under inference mode (an evaluation or a
+    prediction first in the process), they must still serve a training step's backward."""
+    from dider.graph import _edge_index_cpu
+
+    _edge_index_cpu.cache_clear()
+    model = build(make_cfg, "model=dnri")
+    batch = clip(b=2, t=6, n=5)
+    with torch.inference_mode():
+        model.infer(batch, hard=True)
+    model.loss(model.infer(batch, hard=False))["loss"].backward()
+    assert all(p.grad is not None for p in model.encoder.parameters() if p.requires_grad)

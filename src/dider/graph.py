@@ -13,7 +13,10 @@ import torch
 
 @lru_cache(maxsize=64)
 def _edge_index_cpu(num_agents: int) -> tuple[torch.Tensor, torch.Tensor]:
-    send, recv = torch.where(~torch.eye(num_agents, dtype=torch.bool))
+    # Normal tensors even when first asked for under inference mode (an evaluation or prediction first in the
+    # process): a cached inference tensor could never be saved for a later training step's backward.
+    with torch.inference_mode(False):
+        send, recv = torch.where(~torch.eye(num_agents, dtype=torch.bool))
     return send, recv
 
 
