@@ -23,10 +23,11 @@ def test_autocast_keeps_edge_and_segment_arithmetic_in_fp32(make_cfg, model):
     in quarter steps and the prior's small probabilities round away. The GNN itself does run in bf16."""
     torch.manual_seed(0)
     net = RelationalVAE.from_config(make_cfg([f"model={model}"]).model).train()
+    batch = _clip()
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = net.infer(_clip(), hard=False)
-        said = net.describe(net.infer(_clip(), hard=True), _clip()["mask"])
-        bf16_inside = net.encoder.embed(_clip()["states"]).dtype
+        out = net.infer(batch, hard=False)
+        said = net.describe(net.infer(batch, hard=True), batch["mask"])
+        bf16_inside = net.encoder.embed(batch["states"]).dtype
     assert bf16_inside == torch.bfloat16
     for name in ("posterior_logits", "prior_logits", "probs", "step_logits", "kl_edge", "kl_duration", "prior_fit"):
         assert getattr(out, name).dtype == torch.float32, name

@@ -56,7 +56,7 @@ from dider.bench_result import JOBS, time_to_result
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
-from dider.perf import ALLOCATORS, compile_modules, native_bf16, tune_allocator
+from dider.perf import ALLOCATORS, allocator_mode, compile_modules, native_bf16, tune_allocator
 
 log = logging.getLogger(__name__)
 
@@ -585,7 +585,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
     meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
-            "bf16": bf16, "native_bf16": native, "allocator": os.environ.get("DIDER_ALLOCATOR", "heap")}
+            "bf16": bf16, "native_bf16": native, "allocator": allocator_mode()}
     if not bf16:
         print(f"bf16 cases left out (--bf16 {args.bf16}; native bf16 on {args.device}: {native})", flush=True)
 

@@ -27,12 +27,18 @@ ALLOCATORS = ("heap", "thresholds", "system")
 _applied: str | None = None
 
 
+def allocator_mode(mode: str | None = None) -> str:
+    """The allocator setting a process takes: ``mode``, else ``$DIDER_ALLOCATOR``, else ``heap``;
+    ``DIDER_NO_MALLOPT=1`` means ``system`` whatever was asked."""
+    return "system" if os.environ.get("DIDER_NO_MALLOPT") else mode or os.environ.get("DIDER_ALLOCATOR") or "heap"
+
+
 def tune_allocator(mode: str | None = None) -> bool:
-    """Keep freed memory for reuse (glibc only; a no-op elsewhere). ``mode``: one of :data:`ALLOCATORS`;
-    None takes ``$DIDER_ALLOCATOR``, else ``heap``; ``DIDER_NO_MALLOPT=1`` means ``system``. Settings only
-    grow more permissive within a process: glibc applies them to later allocations. -> whether applied."""
+    """Keep freed memory for reuse (glibc only; a no-op elsewhere). ``mode``: one of :data:`ALLOCATORS`,
+    resolved by :func:`allocator_mode`. Settings only grow more permissive within a process: glibc applies
+    them to later allocations. -> whether applied."""
     global _applied
-    mode = "system" if os.environ.get("DIDER_NO_MALLOPT") else mode or os.environ.get("DIDER_ALLOCATOR") or "heap"
+    mode = allocator_mode(mode)
     if mode not in ALLOCATORS:
         raise ValueError(f"allocator={mode!r}: expected one of {list(ALLOCATORS)}")
     if mode == "system" or not sys.platform.startswith("linux"):
