@@ -112,6 +112,7 @@ RULES: dict[str, Rule] = {
     "model.rollout_edges": one_of("sample", "argmax"),
     "model.forecast_edges": one_of("prior", "burn_in"),
     "model.segment_kl": one_of("per_segment", "per_step"),
+    "model.sparsity_form": one_of("mean_edges", "per_edge"),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.decoder_edges": boolean,

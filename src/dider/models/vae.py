@@ -90,6 +90,7 @@ class RelationalVAE(nn.Module):
         kl_warmup: float = 0.0,
         sparsity_mix: float = 0.0,
         no_edge_prob: float = 0.9,
+        sparsity_form: str = "mean_edges",
         rollout_edges: str = "sample",
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
@@ -100,8 +101,13 @@ class RelationalVAE(nn.Module):
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
-        ramp up. sparsity_mix: weight of DNRI's synthetic-data term KL(mean_e q || [no_edge_prob, ...]) in
-        the edge KL. rollout_edges: ``sample`` (DNRI) or ``argmax`` prior edge types in roll-outs.
+        ramp up. sparsity_mix: weight in the edge KL of a sparsity term against the fixed prior
+        [no_edge_prob, ...] (DNRI's synthetic-data runs: 0.5). sparsity_form: ``mean_edges`` (DNRI's: the KL
+        of the edges' mean type distribution at each step, which a step with fewer interacting edges than the
+        budget pays for marking one more) or ``per_edge`` (the mean over edges of each edge's KL to the fixed
+        prior, NRI's form: every marked edge-step costs log(no_edge_prob / rest) more than an unmarked one,
+        none is paid for).
+        rollout_edges: ``sample`` (DNRI) or ``argmax`` prior edge types in roll-outs.
         posterior_readout: a segment's posterior type read at its first step (``start``, the paper) or
         pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from: ``prior``
         (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in alone,
@@ -120,7 +126,8 @@ class RelationalVAE(nn.Module):
             "model.rollout_edges": rollout_edges, "model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau,
             "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
             "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
-            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix, "model.forecast_edges": forecast_edges,
+            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
+            "model.sparsity_form": sparsity_form, "model.forecast_edges": forecast_edges,
             "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
             "model.prior_fit_warmup": prior_fit_warmup,
         })  # fmt: skip
@@ -135,7 +142,7 @@ class RelationalVAE(nn.Module):
         self.nll_variance, self.gumbel_tau = nll_variance, gumbel_tau
         self.beta_edge, self.beta_duration = beta_edge, beta_duration
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
-        self.kl_warmup, self.sparsity_mix = kl_warmup, sparsity_mix
+        self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
         self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
         self.prior_fit, self.prior_fit_warmup = prior_fit, prior_fit_warmup
@@ -182,17 +189,24 @@ class RelationalVAE(nn.Module):
         steps = present.flatten(1).sum(1).clamp_min(1)
         kl_edge = kl_slots.flatten(1).sum(1) / steps
         probs = seg.spread(F.softmax(q_seg, dim=-1))
-        if self.sparsity_mix > 0:  # DNRI's synthetic runs: KL(mean_e q_t || [0.9, 0.1, ...])
-            w = present.unsqueeze(-1).to(probs.dtype)
-            mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
-            kl_sparse = (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
-            kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * kl_sparse
+        if self.sparsity_mix > 0:
+            kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * self.sparsity_kl(probs, present, steps)
         # Between segment starts the ELBO leaves the prior untrained: prior_fit fits it at every step.
         q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
         kl_fit = (q_held * (q_held.clamp_min(1e-16).log() - F.log_softmax(p_step, dim=-1))).sum(-1)
         prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
                          prior_fit)
+
+    def sparsity_kl(self, probs: torch.Tensor, present: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+        """The sparsity term against the fixed prior [no_edge_prob, ...], in ``sparsity_form``.
+        probs [B, E, T-1, K] (each step's posterior), present [B, E, T-1] bool, steps [B] present edge-steps -> [B]."""
+        if self.sparsity_form == "per_edge":
+            kl = (probs * (probs.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1)  # [B, E, T-1]
+            return (kl * present).flatten(1).sum(1) / steps
+        w = present.unsqueeze(-1).to(probs.dtype)
+        mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
+        return (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
 
     def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
         """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
