@@ -326,3 +326,22 @@ def test_sparsity_form_enters_the_edge_kl(make_cfg):
     assert (out["per_edge"].kl_edge - out["mean_edges"].kl_edge).abs().min() > 1e-4  # the forms do differ here
     with pytest.raises(Exception, match="model.sparsity_form='per_step'"):  # Hydra wraps the ValueError
         build(make_cfg, "model=dider", "model.sparsity_form=per_step")
+
+
+@pytest.mark.parametrize("source", ["past", "future"])
+def test_encoder_grad_false_keeps_the_durations_gradients_out_of_the_encoder(source):
+    """With encoder_grad=False the duration KL and the boundaries still train the head, and leave the LSTM
+    states (which the edge prior and posterior read) alone."""
+    grads = {}
+    for flag in (True, False):
+        torch.manual_seed(0)
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, encoder_grad=flag).train()
+        h_fwd, h_rev = torch.randn(2, 6, 20, 8, requires_grad=True), torch.randn(2, 6, 20, 8, requires_grad=True)
+        seg = dur.segment(h_fwd, h_rev, torch.zeros(2, 21, 3, 4))
+        (seg.kl.sum() + (seg.assign * torch.randn(seg.assign.shape)).sum()).backward()
+        feats = h_fwd if source == "past" else h_rev
+        grads[flag] = (feats.grad, dur.head[0].weight.grad)
+    assert grads[True][0].abs().sum() > 0 and grads[False][0] is None
+    assert torch.equal(grads[True][1], grads[False][1])  # the head learns the same either way
+    with pytest.raises(ValueError, match="model.duration.encoder_grad"):
+        LearnedDuration(encoder_grad="no")

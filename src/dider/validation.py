@@ -131,6 +131,7 @@ RULES: dict[str, Rule] = {
     "model.duration.tau_anneal_steps": optional(at_least(0)),
     "model.duration.burn_in": optional(at_least(1)),
     "model.duration.skid_online": one_of("prior_mean", "head"),
+    "model.duration.encoder_grad": boolean,
     "model.burn_in": at_least(1),
     "data.burn_in": at_least(1),
     "data.burn_in_mode": one_of(*BURN_IN_MODES),

@@ -78,6 +78,9 @@ class LearnedDuration(nn.Module):
     ``skid_online`` picks what sets SKID's durations then: ``prior_mean``, the duration prior's mean fraction,
     or ``head``, the duration head fed the past-only (forward LSTM) state.
     ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
+    ``encoder_grad``: whether the duration's gradients (the NLL's through the boundaries, the duration KL's)
+    reach the encoder's LSTM states, which the edge prior and posterior read too (False: the head reads
+    them detached).
     """
 
     def __init__(
@@ -99,6 +102,7 @@ class LearnedDuration(nn.Module):
         sigma_init: float = 0.5,
         burn_in: int | None = None,
         skid_online: str = "prior_mean",
+        encoder_grad: bool = True,
     ) -> None:
         super().__init__()
         require({
@@ -108,10 +112,10 @@ class LearnedDuration(nn.Module):
             "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
             "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
             "model.duration.tau_anneal_steps": tau_anneal_steps, "model.duration.burn_in": burn_in,
-            "model.duration.skid_online": skid_online,
+            "model.duration.skid_online": skid_online, "model.duration.encoder_grad": encoder_grad,
         }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
-        self.skid_online = skid_online
+        self.skid_online, self.encoder_grad = skid_online, encoder_grad
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
         self.tau_start, self.tau_end = tau_start, tau_end
@@ -147,6 +151,8 @@ class LearnedDuration(nn.Module):
                 progress: Progress = Progress()) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = h_fwd if self.source == "past" else h_rev
+        if not self.encoder_grad:  # the head learns from the LSTM states without reshaping them
+            feats = feats.detach()
         fixed = self.fixed_duration
         span = min(self.observed, t)  # the observed burn-in span: slot 0, no duration latent
         learned = t - span

@@ -152,6 +152,9 @@ class RelationalVAEModule(L.LightningModule):
         terms = self.model.loss(out, self.progress())
         bs = batch["states"].shape[0]
         self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs, sync_dist=True)
+        # The model's own cut (its duration slots), beside the type switches that test/segments_per_edge counts:
+        # one-step slots holding the same type look like one long segment there.
+        self._log_segments("test", out, batch)
         posterior, prior = out.posterior_types(), self.model.online_types(out.h_fwd)
         normalizer = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
         forecast = self._forecast(batch)
