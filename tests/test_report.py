@@ -63,6 +63,10 @@ def test_report_matches_jobs(sweep: Path, tmp_path: Path):
     h01 = np.array([json.loads((job_dirs(sweep)["dnri", s] / "metrics.json").read_text())["metrics"]["test/mse/h01"]
                     for s in (1, 2)])
     assert f"| dnri | 2 | {h01.mean():.3g} ± {h01.std(ddof=1):.2g} |" in md
+    # the model's own slots and the held types' switches are separate tables
+    slots = md.split("## Duration slots: the model's own cut")[1].split("\n## ")[0]
+    assert "segments/steps_per_segment" in slots and "switches_per_100" not in slots
+    assert "segments_per_edge" in md.split("\n## Segments")[1].split("\n## ")[0]
     assert (tmp_path / "horizons.png").stat().st_size > 0
     assert sorted(p.parent.name for p in tmp_path.glob("timelines/*/timeline_00.png")) == ["dider", "dnri"]
     assert md.rstrip().endswith("## Failed or missing jobs\n\n(failed: a job folder without metrics.json, also while "
