@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from dider.losses import capacity, categorical_kl, gaussian_kl, gaussian_nll
+from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_kl, gaussian_nll
 
 F64 = torch.float64
 
@@ -89,6 +89,15 @@ def test_categorical_kl_near_one_hot_stays_finite() -> None:
     """A nearly one-hot q (finite logits, as networks produce) gives KL = log K against uniform, not NaN."""
     q = torch.tensor([0.0, -1e4], dtype=F64)
     close(categorical_kl(q, torch.zeros(2, dtype=F64)), math.log(2))
+
+
+def test_categorical_kl_probs_hand_example_and_exact_zeros() -> None:
+    """q as probabilities: the hand example above, and a q with exact zeros (0 log 0 = 0): one-hot (1, 0)
+    against (0.9, 0.1) is log(1/0.9)."""
+    log_p = torch.full((3,), -math.log(3.0), dtype=F64)
+    close(categorical_kl_probs(torch.tensor(Q, dtype=F64), log_p), 0.5 * math.log(1.125))
+    close(categorical_kl_probs(torch.tensor([1.0, 0.0], dtype=F64), torch.tensor([0.9, 0.1], dtype=F64).log()),
+          math.log(1 / 0.9))
 
 
 # -------------------------------------------------------------------------------------------- gaussian_kl

@@ -34,7 +34,8 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
                 "test/interaction_rate/posterior", "test/interaction_rate/truth"):
         assert key in record["metrics"] and record["metrics"][key] == pytest.approx(metrics[key])
     assert record["seed"] == 7 and record["config"]["data"]["num_train"] == 64
-    # the model's own cut at test: its slots tile every transition of each edge
+    # the model's own cut at test: its slots tile every transition of each edge (one test batch of 16 clips here,
+    # so the product of the two epoch means is each edge's step count)
     own = record["metrics"]["test/segments/segments_per_edge"] * record["metrics"]["test/segments/steps_per_segment"]
     assert own == pytest.approx(record["config"]["data"]["num_steps"] - 1, rel=1e-5)
     assert (out / "checkpoints" / "last.ckpt").exists()

@@ -29,6 +29,11 @@ def categorical_kl(q_logits: torch.Tensor, p_logits: torch.Tensor) -> torch.Tens
     return (log_q.exp() * (log_q - F.log_softmax(p_logits, dim=-1))).sum(-1)
 
 
+def categorical_kl_probs(q: torch.Tensor, log_p: torch.Tensor) -> torch.Tensor:
+    """KL(q || p) with q given by probabilities (0 log 0 = 0) and p by log-probabilities: [..., K] -> [...]."""
+    return (q * (q.clamp_min(1e-16).log() - log_p)).sum(-1)
+
+
 def gaussian_kl(mu: torch.Tensor, sigma: torch.Tensor, mu0: float, sigma0: float) -> torch.Tensor:
     """KL(N(mu, sigma^2) || N(mu0, sigma0^2)), elementwise."""
     return torch.log(sigma0 / sigma) + (sigma.pow(2) + (mu - mu0).pow(2)) / (2 * sigma0**2) - 0.5

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from dider.graph import edge_mask
-from dider.losses import capacity, categorical_kl, gaussian_nll
+from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_nll
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation
@@ -193,7 +193,7 @@ class RelationalVAE(nn.Module):
             kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * self.sparsity_kl(probs, present, steps)
         # Between segment starts the ELBO leaves the prior untrained: prior_fit fits it at every step.
         q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
-        kl_fit = (q_held * (q_held.clamp_min(1e-16).log() - F.log_softmax(p_step, dim=-1))).sum(-1)
+        kl_fit = categorical_kl_probs(q_held, F.log_softmax(p_step, dim=-1))
         prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
                          prior_fit)
@@ -202,11 +202,11 @@ class RelationalVAE(nn.Module):
         """The sparsity term against the fixed prior [no_edge_prob, ...], in ``sparsity_form``.
         probs [B, E, T-1, K] (each step's posterior), present [B, E, T-1] bool, steps [B] present edge-steps -> [B]."""
         if self.sparsity_form == "per_edge":
-            kl = (probs * (probs.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1)  # [B, E, T-1]
+            kl = categorical_kl_probs(probs, self.sparsity_log_probs)  # [B, E, T-1]
             return (kl * present).flatten(1).sum(1) / steps
         w = present.unsqueeze(-1).to(probs.dtype)
         mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
-        return (mean_q * (mean_q.clamp_min(1e-16).log() - self.sparsity_log_probs)).sum(-1).mean(-1)
+        return categorical_kl_probs(mean_q, self.sparsity_log_probs).mean(-1)
 
     def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
         """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
