@@ -3,8 +3,10 @@ single-process evaluation of the same checkpoint."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -19,12 +21,25 @@ COMMON = ["experiment=smoke", "model=dider", "model.rollout_edges=argmax", "data
           "trainer.enable_progress_bar=false"]
 
 
+def run_ddp(cmd: list[str], run_dir: Path) -> subprocess.CompletedProcess:
+    """Run ``cmd`` (a 2-process ddp_spawn job writing ``run_dir``); once more, from an empty ``run_dir``, if
+    a worker died of SIGABRT. Now and then a spawned gloo worker aborts (2 runs in about 22 here, in the
+    predict job; 14 further runs did not reproduce it, and Lightning's own test suite marks the same SIGABRT
+    of its spawned DDP tests flaky). A second failure in a row still fails the test."""
+    for attempt in range(2):
+        if attempt:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
+                              timeout=600)
+        if proc.returncode == 0 or "terminated with signal SIGABRT" not in proc.stderr:
+            break
+    return proc
+
+
 def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
     run_dir = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "dider.run", *COMMON, "trainer=ddp_sim", f"hydra.run.dir={run_dir}",
-           f"data.cache_dir={cache_dir}"]
-    proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
-                          timeout=600)
+    proc = run_ddp([sys.executable, "-m", "dider.run", *COMMON, "trainer=ddp_sim", f"hydra.run.dir={run_dir}",
+                    f"data.cache_dir={cache_dir}"], run_dir)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Starting with 2 processes" in proc.stderr + proc.stdout
     record = json.loads((run_dir / "metrics.json").read_text())
@@ -43,9 +58,8 @@ def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
     new = write_trajectories(tmp_path / "new.npz", num=15, steps=12, agents=3, velocities=True, seed=3)
     args = ["mode=predict", f"ckpt_path={ckpt}", "data=trajectories", f"data.path={tmp_path / 'new.npz'}",
             "predict.forecast_steps=4", "experiment=smoke", "logger=none", "trainer.enable_progress_bar=false"]
-    proc = subprocess.run([sys.executable, "-m", "dider.run", *args, "trainer=ddp_sim",
-                           f"hydra.run.dir={tmp_path / 'ddp_predict'}"],
-                          env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True, timeout=600)
+    proc = run_ddp([sys.executable, "-m", "dider.run", *args, "trainer=ddp_sim",
+                    f"hydra.run.dir={tmp_path / 'ddp_predict'}"], tmp_path / "ddp_predict")
     assert proc.returncode == 0, proc.stderr[-3000:]
     predict(make_cfg(args, tiny=False, out=tmp_path / "predict"))
     ddp_table = pd.read_csv(tmp_path / "ddp_predict" / "predictions" / "segments.csv")

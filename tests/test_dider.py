@@ -7,6 +7,7 @@ import torch
 
 from dider.models.durations import LearnedDuration
 from dider.models.plugins import Progress
+from dider.models.segments import run_lengths
 from dider.models.vae import RelationalVAE
 
 
@@ -345,3 +346,84 @@ def test_encoder_grad_false_keeps_the_durations_gradients_out_of_the_encoder(sou
     assert torch.equal(grads[True][1], grads[False][1])  # the head learns the same either way
     with pytest.raises(ValueError, match="model.duration.encoder_grad"):
         LearnedDuration(encoder_grad="no")
+
+
+def test_run_lengths_hand_values():
+    types = torch.tensor([[0, 0, 1, 1, 1, 0, 2, 2], [1, 1, 1, 1, 1, 1, 1, 1]])
+    assert run_lengths(types).tolist() == [[2, 1, 3, 2, 1, 1, 2, 1], [8, 7, 6, 5, 4, 3, 2, 1]]
+
+
+@pytest.mark.parametrize("source", ["past", "future"])
+def test_duration_fit_hand_values(source):
+    """A head whose pre-tanh mean is 0 (rho = 0.5) against runs [2, 1, 1] over 3 steps: rho = 2/3, 1/2 and 1
+    (clipped to 0.99), targets logit(rho) / 2 = ln(2) / 2, 0, ln(99) / 2, all above the head: the pinball loss
+    is q x the gap. A head above its targets pays (1 - q) x the gap. The observed burn-in span is 0."""
+    h = torch.randn(1, 1, 3, 8)
+    target = torch.tensor([[[math.log(2) / 2, 0.0, math.log(99) / 2]]])
+    for q in (0.5, 0.2):
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, fit_quantile=q)
+        with torch.no_grad():
+            dur.head[-1].weight.zero_()
+            dur.head[-1].bias.zero_()
+        assert torch.allclose(dur.fit(h, h, torch.tensor([[[0, 0, 1]]])), q * target, atol=1e-6)
+        with torch.no_grad():
+            dur.head[-1].bias[0] = 3.0  # above every target
+        assert torch.allclose(dur.fit(h, h, torch.tensor([[[0, 0, 1]]])), (1 - q) * (3.0 - target), atol=1e-6)
+    with pytest.raises(ValueError, match="model.duration.fit_quantile"):
+        LearnedDuration(fit_quantile=1.0)
+    observed = LearnedDuration(rnn_hidden=8, hidden=8, source=source, burn_in=3)  # slot 0 holds steps 0 and 1
+    assert observed.fit(h, h, torch.tensor([[[0, 0, 1]]]))[..., :2].eq(0).all()
+    with pytest.raises(ValueError, match="model.duration.fixed_duration=1"):
+        LearnedDuration(fixed_duration=1).fit(h, h, torch.zeros(1, 1, 3, dtype=torch.long))
+
+
+def test_duration_fit_trains_the_head_outside_the_elbo(make_cfg):
+    """model.duration_fit=W adds W x the head's error against the per-step posterior's run lengths, from the
+    first step; the ELBO and the selection objective ignore it, and its gradient reaches the head and not the
+    posterior's own layers."""
+    batch = clip()
+    off = build(make_cfg, "model=dider").train()
+    on = build(make_cfg, "model=dider", "model.duration_fit=0.5").train()
+    on.load_state_dict(off.state_dict())
+    torch.manual_seed(3)
+    a = off.loss(off.infer(batch, hard=True), Progress(0, total=100))
+    torch.manual_seed(3)
+    out = on.infer(batch, hard=True)
+    b = on.loss(out, Progress(0, total=100))  # KL weight 0 at step 0; the fit counts already
+    assert a["duration_fit"] == 0 and b["duration_fit"] > 0
+    assert torch.allclose(b["loss"], a["loss"] + 0.5 * b["duration_fit"]) and torch.equal(a["nelbo"], b["nelbo"])
+    # by hand: the head's pre-tanh mean at every step against the runs of the per-step posterior's argmax
+    types = out.step_logits.argmax(-1)
+    t = types.shape[-1]
+    rho = (run_lengths(types).float() / torch.arange(t, 0, -1)).clamp(0.01, 0.99)
+    raw = on.duration.head(out.h_fwd)[..., 0]
+    err = 0.5 * (raw - 0.5 * torch.logit(rho)).abs()  # the pinball loss at the default quantile, 0.5
+    err[..., : on.duration.observed] = 0
+    assert torch.allclose(b["duration_fit"], err.mean(), rtol=1e-5)
+    b["duration_fit"].backward()
+    assert on.duration.head[0].weight.grad.abs().sum() > 0
+    posterior_only = [*on.encoder.reverse_rnn.parameters(), *on.encoder.posterior_head.parameters()]
+    assert all(p.grad is None or not p.grad.any() for p in posterior_only)
+    with pytest.raises(Exception, match="model.duration_fit=1"):  # DNRI's one-step slots have no head
+        build(make_cfg, "model=dnri", "model.duration_fit=1")
+    with pytest.raises(Exception, match="model.duration_fit=-1"):
+        build(make_cfg, "model=dider", "model.duration_fit=-1")
+
+
+@pytest.mark.parametrize("source", ["past", "future"])
+def test_sample_false_trains_on_the_slots_evaluation_cuts(source):
+    """model.duration.sample=false: training takes the latent's mean, so its slots are evaluation's; the
+    default draws, and its training slots differ."""
+    torch.manual_seed(0)
+    h_fwd, h_rev = torch.randn(2, 6, 25, 8), torch.randn(2, 6, 25, 8)
+    cuts = {}
+    for sample in (True, False):
+        torch.manual_seed(1)
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, sample=sample)
+        for training in (True, False):
+            torch.manual_seed(2)
+            cuts[sample, training] = dur.train(training).segment(h_fwd, h_rev, torch.zeros(2, 26, 3, 4)).assign.detach()
+    assert torch.equal(cuts[False, True], cuts[False, False]) and torch.equal(cuts[False, False], cuts[True, False])
+    assert cuts[True, True].shape != cuts[True, False].shape or not torch.equal(cuts[True, True], cuts[True, False])
+    with pytest.raises(ValueError, match="model.duration.sample"):
+        LearnedDuration(sample="no")

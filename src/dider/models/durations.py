@@ -18,7 +18,7 @@ from torch import nn
 
 from dider.losses import gaussian_kl
 from dider.models.plugins import Progress
-from dider.models.segments import Segmentation
+from dider.models.segments import Segmentation, run_lengths
 from dider.validation import require, within_open
 
 
@@ -80,7 +80,15 @@ class LearnedDuration(nn.Module):
     ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
     ``encoder_grad``: whether the duration's gradients (the NLL's through the boundaries, the duration KL's)
     reach the encoder's LSTM states, which the edge prior and posterior read too (False: the head reads
-    them detached).
+    them detached). ``sample``: whether training draws the latent (the paper's reparametrised z) or takes its
+    mean, as evaluation does.
+
+    ``fit(h_fwd, h_rev, types)`` is the error of the head against the run lengths of given per-step types
+    (a fit outside the ELBO, ``model.duration_fit``): how long each step's type lasts, as a fraction of the
+    remaining steps, is the head's target, and ``fit_quantile`` the quantile of it that the head learns
+    (a pinball loss; 0.5, the median). A slot that runs past its type's end costs the forecast far more
+    than one that ends early, and a head that reads the past only cannot know when a run ends, so a low
+    quantile asks for slots that rarely overshoot.
     """
 
     def __init__(
@@ -103,6 +111,8 @@ class LearnedDuration(nn.Module):
         burn_in: int | None = None,
         skid_online: str = "prior_mean",
         encoder_grad: bool = True,
+        fit_quantile: float = 0.5,
+        sample: bool = True,
     ) -> None:
         super().__init__()
         require({
@@ -113,9 +123,12 @@ class LearnedDuration(nn.Module):
             "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
             "model.duration.tau_anneal_steps": tau_anneal_steps, "model.duration.burn_in": burn_in,
             "model.duration.skid_online": skid_online, "model.duration.encoder_grad": encoder_grad,
-        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
+            "model.duration.sample": sample,
+        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0)),
+            "model.duration.fit_quantile": (fit_quantile, within_open(0.0, 1.0))})
         self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
-        self.skid_online, self.encoder_grad = skid_online, encoder_grad
+        self.skid_online, self.encoder_grad, self.fit_quantile = skid_online, encoder_grad, fit_quantile
+        self.sample = sample
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
         self.tau_start, self.tau_end = tau_start, tau_end
@@ -143,6 +156,26 @@ class LearnedDuration(nn.Module):
         # fp32 under autocast: in bf16 a boundary near step 49 would move in quarter steps
         raw_mu, raw_sigma = self.head(h).float().unbind(-1)
         return torch.tanh(raw_mu), self.sigma_min + (1 - self.sigma_min) * torch.sigmoid(raw_sigma)
+
+    def fit(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, types: torch.Tensor) -> torch.Tensor:
+        """The head's pinball loss at ``fit_quantile`` against the run lengths of ``types`` [B, E, T] long (the
+        per-step posterior's, say; absent steps a type of their own) -> [B, E, T], 0 inside the observed
+        burn-in span.
+
+        At step j a run of r steps is the fraction rho = r / (T - j) of the remaining steps, i.e. the latent
+        z = 2 rho - 1. The error is taken before the tanh, where z = tanh(a) means a = logit(rho) / 2: a log
+        scale for short runs, and a gradient that a saturated head still gets (rho clipped to [0.01, 0.99])."""
+        if self.fixed_duration is not None:
+            raise ValueError(f"model.duration_fit: the durations are fixed (model.duration.fixed_duration="
+                             f"{self.fixed_duration}); there is no head to fit")
+        t = types.shape[-1]
+        feats = h_fwd if self.source == "past" else h_rev
+        raw_mu = self.head(feats if self.encoder_grad else feats.detach())[..., 0].float()  # [B, E, T]
+        remaining = torch.arange(t, 0, -1, device=types.device, dtype=torch.float32)
+        rho = (run_lengths(types).float() / remaining).clamp(0.01, 0.99)
+        under = 0.5 * torch.logit(rho) - raw_mu  # > 0: the head cuts the run short
+        err = torch.maximum(self.fit_quantile * under, (self.fit_quantile - 1) * under)
+        return err.masked_fill(torch.arange(t, device=types.device) < self.observed, 0.0)
 
     def fraction(self, z: torch.Tensor) -> torch.Tensor:
         return ((z + 1) / 2).clamp(self.rho_min, 1.0)
@@ -177,7 +210,7 @@ class LearnedDuration(nn.Module):
             else:
                 at = start.unsqueeze(-1)
                 mu, sigma = mu_all.gather(2, at).squeeze(2), sigma_all.gather(2, at).squeeze(2)
-                z = mu + sigma * torch.randn_like(mu) if self.training else mu
+                z = mu + sigma * torch.randn_like(mu) if self.training and self.sample else mu
                 d = torch.maximum(self.fraction(z) * remaining, torch.full_like(s, self.min_duration))
                 mus.append(mu)
                 sigmas.append(sigma)

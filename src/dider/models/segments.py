@@ -17,6 +17,17 @@ def _einsum_fp32(equation: str, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
         return torch.einsum(equation, a.float(), b.float())
 
 
+def run_lengths(types: torch.Tensor) -> torch.Tensor:
+    """[..., T] long types -> [..., T] long: how many steps, from each step on, its type lasts unchanged (the
+    step itself counted; a run open at the clip's end ends there)."""
+    t = types.shape[-1]
+    step = torch.arange(t, device=types.device)
+    last = torch.ones_like(types, dtype=torch.bool)
+    last[..., :-1] = types[..., 1:] != types[..., :-1]  # a run's last step
+    end = torch.where(last, step, t).flip(-1).cummin(-1).values.flip(-1)  # the next run end at or after each step
+    return end - step + 1
+
+
 @dataclass
 class Segmentation:
     start: torch.Tensor  # [B, E, S] long: first step of each slot

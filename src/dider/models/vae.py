@@ -30,7 +30,7 @@ from dider.models.segments import Segmentation
 from dider.protocol import burn_in_mask, fill_absent
 from dider.validation import require
 
-LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit")
+LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit", "duration_fit")
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
 
@@ -50,6 +50,7 @@ class Inference:
     kl_edge: torch.Tensor  # [B]
     kl_duration: torch.Tensor  # [B]
     prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
+    duration_fit: torch.Tensor  # [B] the duration head's error against the per-step posterior's run lengths (0: none)
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
@@ -71,7 +72,8 @@ def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
 
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
-    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by default)."""
+    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit + duration_fit x
+    the duration head's fit to the posterior's run lengths, both off by default)."""
 
     def __init__(
         self,
@@ -98,6 +100,8 @@ class RelationalVAE(nn.Module):
         decoder_edges: bool = True,
         prior_fit: float = 0.0,
         prior_fit_warmup: bool = True,
+        duration_fit: float = 0.0,
+        duration_fit_from: float = 0.0,
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -119,7 +123,12 @@ class RelationalVAE(nn.Module):
         posterior's gradient stopped; with segments the ELBO's KL trains the prior at segment starts only
         (0: the paper's loss). prior_fit_warmup: the fit's weight ramps up with the KL warm-up, as the ELBO's
         KL terms do (False: full weight from the first step, when the fit, through the encoder the posterior
-        shares, can settle the posterior on an edge type that does no harm)."""
+        shares, can settle the posterior on an edge type that does no harm). duration_fit: weight of a term
+        outside the ELBO, at full weight from the first step, that fits the duration head at every step to
+        how long the per-step posterior's type lasts from there (its run length, the posterior's gradient
+        stopped); the ELBO alone lets the head cut one-step slots (0: the paper's loss). duration_fit_from: the
+        fraction of training from which the duration fit counts (before it, the per-step posterior has not yet
+        found its types, and a head fitted to its runs cuts slots that hold a whole clip)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -129,7 +138,8 @@ class RelationalVAE(nn.Module):
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
             "model.sparsity_form": sparsity_form, "model.forecast_edges": forecast_edges,
             "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
-            "model.prior_fit_warmup": prior_fit_warmup,
+            "model.prior_fit_warmup": prior_fit_warmup, "model.duration_fit": duration_fit,
+            "model.duration_fit_from": duration_fit_from,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -137,6 +147,9 @@ class RelationalVAE(nn.Module):
             if missing := missing_members(plugin, interface):  # a user's plugin: say what it lacks, up front
                 raise TypeError(f"model.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
                                 f"(missing {missing}; see dider.models.plugins)")
+        if duration_fit > 0 and not callable(getattr(duration, "fit", None)):
+            raise ValueError(f"model.duration_fit={duration_fit}: {type(duration).__name__} has no duration head to "
+                             "fit (a learned duration, model=dider or dider_skid, has)")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.num_types, self.name = num_edges, name
         self.nll_variance, self.gumbel_tau = nll_variance, gumbel_tau
@@ -145,7 +158,8 @@ class RelationalVAE(nn.Module):
         self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
         self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
-        self.prior_fit, self.prior_fit_warmup = prior_fit, prior_fit_warmup
+        self.prior_fit, self.prior_fit_warmup, self.duration_fit = prior_fit, prior_fit_warmup, duration_fit
+        self.duration_fit_from = duration_fit_from
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -195,8 +209,13 @@ class RelationalVAE(nn.Module):
         q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
         kl_fit = categorical_kl_probs(q_held, F.log_softmax(p_step, dim=-1))
         prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
+        duration_fit = torch.zeros_like(prior_fit)
+        if self.duration_fit > 0:  # absent steps are a type of their own, so a run ends where its edge leaves
+            types = enc.posterior_logits.detach().argmax(-1).masked_fill(~present, -1)
+            err = self.duration.fit(enc.h_fwd, enc.h_rev, types)
+            duration_fit = (err * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
-                         prior_fit)
+                         prior_fit, duration_fit)
 
     def sparsity_kl(self, probs: torch.Tensor, present: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
         """The sparsity term against the fixed prior [no_edge_prob, ...], in ``sparsity_form``.
@@ -228,17 +247,20 @@ class RelationalVAE(nn.Module):
         """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
         et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
         al.), so the posterior carries information before the prior may pull it in; the optional prior fit is
-        added with weight prior_fit (times w with ``prior_fit_warmup``). -> scalar terms, and
+        added with weight prior_fit (times w with ``prior_fit_warmup``), the duration fit with weight
+        duration_fit from ``duration_fit_from`` of training on. -> scalar terms, and
         ``nelbo`` = NLL + KL_e + KL_d, the objective free of schedules (for model selection)."""
         sched = self.schedule(progress)
         w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
-        fit = out.prior_fit.mean()
+        fit, dur_fit = out.prior_fit.mean(), out.duration_fit.mean()
         if self.prior_fit > 0:
             loss = loss + (w if self.prior_fit_warmup else 1.0) * self.prior_fit * fit
+        if self.duration_fit > 0 and progress.fraction >= self.duration_fit_from:
+            loss = loss + self.duration_fit * dur_fit
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "prior_fit": fit,
-                "nelbo": (nll + kl_e + kl_d).detach()}
+                "duration_fit": dur_fit, "nelbo": (nll + kl_e + kl_d).detach()}
 
     @torch.no_grad()
     def describe(self, out: Inference, mask: torch.Tensor) -> dict[str, torch.Tensor]:
