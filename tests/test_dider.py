@@ -404,6 +404,11 @@ def test_duration_fit_trains_the_head_outside_the_elbo(make_cfg):
     assert on.duration.head[0].weight.grad.abs().sum() > 0
     posterior_only = [*on.encoder.reverse_rnn.parameters(), *on.encoder.posterior_head.parameters()]
     assert all(p.grad is None or not p.grad.any() for p in posterior_only)
+    late = build(make_cfg, "model=dider", "model.duration_fit=0.5", "model.duration_fit_from=0.5")
+    for step, counted in ((25, False), (50, True), (75, True)):  # counts from half of training on
+        terms = late.loss(out, Progress(step, total=100))
+        assert torch.allclose(terms["loss"] - 0.5 * terms["duration_fit"] * counted,
+                              off.loss(out, Progress(step, total=100))["loss"]), step
     with pytest.raises(Exception, match="model.duration_fit=1"):  # DNRI's one-step slots have no head
         build(make_cfg, "model=dnri", "model.duration_fit=1")
     with pytest.raises(Exception, match="model.duration_fit=-1"):

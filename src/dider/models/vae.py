@@ -124,7 +124,7 @@ class RelationalVAE(nn.Module):
         (0: the paper's loss). prior_fit_warmup: the fit's weight ramps up with the KL warm-up, as the ELBO's
         KL terms do (False: full weight from the first step, when the fit, through the encoder the posterior
         shares, can settle the posterior on an edge type that does no harm). duration_fit: weight of a term
-        outside the ELBO, at full weight from the first step, that fits the duration head at every step to
+        outside the ELBO, not ramped with the KL warm-up, that fits the duration head at every step to
         how long the per-step posterior's type lasts from there (its run length, the posterior's gradient
         stopped); the ELBO alone lets the head cut one-step slots (0: the paper's loss). duration_fit_from: the
         fraction of training from which the duration fit counts (before it, the per-step posterior has not yet
