@@ -24,8 +24,8 @@ COMMON = ["experiment=smoke", "model=dider", "model.rollout_edges=argmax", "data
 def run_ddp(cmd: list[str], run_dir: Path) -> subprocess.CompletedProcess:
     """Run ``cmd`` (a 2-process ddp_spawn job writing ``run_dir``); once more, from an empty ``run_dir``, if
     a worker died of SIGABRT. Now and then a spawned gloo worker aborts (2 runs in about 22 here, in the
-    predict job; 14 further runs did not reproduce it, and Lightning's own test suite marks the same SIGABRT
-    of its spawned DDP tests flaky). A second failure in a row still fails the test."""
+    predict job; 14 further runs did not reproduce it; Lightning's issue tracker reports the same
+    intermittent SIGABRT in its own spawned DDP tests). A second failure in a row still fails the test."""
     for attempt in range(2):
         if attempt:
             shutil.rmtree(run_dir, ignore_errors=True)

@@ -157,6 +157,13 @@ class LearnedDuration(nn.Module):
         raw_mu, raw_sigma = self.head(h).float().unbind(-1)
         return torch.tanh(raw_mu), self.sigma_min + (1 - self.sigma_min) * torch.sigmoid(raw_sigma)
 
+    def features(self, h_fwd: torch.Tensor, h_rev: torch.Tensor) -> torch.Tensor:
+        """What the head reads, [B, E, T, R]: the past (forward LSTM) or, for SKID, the remaining trajectory
+        (reverse LSTM); detached without ``encoder_grad``, so the head learns from the states without
+        reshaping them."""
+        feats = h_fwd if self.source == "past" else h_rev
+        return feats if self.encoder_grad else feats.detach()
+
     def fit(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, types: torch.Tensor) -> torch.Tensor:
         """The head's pinball loss at ``fit_quantile`` against the run lengths of ``types`` [B, E, T] long (the
         per-step posterior's, say; absent steps a type of their own) -> [B, E, T], 0 inside the observed
@@ -169,8 +176,7 @@ class LearnedDuration(nn.Module):
             raise ValueError(f"model.duration_fit: the durations are fixed (model.duration.fixed_duration="
                              f"{self.fixed_duration}); there is no head to fit")
         t = types.shape[-1]
-        feats = h_fwd if self.source == "past" else h_rev
-        raw_mu = self.head(feats if self.encoder_grad else feats.detach())[..., 0].float()  # [B, E, T]
+        raw_mu = self.head(self.features(h_fwd, h_rev))[..., 0].float()  # [B, E, T]
         remaining = torch.arange(t, 0, -1, device=types.device, dtype=torch.float32)
         rho = (run_lengths(types).float() / remaining).clamp(0.01, 0.99)
         under = 0.5 * torch.logit(rho) - raw_mu  # > 0: the head cuts the run short
@@ -183,9 +189,7 @@ class LearnedDuration(nn.Module):
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress()) -> Segmentation:
         b, e, t, _ = h_fwd.shape
-        feats = h_fwd if self.source == "past" else h_rev
-        if not self.encoder_grad:  # the head learns from the LSTM states without reshaping them
-            feats = feats.detach()
+        feats = self.features(h_fwd, h_rev)
         fixed = self.fixed_duration
         span = min(self.observed, t)  # the observed burn-in span: slot 0, no duration latent
         learned = t - span

@@ -211,7 +211,7 @@ class RelationalVAE(nn.Module):
         prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
         duration_fit = torch.zeros_like(prior_fit)
         if self.duration_fit > 0:  # absent steps are a type of their own, so a run ends where its edge leaves
-            types = enc.posterior_logits.detach().argmax(-1).masked_fill(~present, -1)
+            types = enc.posterior_logits.argmax(-1).masked_fill(~present, -1)
             err = self.duration.fit(enc.h_fwd, enc.h_rev, types)
             duration_fit = (err * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
