@@ -17,7 +17,7 @@ def _clip(b: int = 3, t: int = 20, n: int = 3) -> dict[str, torch.Tensor]:
     return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri"])
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri", "dider_gate"])
 def test_autocast_keeps_edge_and_segment_arithmetic_in_fp32(make_cfg, model):
     """Logits, probabilities, KL terms and the slots' boundaries in fp32: in bf16 a boundary near step 49 moves
     in quarter steps and the prior's small probabilities round away. The GNN itself does run in bf16."""

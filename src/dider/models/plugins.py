@@ -59,7 +59,10 @@ class Prior(Protocol):
 
 
 class Duration(Protocol):
-    """How each edge's time axis is cut into segments of one type."""
+    """How each edge's time axis is cut into segments of one type.
+
+    Optional: ``boundary(h_t, t, end) -> [B, E] bool``, where a segment ends early online (the roll-out's state
+    machine starts a new one there as when its duration runs out; a hold gate's is the only one)."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress()) -> Segmentation:

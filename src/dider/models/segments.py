@@ -35,6 +35,9 @@ class Segmentation:
     assign: torch.Tensor | None  # [B, E, T, S] one-hot step -> slot (straight-through); None: slot s is step s
     kl: torch.Tensor  # [B] KL of the duration latents (zero for plugins without one)
     sigma: torch.Tensor | None = field(default=None)  # [] mean std of the duration latents, for monitoring
+    # [B, E, S] float: 1 forward for the slots that hold steps, with the gradient of the boundary that opens
+    # them (straight-through), so a slot's edge KL reaches its boundary; None: ``valid``, no gradient.
+    weight: torch.Tensor | None = field(default=None)
 
     @property
     def num_steps_per_slot(self) -> torch.Tensor:

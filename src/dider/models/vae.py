@@ -196,8 +196,10 @@ class RelationalVAE(nn.Module):
         # Edge KL per segment (or per step it holds, ``segment_kl``), summed over an edge's segments and
         # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
-        at_start = present.gather(2, seg.start) & seg.valid
-        kl_slots = categorical_kl(q_seg, p_seg) * at_start
+        at_start = present.gather(2, seg.start)
+        # weight: 0 forward where a slot holds no step, with its boundary's gradient (a hold gate's)
+        counted = at_start & seg.valid if seg.weight is None else at_start * seg.weight
+        kl_slots = categorical_kl(q_seg, p_seg) * counted
         if self.segment_kl == "per_step":
             kl_slots = kl_slots * seg.num_steps_per_slot
         steps = present.flatten(1).sum(1).clamp_min(1)
@@ -283,8 +285,11 @@ class RelationalVAE(nn.Module):
         self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
-        left, a new type comes from the prior and a new duration from the duration plugin."""
+        left, or the duration plugin's optional ``boundary(h_t, t, end)`` fires, a new type comes from the
+        prior and a new duration from the duration plugin."""
         need = left <= 0
+        if (boundary := getattr(self.duration, "boundary", None)) is not None:
+            need = need | boundary(h_t, t, end)
         etype = torch.where(need, pick_types(self.prior(h_t), sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
         return etype, left

@@ -1,0 +1,157 @@
+"""The hold gate (model=dider_gate): boundaries, the held types and their gradients, the KL terms, online use."""
+
+import math
+
+import pytest
+import torch
+
+from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
+from dider.models.vae import RelationalVAE
+from dider.validation import ConfigError
+
+
+def build(make_cfg, *overrides):
+    torch.manual_seed(0)
+    return RelationalVAE.from_config(make_cfg(["model=dider_gate", *overrides]).model)
+
+
+def clip(b=4, t=30, n=3, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+
+
+def constant_gates(gate: HoldGate, posterior: float, prior: float) -> None:
+    """Both gates' logits fixed at the given values, whatever they read."""
+    with torch.no_grad():
+        for head, value in ((gate.posterior, posterior), (gate.prior, prior)):
+            head[-1].weight.zero_()
+            head[-1].bias.fill_(value)
+
+
+def test_bernoulli_kl_hand_values():
+    # KL(0.5 || 0.25) = 0.5 ln(0.5 / 0.25) + 0.5 ln(0.5 / 0.75)
+    got = bernoulli_kl(torch.tensor([0.0]), torch.tensor([math.log(0.25 / 0.75)]))
+    assert got.item() == pytest.approx(0.5 * math.log(2) + 0.5 * math.log(2 / 3), abs=1e-6)
+    assert bernoulli_kl(torch.tensor([1.3]), torch.tensor(1.3)).item() == pytest.approx(0.0, abs=1e-7)
+
+
+@pytest.mark.parametrize("grad", [True, False])
+def test_hold_assignment_puts_each_step_in_the_last_boundarys_slot(grad):
+    gate = torch.tensor([[[1.0, 0, 1, 0, 0, 1, 1]]], requires_grad=grad)
+    assign = hold_assignment(gate)
+    assert assign.shape == (1, 1, 7, 7)
+    assert assign.argmax(-1).tolist() == [[[0, 0, 2, 2, 2, 5, 6]]]
+    assert torch.equal(assign.sum(-1), torch.ones(1, 1, 7))  # exactly one-hot forward
+    g = torch.Generator().manual_seed(0)
+    random = (torch.rand(2, 3, 20, generator=g) < 0.3).float().index_fill(-1, torch.tensor([0]), 1.0)
+    assert torch.equal(hold_assignment(random.requires_grad_(grad)), hold_assignment(random.detach()))
+
+
+def test_hold_assignment_gradient_is_the_switch_at_each_step():
+    """z_t = b_t y_t + (1 - b_t) z_{t-1} with b = [1, 0, 1] and L = z_1 + z_2: dL/db_1 = y_1 - y_0 (switching at
+    step 1), dL/db_2 = y_2 - z_1 = y_2 - y_0; a later boundary stops the gradient of an earlier one at it."""
+    b = torch.tensor([1.0, 0.0, 1.0], requires_grad=True)
+    y = torch.tensor([[0.5], [2.0], [-1.0]])  # one value per slot
+    z = torch.einsum("ts,sf->tf", hold_assignment(b.view(1, 1, 3))[0, 0], y)
+    (z[1] + z[2]).sum().backward()
+    assert b.grad[1:].tolist() == pytest.approx([2.0 - 0.5, -1.0 - 0.5])
+
+
+@pytest.mark.parametrize("burn_in", [None, 6])
+@pytest.mark.parametrize("training", [True, False])
+def test_gate_segments_tile_the_clip_and_respect_the_burn_in(burn_in, training):
+    torch.manual_seed(0)
+    gate = HoldGate(rnn_hidden=8, hidden=8, burn_in=burn_in).train(training)
+    constant_gates(gate, 0.0, 0.0)  # every free step fires with probability 1/2 in training
+    h_fwd, h_rev = torch.randn(3, 6, 25, 8), torch.randn(3, 6, 25, 8)
+    seg = gate.segment(h_fwd, h_rev, torch.zeros(1))
+    assert torch.equal(seg.assign.detach().sum(-1), torch.ones(3, 6, 25))
+    slot = seg.step_slot()
+    assert (slot[..., 0] == 0).all() and torch.equal(seg.valid, slot.eq(torch.arange(25)))  # a slot starts at its step
+    if burn_in is not None:  # one observed segment, then a segment at the first forecast transition
+        assert (slot[..., : burn_in - 1] == 0).all() and (slot[..., burn_in - 1] == burn_in - 1).all()
+    if training:  # the free steps fire about half the time
+        free = seg.valid[..., 1 if burn_in is None else burn_in :].float().mean()
+        assert 0.4 < free < 0.6
+    else:  # logit 0 is not above 1/2: no boundary outside the forced ones
+        assert seg.valid.sum(-1).tolist() == [[1 if burn_in is None else 2] * 6] * 3
+
+
+def test_gate_kl_mixes_the_learned_prior_and_the_rate_over_the_free_steps():
+    gate = HoldGate(rnn_hidden=8, hidden=8, rate=0.1, rate_mix=0.25, burn_in=6)
+    q, p = 0.7, -1.2
+    constant_gates(gate, q, p)
+    t = 20
+    seg = gate.segment(torch.randn(2, 6, t, 8), torch.randn(2, 6, t, 8), torch.zeros(1))
+    per_step = 0.75 * bernoulli_kl(torch.tensor(q), torch.tensor(p)) + 0.25 * bernoulli_kl(
+        torch.tensor(q), torch.tensor(math.log(0.1 / 0.9)))
+    free = t - 6  # steps 0..5 are fixed: the first, the burn-in's and the forecast's first
+    assert seg.kl.tolist() == pytest.approx([per_step.item() * free / t] * 2, rel=1e-5)
+
+
+def test_gradients_reach_both_gates(make_cfg):
+    net = build(make_cfg).train()
+    terms = net.loss(net.infer(clip(), hard=False))
+    for term, heads in (("nll", ["posterior"]), ("kl_edge", ["posterior"]), ("kl_duration", ["posterior", "prior"])):
+        net.zero_grad()
+        terms[term].backward(retain_graph=True)
+        for head in heads:  # the reconstruction and the edge KL reach the boundaries through the straight-through gate
+            assert sum(p.grad.abs().sum() for p in getattr(net.duration, head).parameters()) > 0, (term, head)
+
+
+@pytest.mark.parametrize("burn_in", [None, 6])
+def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
+    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.duration.burn_in=${model.burn_in}"]
+    net = build(make_cfg, "model.rollout_edges=argmax", *over).eval()
+    batch = clip()
+    h_fwd = net.encoder(batch["states"], batch["mask"]).h_fwd
+    prior = net.prior(h_fwd).argmax(-1)
+    first = 0 if burn_in is None else burn_in - 1
+    constant_gates(net.duration, 0.0, 20.0)  # fires at every step after the burn-in: DNRI's per-step types
+    online = net.online_types(h_fwd)
+    assert torch.equal(online[..., first:], prior[..., first:])
+    assert (online[..., :first] == prior[..., :1]).all()
+    constant_gates(net.duration, 0.0, -20.0)  # never fires: the types read at the forecast's start are held
+    online = net.online_types(h_fwd)
+    assert (online[..., first:] == prior[..., first : first + 1]).all()
+    _, types = net.rollout(batch["states"], batch["mask"], 8, 15)
+    assert (types[..., first:] == types[..., first : first + 1]).all()
+
+
+@pytest.mark.parametrize("burn_in", [None, 6])
+def test_rollout_and_online_types_are_causal(make_cfg, burn_in):
+    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.duration.burn_in=${model.burn_in}"]
+    net = build(make_cfg, "model/decoder=recurrent", *over).eval()
+    constant_gates(net.duration, 0.0, 0.0)
+    with torch.no_grad():  # the prior gate reads its state again: some steps fire, some do not
+        net.duration.prior[-1].weight.normal_(0, 1.0)
+    batch = clip(t=30)
+    changed = batch["states"].clone()
+    changed[:, 8:] = torch.rand_like(changed[:, 8:])
+    outs = []
+    for states in (batch["states"], changed):
+        torch.manual_seed(3)
+        pred, types = net.rollout(states, batch["mask"], 8, 20)
+        online = net.online_types(net.encoder(states, batch["mask"]).h_fwd)
+        outs.append((pred, types, online[..., :8]))
+    for a, b in zip(*outs, strict=True):
+        assert torch.equal(a, b)
+
+
+def test_evaluation_is_deterministic(make_cfg):
+    net = build(make_cfg).eval()
+    batch = clip()
+    runs = []
+    for _ in range(2):
+        torch.manual_seed(11)
+        out = net.infer(batch, hard=True)
+        runs.append((out.pred, out.posterior_types(), net.rollout(batch["states"], batch["mask"], 5, 20)[1]))
+    for x, y in zip(*runs, strict=True):
+        assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize(("key", "value"), [("rate", 0.0), ("rate_mix", 1.5), ("temperature", 0.0),
+                                            ("online_threshold", 1.0)])
+def test_bad_gate_values_name_the_key(key, value):
+    with pytest.raises(ConfigError, match=f"model.duration.{key}"):
+        HoldGate(**{key: value})
