@@ -99,7 +99,7 @@ def test_gradients_reach_the_duration_heads(make_cfg, model):
     assert sum(p.grad.abs().sum() for p in net.duration.parameters()) > 0
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri"])
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri", "dider_gate"])
 def test_evaluation_is_deterministic(make_cfg, model):
     net = build(make_cfg, f"model={model}").eval()
     batch = clip()
@@ -129,9 +129,15 @@ def test_online_duration_reads_only_the_past():
         assert torch.equal(a, b) == causal, source
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dider_gate"])
 def test_rollout_and_online_types_are_causal(make_cfg, model):
     net = build(make_cfg, f"model={model}", "model/decoder=recurrent").eval()
+    if model == "dider_gate":  # a prior gate that fires at some steps and not at others
+        with torch.no_grad():
+            logits = net.duration.prior(net.encoder(clip()["states"]).h_fwd)
+            net.duration.prior[-1].bias.sub_(logits.median())
+            fires = net.duration.prior(net.encoder(clip()["states"]).h_fwd) > 0
+        assert 0 < fires.float().mean() < 1
     batch = clip(t=30)
     changed = batch["states"].clone()
     changed[:, 8:] = torch.rand_like(changed[:, 8:])

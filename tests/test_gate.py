@@ -118,38 +118,6 @@ def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
     assert (types[..., first:] == types[..., first : first + 1]).all()
 
 
-@pytest.mark.parametrize("burn_in", [None, 6])
-def test_rollout_and_online_types_are_causal(make_cfg, burn_in):
-    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.duration.burn_in=${model.burn_in}"]
-    net = build(make_cfg, "model/decoder=recurrent", *over).eval()
-    constant_gates(net.duration, 0.0, 0.0)
-    with torch.no_grad():  # the prior gate reads its state again: some steps fire, some do not
-        net.duration.prior[-1].weight.normal_(0, 1.0)
-    batch = clip(t=30)
-    changed = batch["states"].clone()
-    changed[:, 8:] = torch.rand_like(changed[:, 8:])
-    outs = []
-    for states in (batch["states"], changed):
-        torch.manual_seed(3)
-        pred, types = net.rollout(states, batch["mask"], 8, 20)
-        online = net.online_types(net.encoder(states, batch["mask"]).h_fwd)
-        outs.append((pred, types, online[..., :8]))
-    for a, b in zip(*outs, strict=True):
-        assert torch.equal(a, b)
-
-
-def test_evaluation_is_deterministic(make_cfg):
-    net = build(make_cfg).eval()
-    batch = clip()
-    runs = []
-    for _ in range(2):
-        torch.manual_seed(11)
-        out = net.infer(batch, hard=True)
-        runs.append((out.pred, out.posterior_types(), net.rollout(batch["states"], batch["mask"], 5, 20)[1]))
-    for x, y in zip(*runs, strict=True):
-        assert torch.equal(x, y)
-
-
 @pytest.mark.parametrize(("key", "value"), [("rate", 0.0), ("rate_mix", 1.5), ("temperature", 0.0),
                                             ("online_threshold", 1.0)])
 def test_bad_gate_values_name_the_key(key, value):
