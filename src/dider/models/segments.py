@@ -46,6 +46,11 @@ class Segmentation:
             return self.valid.to(torch.float32)
         return self.assign.detach().sum(dim=2)
 
+    @property
+    def slot_weight(self) -> torch.Tensor:
+        """[B, E, S] float: what each slot's edge KL is counted with, ``weight`` or else ``valid``."""
+        return self.valid.to(torch.float32) if self.weight is None else self.weight
+
     def gather(self, values: torch.Tensor) -> torch.Tensor:
         """Read per-step values at each slot's first step: [B, E, T, F] -> [B, E, S, F]."""
         if self.assign is None:

@@ -197,9 +197,7 @@ class RelationalVAE(nn.Module):
         # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         at_start = present.gather(2, seg.start)
-        # weight: 0 forward where a slot holds no step, with its boundary's gradient (a hold gate's)
-        counted = at_start & seg.valid if seg.weight is None else at_start * seg.weight
-        kl_slots = categorical_kl(q_seg, p_seg) * counted
+        kl_slots = categorical_kl(q_seg, p_seg) * at_start * seg.slot_weight  # 0 where a slot holds no step
         if self.segment_kl == "per_step":
             kl_slots = kl_slots * seg.num_steps_per_slot
         steps = present.flatten(1).sum(1).clamp_min(1)
