@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from dider.graph import edge_index
 from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
 from dider.models.vae import RelationalVAE
 from dider.validation import ConfigError
@@ -123,3 +124,85 @@ def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
 def test_bad_gate_values_name_the_key(key, value):
     with pytest.raises(ConfigError, match=f"model.duration.{key}"):
         HoldGate(**{key: value})
+
+
+def comings_and_goings(b=2, e=6, t=20, seed=0) -> torch.Tensor:
+    """[B, E, T] bool: each edge absent for a random stretch, at the clip's start, middle or end."""
+    g = torch.Generator().manual_seed(seed)
+    step = torch.arange(t)
+    lo = torch.randint(0, t - 4, (b, e, 1), generator=g)
+    hi = lo + torch.randint(1, 5, (b, e, 1), generator=g)
+    return ~((step >= lo) & (step < hi))
+
+
+@pytest.mark.parametrize("burn_in", [None, 6])
+@pytest.mark.parametrize("posterior", [-20.0, 20.0])
+def test_gate_segments_restart_where_an_edge_enters(burn_in, posterior):
+    """Never firing, a segment still starts where an edge enters; always firing, none starts where it is
+    absent; so every segment that holds a present step starts at one (its edge KL is counted)."""
+    gate = HoldGate(rnn_hidden=8, hidden=8, burn_in=burn_in).eval()
+    constant_gates(gate, posterior, 0.0)
+    present = comings_and_goings()
+    h = torch.randn(2, 6, 20, 8)
+    seg = gate.segment(h, h, torch.zeros(1), present=present)
+    entered = present & ~torch.nn.functional.pad(present[..., :-1], (1, 0), value=False)
+    assert (seg.valid[entered]).all()  # a boundary wherever an edge enters
+    assert not seg.valid[..., 1:][~present[..., 1:]].any()  # none where it is absent
+    if posterior < 0:  # the gate never fires: besides step 0, the forecast's start and the entries, no boundary
+        forced = entered.clone()
+        forced[..., 0] = True
+        if burn_in is not None:
+            forced[..., burn_in - 1] |= present[..., burn_in - 1]
+        assert torch.equal(seg.valid, forced)
+    holds_present = torch.einsum("bets,bet->bes", seg.assign, present.float()) > 0
+    assert present.gather(2, seg.start)[holds_present].all()
+
+
+def test_gate_kl_counts_the_present_free_steps_over_the_present_steps():
+    gate = HoldGate(rnn_hidden=8, hidden=8, rate=0.1, rate_mix=0.25)
+    q, p = 0.7, -1.2
+    constant_gates(gate, q, p)
+    present = comings_and_goings()
+    seg = gate.segment(torch.randn(2, 6, 20, 8), torch.randn(2, 6, 20, 8), torch.zeros(1), present=present)
+    per_step = 0.75 * bernoulli_kl(torch.tensor(q), torch.tensor(p)) + 0.25 * bernoulli_kl(
+        torch.tensor(q), torch.tensor(math.log(0.1 / 0.9)))
+    entered = present & ~torch.nn.functional.pad(present[..., :-1], (1, 0), value=False)
+    free = (present & ~entered)[..., 1:].flatten(1).sum(1)  # step 0 is fixed too
+    expected = per_step * free / present.flatten(1).sum(1)
+    assert seg.kl.tolist() == pytest.approx(expected.tolist(), rel=1e-5)
+
+
+def test_online_types_restart_where_an_edge_enters(make_cfg):
+    net = build(make_cfg, "model.rollout_edges=argmax").eval()
+    batch = clip(t=21)
+    h_fwd = net.encoder(batch["states"], batch["mask"]).h_fwd
+    prior = net.prior(h_fwd).argmax(-1)  # [B, E, T]
+    constant_gates(net.duration, 0.0, -20.0)  # never fires: only an entry starts a segment
+    present = comings_and_goings(b=4)
+    online = net.online_types(h_fwd, present)
+    entered = present & ~torch.nn.functional.pad(present[..., :-1], (1, 0), value=True)
+    assert entered.any()
+    assert torch.equal(online[entered], prior[entered])  # a new type at the entry, from the prior there
+    step = torch.arange(20)
+    last_entry = torch.where(entered, step, 0).cummax(-1).values  # the start of the segment held at each step
+    assert torch.equal(online, prior.gather(2, last_entry))
+
+
+def test_rollout_tells_the_gate_where_an_edge_enters(make_cfg):
+    net = build(make_cfg).eval()
+    batch = clip(b=2, t=20)
+    mask = batch["mask"].clone()
+    mask[:, 10:13, 2] = False  # agent 2 leaves after the burn-in and comes back at frame 13
+    seen: dict[int, torch.Tensor | None] = {}
+    advance = net.advance_edges
+
+    def spy(h_t, t, end, etype, left, sample, entered=None):
+        seen[t] = entered
+        return advance(h_t, t, end, etype, left, sample, entered)
+
+    net.advance_edges = spy
+    net.rollout(batch["states"], mask, 8, 12)
+    send, recv = edge_index(3, torch.device("cpu"))
+    touches_2 = (send == 2) | (recv == 2)
+    assert torch.equal(seen[13], touches_2.expand(2, 6))
+    assert not any(seen[t].any() for t in seen if t not in (0, 13) and seen[t] is not None)

@@ -1,8 +1,10 @@
 """Duration plugins: how each edge's time axis is cut into segments of one interaction type.
 
 Every plugin offers
-- ``segment(h_fwd, h_rev, x, progress) -> Segmentation`` for training and posterior inference over a whole
-  clip (``progress``: where training stands, for annealed schedules),
+- ``segment(h_fwd, h_rev, x, progress, present) -> Segmentation`` for training and posterior inference over a
+  whole clip (``progress``: where training stands, for annealed schedules; ``present``: [B, E, T] bool, the
+  edges present at each step, None when all are; the plugins here cut the time axis without it, so a
+  segment may span an edge's absence, and only its first step decides whether its edge KL counts),
 - ``next_duration(h_t, t, end) -> [B, E] long`` for online inference and roll-outs: when an edge's
   segment ends at step t, how many steps its next segment lasts (read from the past only).
 
@@ -26,7 +28,7 @@ class PerStepDuration(nn.Module):
     """DNRI: every step is its own segment (K = T slots of length 1)."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress()) -> Segmentation:
+                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         start = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         valid = torch.ones(b, e, t, dtype=torch.bool, device=h_fwd.device)
@@ -40,7 +42,7 @@ class StaticDuration(nn.Module):
     """NRI-style static graph: one segment per edge covering the whole clip."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress()) -> Segmentation:
+                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         start = torch.zeros(b, e, 1, dtype=torch.long, device=h_fwd.device)
         valid = torch.ones(b, e, 1, dtype=torch.bool, device=h_fwd.device)
@@ -187,7 +189,7 @@ class LearnedDuration(nn.Module):
         return ((z + 1) / 2).clamp(self.rho_min, 1.0)
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress()) -> Segmentation:
+                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = self.features(h_fwd, h_rev)
         fixed = self.fixed_duration

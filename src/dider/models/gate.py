@@ -63,6 +63,10 @@ class HoldGate(nn.Module):
     - ``burn_in``: transitions 0..burn_in-2 are one observed segment, and a segment starts at the first
       forecast transition, read from the whole burn-in (as DIDER's duration does); null: the gate is free
       from transition 1 on.
+    - Agents that come and go (``present``): a segment starts where an edge enters (its two agents present
+      again), in training and online, so no segment's type is read while the edge is absent and every
+      segment's edge KL is counted; absent steps have no boundary and no gate KL, and the gate KL is
+      divided by the present edge-steps.
     """
 
     def __init__(
@@ -86,14 +90,21 @@ class HoldGate(nn.Module):
         self.posterior = nn.Sequential(nn.Linear(2 * rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 1))
         self.prior = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 1))
 
-    def forced(self, t: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-        """[T] bool each: steps whose boundary is fixed, and the fixed value (a boundary at step 0 and where the
-        forecast starts; none inside the burn-in)."""
+    def forced(self, t: int, device: torch.device,
+               present: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Steps whose boundary is fixed, and the fixed value, [T] bool each, or [B, E, T] with ``present``
+        [B, E, T] bool: a boundary at step 0, where the forecast starts and where an edge enters; none
+        inside the burn-in or where the edge is absent."""
         step = torch.arange(t, device=device)
-        return step <= self.observed, (step == 0) | (step == self.observed)
+        fixed, value = step <= self.observed, (step == 0) | (step == self.observed)
+        if present is None:
+            return fixed, value
+        entered = present & ~nn.functional.pad(present[..., :-1], (1, 0), value=False)
+        value = (value | entered) & (present | (step == 0))  # step 0 opens the first slot even when absent
+        return fixed | entered | ~present, value
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress()) -> Segmentation:
+                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         # fp32 under autocast: the logits feed KL terms and a threshold
         q = self.posterior(torch.cat([h_fwd, h_rev], -1)).squeeze(-1).float()  # [B, E, T]
@@ -105,10 +116,11 @@ class HoldGate(nn.Module):
             q_noisy = q
         soft = torch.sigmoid(q_noisy / self.temperature)
         gate = (soft > 0.5).float() + soft - soft.detach()
-        fixed, value = self.forced(t, h_fwd.device)
+        fixed, value = self.forced(t, h_fwd.device, present)
         gate = torch.where(fixed, value.float(), gate)
         kl = (1 - self.rate_mix) * bernoulli_kl(q, p) + self.rate_mix * bernoulli_kl(q, q.new_tensor(self.rate_logit))
-        kl = (kl * ~fixed).flatten(1).sum(1) / (e * t)
+        steps = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
+        kl = (kl * ~fixed).flatten(1).sum(1) / steps
         start = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         return Segmentation(start, gate.detach() > 0.5, hold_assignment(gate), kl, weight=gate)
 
@@ -118,8 +130,10 @@ class HoldGate(nn.Module):
         left = self.observed - t if t < self.observed else end - t
         return torch.full(h_t.shape[:2], left, dtype=torch.long, device=h_t.device)
 
-    def boundary(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
-        """Online: [B, E] bool, where a new segment starts at step t after the burn-in (the prior gate, past only)."""
-        if t <= self.observed:
-            return torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
-        return torch.sigmoid(self.prior(h_t).squeeze(-1).float()) > self.online_threshold
+    def boundary(self, h_t: torch.Tensor, t: int, end: int, entered: torch.Tensor | None = None) -> torch.Tensor:
+        """Online: [B, E] bool, where a new segment starts at step t: where the edge ``entered`` ([B, E] bool,
+        present at t and not at t - 1), and after the burn-in where the prior gate (past only) fires."""
+        fires = torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
+        if t > self.observed:
+            fires = torch.sigmoid(self.prior(h_t).squeeze(-1).float()) > self.online_threshold
+        return fires if entered is None else fires | entered

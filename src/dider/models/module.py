@@ -155,7 +155,8 @@ class RelationalVAEModule(L.LightningModule):
         # The model's own cut (its duration slots), beside the type switches that test/segments_per_edge counts:
         # one-step slots holding the same type look like one long segment there.
         self._log_segments("test", out, batch)
-        posterior, prior = out.posterior_types(), self.model.online_types(out.h_fwd)
+        present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        posterior, prior = out.posterior_types(), self.model.online_types(out.h_fwd, present)
         normalizer = getattr(getattr(self.trainer, "datamodule", None), "normalizer", None)
         forecast = self._forecast(batch)
         by_edges = {"posterior": self._forecast(batch, posterior)}
@@ -163,7 +164,7 @@ class RelationalVAEModule(L.LightningModule):
             by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
         prior_per_step = self.model.prior(out.h_fwd).argmax(-1)
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step)
-        absent = ~edge_mask(batch["mask"][:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
                 "prior": prior, "per_step": out.step_logits.argmax(-1)}

@@ -61,12 +61,14 @@ class Prior(Protocol):
 class Duration(Protocol):
     """How each edge's time axis is cut into segments of one type.
 
-    Optional: ``boundary(h_t, t, end) -> [B, E] bool``, where a segment ends early online (the roll-out's state
-    machine starts a new one there as when its duration runs out; a hold gate's is the only one)."""
+    Optional: ``boundary(h_t, t, end, entered) -> [B, E] bool``, where a segment ends early online (the roll-out's
+    state machine starts a new one there as when its duration runs out; ``entered`` [B, E] bool or None: the
+    edges present at t and not at t - 1; a hold gate's is the only one)."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress()) -> Segmentation:
-        """Whole-clip segmentation for training and posterior inference: h_fwd, h_rev [B, E, T, R]."""
+                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
+        """Whole-clip segmentation for training and posterior inference: h_fwd, h_rev [B, E, T, R], present
+        [B, E, T] bool (edges present at each step) or None (all are)."""
         ...
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:

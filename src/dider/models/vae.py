@@ -183,7 +183,9 @@ class RelationalVAE(nn.Module):
         # With every agent present (the synthetic sets) the plugins skip their masking passes.
         plugin_mask = None if bool(mask.all()) else mask
         enc = self.encoder(x, plugin_mask)
-        seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress)
+        present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
+        seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress,
+                                                  None if plugin_mask is None else present)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
         # The prior always reads a segment's first step, so it stays online.
         p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
@@ -195,7 +197,6 @@ class RelationalVAE(nn.Module):
 
         # Edge KL per segment (or per step it holds, ``segment_kl``), summed over an edge's segments and
         # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
-        present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         at_start = present.gather(2, seg.start)
         kl_slots = categorical_kl(q_seg, p_seg) * at_start * seg.slot_weight  # 0 where a slot holds no step
         if self.segment_kl == "per_step":
@@ -275,32 +276,37 @@ class RelationalVAE(nn.Module):
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
                 "per_step": out.step_logits.argmax(-1).masked_fill(absent, -1),
-                "prior": self.online_types(out.h_fwd).masked_fill(absent, -1),
+                "prior": self.online_types(out.h_fwd, ~absent).masked_fill(absent, -1),
                 "step_probs": F.softmax(out.step_logits.float(), dim=-1)}
 
     # ------------------------------------------------------------------ online edges and roll-out
     def advance_edges(
-        self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool
+        self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool,
+        entered: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
-        left, or the duration plugin's optional ``boundary(h_t, t, end)`` fires, a new type comes from the
-        prior and a new duration from the duration plugin."""
+        left, or the duration plugin's optional ``boundary(h_t, t, end, entered)`` fires, a new type comes
+        from the prior and a new duration from the duration plugin. entered: [B, E] bool, the edges present
+        at t and not at t - 1 (None: none entered)."""
         need = left <= 0
         if (boundary := getattr(self.duration, "boundary", None)) is not None:
-            need = need | boundary(h_t, t, end)
+            need = need | boundary(h_t, t, end, entered)
         etype = torch.where(need, pick_types(self.prior(h_t), sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
         return etype, left
 
     @torch.no_grad()
-    def online_types(self, h_fwd: torch.Tensor) -> torch.Tensor:
-        """Prior-only (past-only) edge types over a clip: h_fwd [B, E, T, R] -> [B, E, T] long."""
+    def online_types(self, h_fwd: torch.Tensor, present: torch.Tensor | None = None) -> torch.Tensor:
+        """Prior-only (past-only) edge types over a clip: h_fwd [B, E, T, R], present [B, E, T] bool (the
+        edges present at each step; None: all) -> [B, E, T] long."""
         b, e, t, _ = h_fwd.shape
         etype = torch.zeros(b, e, dtype=torch.long, device=h_fwd.device)
         left = torch.zeros_like(etype)
+        entered = None if present is None else present & ~F.pad(present[..., :-1], (1, 0), value=True)
         types = []
         for s in range(t):
-            etype, left = self.advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False)
+            step_entered = None if entered is None else entered[..., s]
+            etype, left = self.advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False, entered=step_entered)
             types.append(etype)
         return torch.stack(types, dim=2)
 
@@ -370,6 +376,7 @@ class RelationalVAE(nn.Module):
         cur = x[:, 0]
         for t in range(end):
             m_t = mask[:, t]
+            entered = edge_mask(m_t) & ~edge_mask(mask[:, t - 1]) if t > 0 else None  # [B, E]
             if t < t_obs:
                 cur = x_obs[:, t]
                 if online:
@@ -380,7 +387,7 @@ class RelationalVAE(nn.Module):
                 if online:
                     h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
             if online:
-                etype, left = self.advance_edges(h_t, t, end, etype, left, sample)
+                etype, left = self.advance_edges(h_t, t, end, etype, left, sample, entered)
             else:
                 etype = edges[:, :, t]
             types.append(etype)
