@@ -7,6 +7,7 @@ import torch
 
 from dider.graph import edge_index
 from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
+from dider.models.segments import entries
 from dider.models.vae import RelationalVAE
 from dider.validation import ConfigError
 
@@ -124,6 +125,11 @@ def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
 def test_bad_gate_values_name_the_key(key, value):
     with pytest.raises(ConfigError, match=f"model.duration.{key}"):
         HoldGate(**{key: value})
+
+
+def test_entries_are_the_steps_after_an_absence():
+    present = torch.tensor([[False, True, True, False, True], [True, True, False, False, True]])
+    assert entries(present).tolist() == [[False, True, False, False, True], [False, False, False, False, True]]
 
 
 def comings_and_goings(b=2, e=6, t=20, seed=0) -> torch.Tensor:

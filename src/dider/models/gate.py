@@ -16,7 +16,7 @@ from torch import nn
 
 from dider.losses import categorical_kl
 from dider.models.plugins import Progress
-from dider.models.segments import Segmentation
+from dider.models.segments import Segmentation, entries
 from dider.validation import require
 
 
@@ -99,7 +99,7 @@ class HoldGate(nn.Module):
         fixed, value = step <= self.observed, (step == 0) | (step == self.observed)
         if present is None:
             return fixed, value
-        entered = present & ~nn.functional.pad(present[..., :-1], (1, 0), value=False)
+        entered = entries(present)
         value = (value | entered) & (present | (step == 0))  # step 0 opens the first slot even when absent
         return fixed | entered | ~present, value
 

@@ -28,6 +28,12 @@ def run_lengths(types: torch.Tensor) -> torch.Tensor:
     return end - step + 1
 
 
+def entries(present: torch.Tensor) -> torch.Tensor:
+    """[..., T] bool, an edge present at each step -> [..., T] bool: where it enters, present after a step
+    without it (never at step 0, where every segmentation starts anyway)."""
+    return present & ~torch.nn.functional.pad(present[..., :-1], (1, 0), value=True)
+
+
 @dataclass
 class Segmentation:
     start: torch.Tensor  # [B, E, S] long: first step of each slot

@@ -26,7 +26,7 @@ from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_nll
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
-from dider.models.segments import Segmentation
+from dider.models.segments import Segmentation, entries
 from dider.protocol import burn_in_mask, fill_absent
 from dider.validation import require
 
@@ -302,7 +302,7 @@ class RelationalVAE(nn.Module):
         b, e, t, _ = h_fwd.shape
         etype = torch.zeros(b, e, dtype=torch.long, device=h_fwd.device)
         left = torch.zeros_like(etype)
-        entered = None if present is None else present & ~F.pad(present[..., :-1], (1, 0), value=True)
+        entered = None if present is None else entries(present)
         types = []
         for s in range(t):
             step_entered = None if entered is None else entered[..., s]
