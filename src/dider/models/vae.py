@@ -374,9 +374,10 @@ class RelationalVAE(nn.Module):
         dec_state = self.decoder.init_state(b, n, x)
         preds, types = [], []
         cur = x[:, 0]
+        present = edge_mask(mask[:, :end])  # [B, end, E]
+        entered = entries(present.transpose(1, 2))  # [B, E, end]
         for t in range(end):
             m_t = mask[:, t]
-            entered = edge_mask(m_t) & ~edge_mask(mask[:, t - 1]) if t > 0 else None  # [B, E]
             if t < t_obs:
                 cur = x_obs[:, t]
                 if online:
@@ -387,7 +388,7 @@ class RelationalVAE(nn.Module):
                 if online:
                     h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
             if online:
-                etype, left = self.advance_edges(h_t, t, end, etype, left, sample, entered)
+                etype, left = self.advance_edges(h_t, t, end, etype, left, sample, entered[..., t])
             else:
                 etype = edges[:, :, t]
             types.append(etype)
@@ -395,7 +396,7 @@ class RelationalVAE(nn.Module):
             # first), so a stateless decoder has nothing to do there.
             if t < burn_in - 1 and self.decoder.stateless:
                 continue
-            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (edge_mask(m_t).unsqueeze(-1) & self.decoder_edges)
+            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (present[:, t, :, None] & self.decoder_edges)
             out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
             if t >= burn_in - 1:
                 preds.append(out)
