@@ -5,6 +5,7 @@
 - Basketball: Zhan et al.'s ``train.npz`` / ``test.npz`` (key ``data``, (S, 50, 22) feet) and DNRI's
   ``{loc,vel}_{train,valid,test}_bball.npy`` ([S, T, 5, 2]).
 - Bring-your-own trajectories: an npz with ``positions`` and optional ``velocities``, ``mask``, ``edges``.
+- Edges that come and go: a presence pattern [B, E, T] for the models' segment tests.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 from dider.data.fakes import write_levelx_recording
 from dider.graph import num_edges
@@ -102,3 +104,13 @@ def write_trajectories(path: Path, num: int = 40, steps: int = 20, agents: int =
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **arrays)
     return arrays
+
+
+def comings_and_goings(b: int = 2, e: int = 6, t: int = 20, seed: int = 0) -> torch.Tensor:
+    """[B, E, T] bool, an edge present at each step: each edge absent for a random stretch of 1-4 steps, at the
+    clip's start, middle or end (so it enters part-way unless the stretch reaches the end)."""
+    g = torch.Generator().manual_seed(seed)
+    step = torch.arange(t)
+    lo = torch.randint(0, t - 4, (b, e, 1), generator=g)
+    hi = lo + torch.randint(1, 5, (b, e, 1), generator=g)
+    return ~((step >= lo) & (step < hi))

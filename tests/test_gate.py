@@ -10,6 +10,7 @@ from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
 from dider.models.segments import entries
 from dider.models.vae import RelationalVAE
 from dider.validation import ConfigError
+from fixtures import comings_and_goings
 
 
 def build(make_cfg, *overrides):
@@ -130,15 +131,6 @@ def test_bad_gate_values_name_the_key(key, value):
 def test_entries_are_the_steps_after_an_absence():
     present = torch.tensor([[False, True, True, False, True], [True, True, False, False, True]])
     assert entries(present).tolist() == [[False, True, False, False, True], [False, False, False, False, True]]
-
-
-def comings_and_goings(b=2, e=6, t=20, seed=0) -> torch.Tensor:
-    """[B, E, T] bool: each edge absent for a random stretch, at the clip's start, middle or end."""
-    g = torch.Generator().manual_seed(seed)
-    step = torch.arange(t)
-    lo = torch.randint(0, t - 4, (b, e, 1), generator=g)
-    hi = lo + torch.randint(1, 5, (b, e, 1), generator=g)
-    return ~((step >= lo) & (step < hi))
 
 
 @pytest.mark.parametrize("burn_in", [None, 6])

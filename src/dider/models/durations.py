@@ -3,8 +3,8 @@
 Every plugin offers
 - ``segment(h_fwd, h_rev, x, progress, present) -> Segmentation`` for training and posterior inference over a
   whole clip (``progress``: where training stands, for annealed schedules; ``present``: [B, E, T] bool, the
-  edges present at each step, None when all are; the plugins here cut the time axis without it, so a
-  segment may span an edge's absence, and only its first step decides whether its edge KL counts),
+  edges present at each step, None when all are: a slot that an edge enters part-way is split there, so the
+  type held after an entry is read where the edge is present and its edge KL counts; the durations stand),
 - ``next_duration(h_t, t, end) -> [B, E] long`` for online inference and roll-outs: when an edge's
   segment ends at step t, how many steps its next segment lasts (read from the past only).
 
@@ -20,7 +20,7 @@ from torch import nn
 
 from dider.losses import gaussian_kl
 from dider.models.plugins import Progress
-from dider.models.segments import Segmentation, run_lengths
+from dider.models.segments import Segmentation, entries, run_lengths
 from dider.validation import require, within_open
 
 
@@ -39,7 +39,8 @@ class PerStepDuration(nn.Module):
 
 
 class StaticDuration(nn.Module):
-    """NRI-style static graph: one segment per edge covering the whole clip."""
+    """NRI-style static graph: one segment per edge covering the whole clip (where agents come and go, one per
+    stretch of the edge's presence: a segment starts where the edge enters)."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
@@ -47,7 +48,8 @@ class StaticDuration(nn.Module):
         start = torch.zeros(b, e, 1, dtype=torch.long, device=h_fwd.device)
         valid = torch.ones(b, e, 1, dtype=torch.bool, device=h_fwd.device)
         assign = h_fwd.new_ones(b, e, t, 1, dtype=torch.float32)
-        return Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32))
+        seg = Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32))
+        return seg if present is None else seg.split_at(entries(present))  # one type per stretch of presence
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         return torch.full(h_t.shape[:2], max(end - t, 1), dtype=torch.long, device=h_t.device)
@@ -72,7 +74,10 @@ class LearnedDuration(nn.Module):
       exact one-hot in the forward pass); the gradient reaches the boundaries through a soft step
       sigmoid((j + 0.5 - s) / tau_s), straight-through; tau_s anneals from ``tau_start`` to
       ``tau_end`` over ``tau_anneal_steps`` optimiser steps;
-    - the boundary step starts the new segment and its latents are read there.
+    - the boundary step starts the new segment and its latents are read there;
+    - where agents come and go (``present``), a slot that its edge enters part-way is split at the entry:
+      the type held from there on is read at the entry (an absent edge's features say nothing), the drawn
+      durations stand. Online, :meth:`RelationalVAE.advance_edges` re-reads the type at an entry likewise.
 
     ``source`` picks what the duration is read from: ``past`` (DIDER: the forward LSTM state, online,
     usable when forecasting) or ``future`` (DIDER with SKID: the reverse LSTM state, i.e. the whole
@@ -231,7 +236,8 @@ class LearnedDuration(nn.Module):
             mu, sd = torch.stack(mus, -1), torch.stack(sigmas, -1)
             kl = (gaussian_kl(mu, sd, self.prior_mu, self.prior_sigma) * learned_valid).flatten(1).sum(1) / (e * t)
             sigma = (sd.detach() * learned_valid).sum() / learned_valid.sum().clamp_min(1)
-        return Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma)
+        seg = Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma)
+        return seg if present is None else seg.split_at(entries(present))
 
     def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Continuous boundaries [B, E, S+1] -> step-to-slot assignment [B, E, T, S]: exactly one-hot in

@@ -68,7 +68,9 @@ class Duration(Protocol):
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         """Whole-clip segmentation for training and posterior inference: h_fwd, h_rev [B, E, T, R], present
-        [B, E, T] bool (edges present at each step) or None (all are)."""
+        [B, E, T] bool (edges present at each step) or None (all are). A slot should start where an edge
+        enters (``Segmentation.split_at`` splits one there): a slot's type is read, and its edge KL counted,
+        at its first step."""
         ...
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:

@@ -88,6 +88,35 @@ class Segmentation:
             out["sigma"] = self.sigma
         return out
 
+    def split_at(self, cuts: torch.Tensor) -> Segmentation:
+        """Start a new slot at every ``cuts`` step [B, E, T] bool (where an edge enters, say) that falls inside a
+        slot: the slot's steps from the cut on become a slot of their own, whose type is read at the cut. The
+        duration latents (``kl``, ``sigma``) stay as drawn, so a cut moves no boundary of theirs; the soft
+        gradient of a boundary reaches the piece of its slot on the boundary's side. Slots are renumbered in
+        order (S grows by the most cuts any edge has); a slot with no step gets start T-1.
+        Segmentations with a slot per step (``assign`` None) or a gradient on their boundaries (``weight``)
+        are returned unchanged: they already start a slot wherever they need one."""
+        if self.assign is None or self.weight is not None:
+            return self
+        t = cuts.shape[-1]
+        step = torch.arange(t, device=cuts.device)
+        slot = self.assign.detach().argmax(-1)  # [B, E, T]
+        inside = cuts & (self.start.gather(-1, slot) != step)  # a cut that is not already a slot's first step
+        shift = inside.long().cumsum(-1)  # [B, E, T]: cuts at or before each step
+        extra = int(shift[..., -1].max()) if shift.numel() else 0
+        if extra == 0:
+            return self
+        width = self.assign.shape[-1] + extra
+        # step t's old slot j becomes slot j + shift_t: every column of its row moves by shift_t
+        column = torch.arange(width, device=cuts.device) - shift.unsqueeze(-1)  # [B, E, T, S']
+        padded = torch.nn.functional.pad(self.assign, (0, extra))
+        assign = padded.gather(-1, column.clamp_min(0)) * (column >= 0)
+        new_slot = slot + shift
+        start = torch.full((*slot.shape[:2], width), t - 1, dtype=torch.long, device=cuts.device)
+        start = start.scatter_reduce(-1, new_slot, step.expand_as(new_slot), "amin")
+        valid = torch.zeros_like(start, dtype=torch.bool).scatter(-1, new_slot, True)
+        return Segmentation(start, valid, assign, self.kl, self.sigma)
+
     def step_slot(self) -> torch.Tensor:
         """[B, E, T] long: the slot index of every step."""
         if self.assign is None:

@@ -287,11 +287,13 @@ class RelationalVAE(nn.Module):
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
         left, or the duration plugin's optional ``boundary(h_t, t, end, entered)`` fires, a new type comes
         from the prior and a new duration from the duration plugin. entered: [B, E] bool, the edges present
-        at t and not at t - 1 (None: none entered)."""
+        at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's duration
+        runs on, as training splits a slot at an entry (``Segmentation.split_at``)."""
         need = left <= 0
         if (boundary := getattr(self.duration, "boundary", None)) is not None:
             need = need | boundary(h_t, t, end, entered)
-        etype = torch.where(need, pick_types(self.prior(h_t), sample), etype)
+        retype = need if entered is None else need | entered
+        etype = torch.where(retype, pick_types(self.prior(h_t), sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
         return etype, left
 
@@ -313,12 +315,18 @@ class RelationalVAE(nn.Module):
     @torch.no_grad()
     def burn_in_edges(self, x_obs: torch.Tensor, mask_obs: torch.Tensor, end: int) -> torch.Tensor:
         """NRI's forecast edges: the posterior of the observed frames alone, one type per edge (the readout
-        of its first segment), held for all ``end`` transitions. x_obs [B, T_obs, N, D] -> [B, E, end]."""
+        of the segment that holds the last observed transition: NRI's one segment, or where agents come and
+        go the edge's last stretch of presence), held for all ``end`` transitions.
+        x_obs [B, T_obs, N, D], mask_obs [B, T_obs, N] -> [B, E, end]."""
         if x_obs.shape[1] < 2:
             raise ValueError("forecast_edges=burn_in: the burn-in needs at least 2 frames (one transition)")
-        enc = self.encoder(x_obs, None if bool(mask_obs.all()) else mask_obs)
-        seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs)
-        logits = self.segment_posterior(enc.posterior_logits, seg)[:, :, 0]  # [B, E, K]
+        everyone = bool(mask_obs.all())
+        enc = self.encoder(x_obs, None if everyone else mask_obs)
+        present = None if everyone else edge_mask(mask_obs[:, :-1]).transpose(1, 2)
+        seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs, present=present)
+        logits = self.segment_posterior(enc.posterior_logits, seg)  # [B, E, S, K]
+        last = seg.step_slot()[..., -1:, None].expand(-1, -1, -1, logits.shape[-1])  # [B, E, 1, K]
+        logits = logits.gather(2, last).squeeze(2)  # [B, E, K]
         return pick_types(logits, self.rollout_edges == "sample").unsqueeze(-1).expand(-1, -1, end)
 
     @torch.no_grad()
