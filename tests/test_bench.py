@@ -186,3 +186,17 @@ def test_result_cases_run_only_when_named(monkeypatch, tmp_path):
     monkeypatch.setattr(bench, "cases", lambda: [bench.Case("result/demo", [], 0, 0, 0, kind="result")])
     monkeypatch.setattr(bench, "time_to_result", lambda *a, **k: pytest.fail("a result case ran unnamed"))
     assert bench.main(["--out", str(tmp_path / "b.json")]) == []
+
+
+def test_profile_writes_the_op_table_of_one_training_step(monkeypatch, tmp_path, capsys):
+    tiny = bench.REFERENCE_SIZES["tiny"]
+    case = bench.Case("train/dnri/tiny", ["model=dnri", *tiny["overrides"]], tiny["batch"], 3, tiny["steps"], warmup=1)
+    monkeypatch.setattr(bench, "cases", lambda: [case, bench.Case("rollout/x", [], 1, 3, 8, kind="rollout")])
+    assert bench.main(["--profile", "train/dnri/tiny", "--out", str(tmp_path / "b.json")]) == []
+    table = (tmp_path / "profile_train_dnri_tiny.txt").read_text()
+    assert "aten::addmm" in table and "Self CPU" in table  # the edge MLPs' matmuls, with self times
+    assert table in capsys.readouterr().out
+    assert not (tmp_path / "b.json").exists()  # nothing timed
+    with pytest.raises(SystemExit):
+        bench.main(["--profile", "rollout/x", "--out", str(tmp_path / "b.json")])
+    assert "'rollout/x': not a training case; one of train/dnri/tiny" in capsys.readouterr().err

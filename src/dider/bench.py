@@ -22,7 +22,8 @@ training step at the paper's widths as N grows, with the activation checkpointin
 decoder off and on, and ``memory/dnri/largest_N/*`` searches for the largest N whose step fits
 ``--memory-limit-gb`` (:mod:`dider.bench_memory`). The ``result/*`` cases time a whole documented job, ``make
 demo``'s or the CPU-sized synthetic table, beside the edge accuracy it produced (:mod:`dider.bench_result`);
-they run only when ``--only`` names them.
+they run only when ``--only`` names them. ``--profile CASE`` times nothing: it prints and writes where one step of a
+training case spends its time (torch.profiler's op table, :func:`profile_case`).
 """
 
 from __future__ import annotations
@@ -258,6 +259,30 @@ def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
         _train_step(model, opt, batch, autocast)
         extra["compile_s"] = time.perf_counter() - t0
     return _timed(lambda: _train_step(model, opt, batch, autocast), case.iters, case.warmup, device), extra
+
+
+def profile_case(case: Case, device: str, rows: int = 25) -> str:
+    """Where one training step of ``case`` spends its time: torch.profiler's op table (self time, the top
+    ``rows`` ops) of one step after ``case.warmup`` untimed ones, with the model, batch and optimiser the case
+    times."""
+    from torch.profiler import ProfilerActivity, profile
+
+    if case.kind != "train":
+        raise ValueError(f"profile: {case.name} is a {case.kind} case; only training steps (train/*) are profiled")
+    torch.manual_seed(0)
+    model = build_model(case.overrides)[0].to(device).train()
+    if case.settings.get("compile"):
+        compile_modules(model)
+    batch, opt = _random_batch(case, device), torch.optim.Adam(model.parameters(), lr=5e-4)
+    autocast = case.settings.get("autocast")
+    for _ in range(max(case.warmup, 1)):  # at least one: the first step allocates (and compiles)
+        _train_step(model, opt, batch, autocast)
+    cuda = device == "cuda"
+    with profile(activities=[ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if cuda else [])]) as prof:
+        _train_step(model, opt, batch, autocast)
+        if cuda:
+            torch.cuda.synchronize()
+    return prof.key_averages().table(sort_by=f"self_{'cuda' if cuda else 'cpu'}_time_total", row_limit=rows)
 
 
 # ------------------------------------------------------------------ the reference implementation, same run
@@ -578,9 +603,24 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
                         help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
                         "AVX-512 emulates it, about 20x slower than fp32)")
+    parser.add_argument("--profile", metavar="CASE", default=None,
+                        help="instead of timing: profile one step of the training case CASE (e.g. "
+                        "train/dnri/recurrent) with torch.profiler, print its op table and write it next to --out")
+    parser.add_argument("--profile-rows", type=int, default=25, help="--profile: ops in the table")
     args = parser.parse_args(argv)
     if args.allocator:  # the spawned case processes read it at start (_worker)
         os.environ["DIDER_ALLOCATOR"] = args.allocator
+    if args.profile is not None:
+        trainable = {c.name: c for c in cases() if c.kind == "train"}
+        if args.profile not in trainable:
+            parser.error(f"--profile {args.profile!r}: not a training case; one of {', '.join(trainable)}")
+        tune_allocator()  # in this process, as every case's worker does
+        table = profile_case(trainable[args.profile], args.device, args.profile_rows)
+        path = args.out.with_name(f"profile_{args.profile.replace('/', '_')}.txt")
+        atomic_write_text(path, table)
+        print(table)
+        print(f"wrote {path}")
+        return []
     native = native_bf16(args.device)
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
     meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
