@@ -43,7 +43,8 @@ def data_overrides(name: str, roots: dict[str, Path]) -> list[str]:
 RUNS = [(d, m) for m in ("dnri", "dider") for d in ("ind", "basketball", "trajectories")]
 
 
-@pytest.mark.parametrize(("data", "model"), [*RUNS, ("ind", "dider_gate"), ("ind", "nri")])  # segments where agents come and go
+# RUNS, and on inD the other models whose segments restart where an edge enters
+@pytest.mark.parametrize(("data", "model"), [*RUNS, ("ind", "dider_gate"), ("ind", "nri")])
 def test_short_run(make_cfg, roots, tmp_path, data, model):
     cfg = make_cfg([f"model={model}", *SMALL, *data_overrides(data, roots),
                     f"model.num_edges={6 if model == 'dider' else 4}"], tiny=False, out=tmp_path / "run")
