@@ -65,7 +65,8 @@ class LearnedDuration(nn.Module):
     sigmoid(f_sigma(h)); z = mu + sigma * eps (z = mu in eval); rho = clamp((z + 1) / 2, rho_min, 1);
     d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
     the fixed prior N(prior_mu, prior_sigma^2). ``max_segments`` caps the slots per edge (None: one per
-    step at most, no cap); with a cap, the last slot holds whatever the others leave, however long.
+    step at most, no cap); with a cap, the last slot holds whatever the others leave, however long (the cap
+    counts the drawn durations: a split where an edge enters, below, adds a slot beyond it).
 
     How this implementation settles what the paper leaves open:
     - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
