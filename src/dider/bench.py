@@ -227,12 +227,16 @@ def _random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
     return {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
 
 
-def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
-    """A training step (forward, backward, Adam) or an evaluation roll-out on random clips."""
+def _model_and_batch(case: Case, device: str) -> tuple[RelationalVAE, DictConfig, dict[str, torch.Tensor]]:
+    """The case's network on ``device`` (seeded), its model config and a random batch."""
     torch.manual_seed(0)
     model, model_cfg = build_model(case.overrides)
-    model = model.to(device)
-    batch = _random_batch(case, device)
+    return model.to(device), model_cfg, _random_batch(case, device)
+
+
+def _model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
+    """A training step (forward, backward, Adam) or an evaluation roll-out on random clips."""
+    model, model_cfg, batch = _model_and_batch(case, device)
     extra: dict[str, Any] = {}
     if case.kind == "rollout":
         model.eval()
@@ -269,11 +273,11 @@ def profile_case(case: Case, device: str, rows: int = 25) -> str:
 
     if case.kind != "train":
         raise ValueError(f"profile: {case.name} is a {case.kind} case; only training steps (train/*) are profiled")
-    torch.manual_seed(0)
-    model = build_model(case.overrides)[0].to(device).train()
+    model, _, batch = _model_and_batch(case, device)
+    model.train()
     if case.settings.get("compile"):
         compile_modules(model)
-    batch, opt = _random_batch(case, device), torch.optim.Adam(model.parameters(), lr=5e-4)
+    opt = torch.optim.Adam(model.parameters(), lr=5e-4)
     autocast = case.settings.get("autocast")
     for _ in range(max(case.warmup, 1)):  # at least one: the first step allocates (and compiles)
         _train_step(model, opt, batch, autocast)

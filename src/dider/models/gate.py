@@ -130,10 +130,10 @@ class HoldGate(nn.Module):
         left = self.observed - t if t < self.observed else end - t
         return torch.full(h_t.shape[:2], left, dtype=torch.long, device=h_t.device)
 
-    def boundary(self, h_t: torch.Tensor, t: int, end: int, entered: torch.Tensor | None = None) -> torch.Tensor:
-        """Online: [B, E] bool, where a new segment starts at step t: where the edge ``entered`` ([B, E] bool,
-        present at t and not at t - 1), and after the burn-in where the prior gate (past only) fires."""
-        fires = torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
-        if t > self.observed:
-            fires = torch.sigmoid(self.prior(h_t).squeeze(-1).float()) > self.online_threshold
-        return fires if entered is None else fires | entered
+    def boundary(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
+        """Online: [B, E] bool, where a new segment starts at step t: after the burn-in, where the prior gate
+        (past only) fires. Where an edge enters, the roll-out's state machine reads a new type anyway
+        (:meth:`RelationalVAE.advance_edges`), and a gate segment lasts to the next boundary either way."""
+        if t <= self.observed:
+            return torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
+        return torch.sigmoid(self.prior(h_t).squeeze(-1).float()) > self.online_threshold

@@ -61,9 +61,9 @@ class Prior(Protocol):
 class Duration(Protocol):
     """How each edge's time axis is cut into segments of one type.
 
-    Optional: ``boundary(h_t, t, end, entered) -> [B, E] bool``, where a segment ends early online (the roll-out's
-    state machine starts a new one there as when its duration runs out; ``entered`` [B, E] bool or None: the
-    edges present at t and not at t - 1; a hold gate's is the only one)."""
+    Optional: ``boundary(h_t, t, end) -> [B, E] bool``, where a segment ends early online (the roll-out's state
+    machine starts a new one there as when its duration runs out; a hold gate's is the only one). Where an edge
+    enters, the state machine reads a new type for every plugin and the duration runs on."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:

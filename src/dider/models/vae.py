@@ -285,13 +285,13 @@ class RelationalVAE(nn.Module):
         entered: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
-        left, or the duration plugin's optional ``boundary(h_t, t, end, entered)`` fires, a new type comes
+        left, or the duration plugin's optional ``boundary(h_t, t, end)`` fires, a new type comes
         from the prior and a new duration from the duration plugin. entered: [B, E] bool, the edges present
         at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's duration
         runs on, as training splits a slot at an entry (``Segmentation.split_at``)."""
         need = left <= 0
         if (boundary := getattr(self.duration, "boundary", None)) is not None:
-            need = need | boundary(h_t, t, end, entered)
+            need = need | boundary(h_t, t, end)
         retype = need if entered is None else need | entered
         etype = torch.where(retype, pick_types(self.prior(h_t), sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
@@ -324,9 +324,7 @@ class RelationalVAE(nn.Module):
         enc = self.encoder(x_obs, None if everyone else mask_obs)
         present = None if everyone else edge_mask(mask_obs[:, :-1]).transpose(1, 2)
         seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs, present=present)
-        logits = self.segment_posterior(enc.posterior_logits, seg)  # [B, E, S, K]
-        last = seg.step_slot()[..., -1:, None].expand(-1, -1, -1, logits.shape[-1])  # [B, E, 1, K]
-        logits = logits.gather(2, last).squeeze(2)  # [B, E, K]
+        logits = seg.spread(self.segment_posterior(enc.posterior_logits, seg))[:, :, -1]  # [B, E, K]
         return pick_types(logits, self.rollout_edges == "sample").unsqueeze(-1).expand(-1, -1, end)
 
     @torch.no_grad()
