@@ -7,7 +7,6 @@ import torch
 
 from dider.models.durations import LearnedDuration
 from dider.models.plugins import Progress
-from dider.models.segments import run_lengths
 from dider.models.vae import RelationalVAE
 
 
@@ -23,10 +22,9 @@ def clip(b=4, t=30, n=3, seed=0):
 
 @pytest.mark.parametrize("source", ["past", "future"])
 @pytest.mark.parametrize("training", [True, False])
-@pytest.mark.parametrize("max_segments", [1, 3, 8, 40, None])
-def test_segments_tile_the_clip(source, training, max_segments):
-    torch.manual_seed(max_segments or 0)
-    dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, max_segments=max_segments).train(training)
+def test_segments_tile_the_clip(source, training):
+    torch.manual_seed(0)
+    dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source).train(training)
     with torch.no_grad():  # spread the durations: some long, some short
         dur.head[-1].bias.copy_(torch.tensor([0.0, 1.0]))
         dur.head[-1].weight.mul_(20)
@@ -34,7 +32,7 @@ def test_segments_tile_the_clip(source, training, max_segments):
     h_fwd, h_rev = torch.randn(3, 6, t, 8), torch.randn(3, 6, t, 8)
     seg = dur.segment(h_fwd, h_rev, torch.zeros(3, t + 1, 3, 4))
     a = seg.assign.detach()
-    assert a.shape[-1] <= min(max_segments or t, t)  # the slots stop once every edge's cover the clip
+    assert a.shape[-1] <= t  # the slots stop once every edge's cover the clip
     assert torch.equal(a.sum(-1), torch.ones(3, 6, t))  # every step in exactly one slot (exact one-hot)
     assert set(a.unique().tolist()) <= {0.0, 1.0}
     slot = a.argmax(-1)
@@ -46,31 +44,24 @@ def test_segments_tile_the_clip(source, training, max_segments):
     first = torch.where(seg.valid, seg.start, -1)
     expected = torch.stack([(slot == k).float().argmax(-1) for k in range(a.shape[-1])], -1)
     assert torch.equal(first[seg.valid], expected[seg.valid])  # latents are read at the slot's first step
-    if max_segments is None or max_segments > 1:
-        assert seg.valid.sum(-1).float().mean() > 1.2  # the test exercises real splits
+    assert seg.valid.sum(-1).float().mean() > 1.2  # the test exercises real splits
 
 
 def test_short_segments_are_not_forced_into_one_last_slot():
-    """A head that cuts the shortest segments: without a cap every step is its own slot to the clip's end;
-    with a cap of 8 the last slot holds the rest of the clip (the earlier default, which ran pushes on)."""
+    """A head that cuts the shortest segments: every step after the burn-in is its own slot to the clip's end."""
     t = 30
     h = torch.randn(2, 6, t, 8)
-    lengths = {}
-    for cap in (None, 8):
-        dur = LearnedDuration(rnn_hidden=8, hidden=8, max_segments=cap, burn_in=5).eval()
-        with torch.no_grad():
-            dur.head[-1].weight.zero_()
-            dur.head[-1].bias.copy_(torch.tensor([-20.0, -5.0]))  # rho = 0: one-step slots
-        lengths[cap] = dur.segment(h, h, torch.zeros(2, t + 1, 3, 4)).num_steps_per_slot
-    uncapped = lengths[None]
-    assert uncapped.shape[-1] == 1 + (t - 4) and (uncapped[..., 1:] == 1).all()  # the burn-in span, then steps
-    capped = lengths[8]
-    assert (capped[..., 1:-1] == 1).all() and (capped[..., -1] == t - 4 - 7).all()
+    dur = LearnedDuration(rnn_hidden=8, hidden=8, burn_in=5).eval()
+    with torch.no_grad():
+        dur.head[-1].weight.zero_()
+        dur.head[-1].bias.copy_(torch.tensor([-20.0, -5.0]))  # rho = 0: one-step slots
+    lengths = dur.segment(h, h, torch.zeros(2, t + 1, 3, 4)).num_steps_per_slot
+    assert lengths.shape[-1] == 1 + (t - 4) and (lengths[..., 1:] == 1).all()  # the burn-in span, then steps
 
 
 def test_unit_durations_reproduce_dnri_exactly(make_cfg):
     dnri = build(make_cfg, "model=dnri").train()
-    dider = build(make_cfg, "model=dider", "model.duration.fixed_duration=1",  # and DNRI's sparsity term
+    dider = build(make_cfg, "model=dider_paper", "model.duration.fixed_duration=1",  # and DNRI's sparsity term
                   "model.sparsity_form=mean_edges", "model.no_edge_prob=0.9").train()
     missing, unexpected = dider.load_state_dict(dnri.state_dict(), strict=False)
     assert not unexpected and all(k.startswith("duration.") for k in missing)
@@ -86,7 +77,7 @@ def test_unit_durations_reproduce_dnri_exactly(make_cfg):
     assert torch.equal(la, lb)
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+@pytest.mark.parametrize("model", ["dider_paper", "dider_paper_skid"])
 def test_gradients_reach_the_duration_heads(make_cfg, model):
     net = build(make_cfg, f"model={model}").train()
     terms = net.loss(net.infer(clip(), hard=False))
@@ -99,7 +90,7 @@ def test_gradients_reach_the_duration_heads(make_cfg, model):
     assert sum(p.grad.abs().sum() for p in net.duration.parameters()) > 0
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri", "dider_gate"])
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dider_paper", "dider_paper_skid", "dnri", "dider_gate"])
 def test_evaluation_is_deterministic(make_cfg, model):
     net = build(make_cfg, f"model={model}").eval()
     batch = clip()
@@ -129,7 +120,7 @@ def test_online_duration_reads_only_the_past():
         assert torch.equal(a, b) == causal, source
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid", "dider_gate"])
+@pytest.mark.parametrize("model", ["dider", "dider_skid", "dider_paper", "dider_paper_skid", "dider_gate"])
 def test_rollout_and_online_types_are_causal(make_cfg, model):
     net = build(make_cfg, f"model={model}", "model/decoder=recurrent").eval()
     if model == "dider_gate":  # a prior gate that fires at some steps and not at others
@@ -152,7 +143,7 @@ def test_rollout_and_online_types_are_causal(make_cfg, model):
 
 
 def test_rollout_holds_types_for_their_duration(make_cfg):
-    net = build(make_cfg, "model=dider", "model.rollout_edges=argmax").eval()
+    net = build(make_cfg, "model=dider_paper", "model.rollout_edges=argmax").eval()
     with torch.no_grad():
         net.duration.head[-1].bias.copy_(torch.tensor([5.0, 0.0]))  # rho -> 1: one segment to the end
     _, types = net.rollout(clip()["states"], clip()["mask"], 5, 20)
@@ -166,7 +157,7 @@ def test_rollout_holds_types_for_their_duration(make_cfg):
         online[..., :4]))
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_skid"])
+@pytest.mark.parametrize("model", ["dider_paper", "dider_paper_skid"])
 def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
     """The paper's t_1 = 0, d_0 = T_obs: the burn-in is its own segment, and the first forecast segment's
     type and duration are read at its end, in training (segment) and in the roll-out alike."""
@@ -208,8 +199,6 @@ def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
 
 
 def test_bad_duration_values_name_the_key():
-    with pytest.raises(ValueError, match="model.duration.max_segments"):
-        LearnedDuration(max_segments=0)
     with pytest.raises(ValueError, match="model.duration.source"):
         LearnedDuration(source="sideways")
 
@@ -228,8 +217,8 @@ def test_duration_head_starts_at_the_prior_mean_with_sigma_init():
 def test_segment_kl_per_step_counts_each_segment_once_per_step(make_cfg):
     batch = clip()
     torch.manual_seed(2)
-    once = build(make_cfg, "model=dider", "model.sparsity_mix=0").eval()
-    per_step = build(make_cfg, "model=dider", "model.sparsity_mix=0", "model.segment_kl=per_step").eval()
+    once = build(make_cfg, "model=dider_paper", "model.sparsity_mix=0").eval()
+    per_step = build(make_cfg, "model=dider_paper", "model.sparsity_mix=0", "model.segment_kl=per_step").eval()
     per_step.load_state_dict(once.state_dict())
     with torch.no_grad():
         a, b = once.infer(batch, hard=True), per_step.infer(batch, hard=True)
@@ -245,8 +234,8 @@ def test_segment_kl_per_step_counts_each_segment_once_per_step(make_cfg):
 
 def test_prior_fit_trains_the_prior_at_every_step_and_leaves_the_posterior(make_cfg):
     batch = clip()
-    off = build(make_cfg, "model=dider").train()
-    on = build(make_cfg, "model=dider", "model.prior_fit=0.5").train()
+    off = build(make_cfg, "model=dider_paper").train()
+    on = build(make_cfg, "model=dider_paper", "model.prior_fit=0.5").train()
     on.load_state_dict(off.state_dict())
     torch.manual_seed(3)
     a = off.loss(off.infer(batch, hard=True))
@@ -269,9 +258,9 @@ def test_prior_fit_trains_the_prior_at_every_step_and_leaves_the_posterior(make_
 def test_prior_fit_ramps_with_the_kl_warm_up(make_cfg):
     """prior_fit_warmup (the default) gives the fit the KL terms' weight w: none at step 0, w at a quarter of
     training; false gives it its full weight from the first step."""
-    out = build(make_cfg, "model=dider").train().infer(clip(), hard=True)
+    out = build(make_cfg, "model=dider_paper").train().infer(clip(), hard=True)
     for warm in (True, False):
-        model = build(make_cfg, "model=dider", "model.prior_fit=2", f"model.prior_fit_warmup={warm}")
+        model = build(make_cfg, "model=dider_paper", "model.prior_fit=2", f"model.prior_fit_warmup={warm}")
         for step in (0, 25):
             progress = Progress(step, total=100)  # kl_warmup 0.3: w = step / 30
             w = model.schedule(progress)["kl_weight"]
@@ -296,7 +285,7 @@ def test_sparsity_forms_hand_values(make_cfg, form):
     marked costs log(1/0.9) and one marked edge (mean [5/6, 1/6], nearer the 10% budget) costs less: the term
     pays for marking an edge that does nothing. per_edge: the mean of each edge's KL, log(1/0.9) per unmarked
     and log(1/0.1) per marked edge: every mark costs more."""
-    model = build(make_cfg, "model=dider", f"model.sparsity_form={form}", "model.no_edge_prob=0.9").double()
+    model = build(make_cfg, "model=dider_paper", f"model.sparsity_form={form}", "model.no_edge_prob=0.9").double()
     present, steps = torch.ones(1, 6, 1, dtype=torch.bool), torch.tensor([6.0], dtype=torch.float64)
     none, one = (model.sparsity_kl(_one_hot_steps(m), present, steps).item() for m in ([], [2]))
     if form == "mean_edges":
@@ -316,8 +305,8 @@ def test_sparsity_form_enters_the_edge_kl(make_cfg):
     """kl_edge = (1 - mix) segment KL + mix sparsity term, in the configured form (dider's mix: 0.5)."""
     batch = clip()
     settings = {"off": ("mean_edges", 0), "mean_edges": ("mean_edges", 0.5), "per_edge": ("per_edge", 0.5)}
-    models = {name: build(make_cfg, "model=dider", f"model.sparsity_form={form}", f"model.sparsity_mix={mix}").eval()
-              for name, (form, mix) in settings.items()}
+    models = {name: build(make_cfg, "model=dider_paper", f"model.sparsity_form={form}",
+                          f"model.sparsity_mix={mix}").eval() for name, (form, mix) in settings.items()}
     with torch.no_grad():  # edges far from uniform and unlike each other, so that the two forms differ
         models["off"].encoder.posterior_head[-1].weight.mul_(30)
     out = {}
@@ -332,109 +321,4 @@ def test_sparsity_form_enters_the_edge_kl(make_cfg):
         assert torch.allclose(out[form].kl_edge, 0.5 * out["off"].kl_edge + 0.5 * sparsity, atol=1e-6)
     assert (out["per_edge"].kl_edge - out["mean_edges"].kl_edge).abs().min() > 1e-4  # the forms do differ here
     with pytest.raises(Exception, match="model.sparsity_form='per_step'"):  # Hydra wraps the ValueError
-        build(make_cfg, "model=dider", "model.sparsity_form=per_step")
-
-
-@pytest.mark.parametrize("source", ["past", "future"])
-def test_encoder_grad_false_keeps_the_durations_gradients_out_of_the_encoder(source):
-    """With encoder_grad=False the duration KL and the boundaries still train the head, and leave the LSTM
-    states (which the edge prior and posterior read) alone."""
-    grads = {}
-    for flag in (True, False):
-        torch.manual_seed(0)
-        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, encoder_grad=flag).train()
-        h_fwd, h_rev = torch.randn(2, 6, 20, 8, requires_grad=True), torch.randn(2, 6, 20, 8, requires_grad=True)
-        seg = dur.segment(h_fwd, h_rev, torch.zeros(2, 21, 3, 4))
-        (seg.kl.sum() + (seg.assign * torch.randn(seg.assign.shape)).sum()).backward()
-        feats = h_fwd if source == "past" else h_rev
-        grads[flag] = (feats.grad, dur.head[0].weight.grad)
-    assert grads[True][0].abs().sum() > 0 and grads[False][0] is None
-    assert torch.equal(grads[True][1], grads[False][1])  # the head learns the same either way
-    with pytest.raises(ValueError, match="model.duration.encoder_grad"):
-        LearnedDuration(encoder_grad="no")
-
-
-def test_run_lengths_hand_values():
-    types = torch.tensor([[0, 0, 1, 1, 1, 0, 2, 2], [1, 1, 1, 1, 1, 1, 1, 1]])
-    assert run_lengths(types).tolist() == [[2, 1, 3, 2, 1, 1, 2, 1], [8, 7, 6, 5, 4, 3, 2, 1]]
-
-
-@pytest.mark.parametrize("source", ["past", "future"])
-def test_duration_fit_hand_values(source):
-    """A head whose pre-tanh mean is 0 (rho = 0.5) against runs [2, 1, 1] over 3 steps: rho = 2/3, 1/2 and 1
-    (clipped to 0.99), targets logit(rho) / 2 = ln(2) / 2, 0, ln(99) / 2, all above the head: the pinball loss
-    is q x the gap. A head above its targets pays (1 - q) x the gap. The observed burn-in span is 0."""
-    h = torch.randn(1, 1, 3, 8)
-    target = torch.tensor([[[math.log(2) / 2, 0.0, math.log(99) / 2]]])
-    for q in (0.5, 0.2):
-        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, fit_quantile=q)
-        with torch.no_grad():
-            dur.head[-1].weight.zero_()
-            dur.head[-1].bias.zero_()
-        assert torch.allclose(dur.fit(h, h, torch.tensor([[[0, 0, 1]]])), q * target, atol=1e-6)
-        with torch.no_grad():
-            dur.head[-1].bias[0] = 3.0  # above every target
-        assert torch.allclose(dur.fit(h, h, torch.tensor([[[0, 0, 1]]])), (1 - q) * (3.0 - target), atol=1e-6)
-    with pytest.raises(ValueError, match="model.duration.fit_quantile"):
-        LearnedDuration(fit_quantile=1.0)
-    observed = LearnedDuration(rnn_hidden=8, hidden=8, source=source, burn_in=3)  # slot 0 holds steps 0 and 1
-    assert observed.fit(h, h, torch.tensor([[[0, 0, 1]]]))[..., :2].eq(0).all()
-    with pytest.raises(ValueError, match="model.duration.fixed_duration=1"):
-        LearnedDuration(fixed_duration=1).fit(h, h, torch.zeros(1, 1, 3, dtype=torch.long))
-
-
-def test_duration_fit_trains_the_head_outside_the_elbo(make_cfg):
-    """model.duration_fit=W adds W x the head's error against the per-step posterior's run lengths, from the
-    first step; the ELBO and the selection objective ignore it, and its gradient reaches the head and not the
-    posterior's own layers."""
-    batch = clip()
-    off = build(make_cfg, "model=dider").train()
-    on = build(make_cfg, "model=dider", "model.duration_fit=0.5").train()
-    on.load_state_dict(off.state_dict())
-    torch.manual_seed(3)
-    a = off.loss(off.infer(batch, hard=True), Progress(0, total=100))
-    torch.manual_seed(3)
-    out = on.infer(batch, hard=True)
-    b = on.loss(out, Progress(0, total=100))  # KL weight 0 at step 0; the fit counts already
-    assert a["duration_fit"] == 0 and b["duration_fit"] > 0
-    assert torch.allclose(b["loss"], a["loss"] + 0.5 * b["duration_fit"]) and torch.equal(a["nelbo"], b["nelbo"])
-    # by hand: the head's pre-tanh mean at every step against the runs of the per-step posterior's argmax
-    types = out.step_logits.argmax(-1)
-    t = types.shape[-1]
-    rho = (run_lengths(types).float() / torch.arange(t, 0, -1)).clamp(0.01, 0.99)
-    raw = on.duration.head(out.h_fwd)[..., 0]
-    err = 0.5 * (raw - 0.5 * torch.logit(rho)).abs()  # the pinball loss at the default quantile, 0.5
-    err[..., : on.duration.observed] = 0
-    assert torch.allclose(b["duration_fit"], err.mean(), rtol=1e-5)
-    b["duration_fit"].backward()
-    assert on.duration.head[0].weight.grad.abs().sum() > 0
-    posterior_only = [*on.encoder.reverse_rnn.parameters(), *on.encoder.posterior_head.parameters()]
-    assert all(p.grad is None or not p.grad.any() for p in posterior_only)
-    late = build(make_cfg, "model=dider", "model.duration_fit=0.5", "model.duration_fit_from=0.5")
-    for step, counted in ((25, False), (50, True), (75, True)):  # counts from half of training on
-        terms = late.loss(out, Progress(step, total=100))
-        assert torch.allclose(terms["loss"] - 0.5 * terms["duration_fit"] * counted,
-                              off.loss(out, Progress(step, total=100))["loss"]), step
-    with pytest.raises(Exception, match="model.duration_fit=1"):  # DNRI's one-step slots have no head
-        build(make_cfg, "model=dnri", "model.duration_fit=1")
-    with pytest.raises(Exception, match="model.duration_fit=-1"):
-        build(make_cfg, "model=dider", "model.duration_fit=-1")
-
-
-@pytest.mark.parametrize("source", ["past", "future"])
-def test_sample_false_trains_on_the_slots_evaluation_cuts(source):
-    """model.duration.sample=false: training takes the latent's mean, so its slots are evaluation's; the
-    default draws, and its training slots differ."""
-    torch.manual_seed(0)
-    h_fwd, h_rev = torch.randn(2, 6, 25, 8), torch.randn(2, 6, 25, 8)
-    cuts = {}
-    for sample in (True, False):
-        torch.manual_seed(1)
-        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, sample=sample)
-        for training in (True, False):
-            torch.manual_seed(2)
-            cuts[sample, training] = dur.train(training).segment(h_fwd, h_rev, torch.zeros(2, 26, 3, 4)).assign.detach()
-    assert torch.equal(cuts[False, True], cuts[False, False]) and torch.equal(cuts[False, False], cuts[True, False])
-    assert cuts[True, True].shape != cuts[True, False].shape or not torch.equal(cuts[True, True], cuts[True, False])
-    with pytest.raises(ValueError, match="model.duration.sample"):
-        LearnedDuration(sample="no")
+        build(make_cfg, "model=dider_paper", "model.sparsity_form=per_step")

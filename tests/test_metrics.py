@@ -21,6 +21,7 @@ from dider.metrics import (
     EdgeAccuracy,
     HorizonMSE,
     InteractionRunLength,
+    OwnCut,
     PairConsistency,
     SegmentStats,
 )
@@ -65,9 +66,9 @@ def assert_same_states(a: Metric, b: Metric) -> None:
 
 @pytest.mark.parametrize("make", [
     lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3), DisplacementError,
-    InteractionRunLength,
+    InteractionRunLength, OwnCut,
 ], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "DisplacementError",
-        "InteractionRunLength"])
+        "InteractionRunLength", "OwnCut"])
 def test_every_state_is_a_sum(make: Callable[[], Metric]) -> None:
     """The module promises DDP safety by summing every state: what makes merge_state (and the all-reduce)
     exact, and what the by-hand merges below rely on."""
@@ -524,3 +525,33 @@ def test_interaction_run_length_by_hand() -> None:
     empty.update(torch.zeros(2, 3, 5, dtype=torch.long))
     length, rate = empty.compute()
     assert length.isnan() and rate.item() == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- OwnCut
+def test_own_cut_by_hand() -> None:
+    """One edge, 10 steps, tolerance 1. Own slots start at 0, 3, 5, 8; step 5 is fixed (an entry, say), so the
+    own boundaries are 3 and 8. The held type changes at 3 (0 -> 1), not at 8: on_switch = 1/2. The truth
+    switches at 4, 6 and 9: both own boundaries lie within a step of one (precision 1), 6 has none within a
+    step (recall 2/3): F1 = 2 * 2/3 / (1 + 2/3) = 0.8."""
+    slot = torch.tensor([[[0, 0, 0, 3, 3, 5, 5, 5, 8, 8]]])
+    held = torch.tensor([[[0, 0, 0, 1, 1, 1, 1, 1, 1, 1]]])
+    free = torch.ones(1, 1, 10, dtype=torch.bool)
+    free[..., [0, 5]] = False
+    truth = torch.tensor([[[0, 0, 0, 0, 1, 1, 0, 0, 0, 1]]])
+    m = OwnCut(tolerance=1)
+    m.update(slot, held, free, truth)
+    on_switch, f1 = m.compute().tolist()
+    assert on_switch == pytest.approx(0.5)
+    assert f1 == pytest.approx(0.8)
+    # a true switch at a fixed step is not the plugin's to find
+    free[..., 6] = False
+    m = OwnCut(tolerance=1)
+    m.update(slot, held, free, truth)
+    assert m.compute()[1].item() == pytest.approx(1.0)
+
+
+def test_own_cut_without_own_boundaries_or_truth_is_nan() -> None:
+    m = OwnCut()
+    m.update(torch.zeros(1, 2, 6, dtype=torch.long), torch.zeros(1, 2, 6, dtype=torch.long),
+             torch.ones(1, 2, 6, dtype=torch.bool))
+    assert torch.isnan(m.compute()).all()

@@ -82,7 +82,7 @@ def test_static_segment_is_one_per_stretch_of_presence():
     assert torch.equal(seg.valid.sum(-1), 1 + entries(present).sum(-1))
 
 
-@pytest.mark.parametrize("model", ["dider", "nri"])
+@pytest.mark.parametrize("model", ["dider", "dider_paper", "nri"])
 def test_the_type_held_after_an_entry_is_read_there_and_its_kl_counts(make_cfg, model):
     torch.manual_seed(0)
     net = RelationalVAE.from_config(make_cfg([f"model={model}", "model.posterior_readout=start"]).model).eval()
@@ -103,7 +103,7 @@ def test_the_type_held_after_an_entry_is_read_there_and_its_kl_counts(make_cfg, 
 
 def test_online_types_reread_at_an_entry_and_keep_the_duration(make_cfg):
     torch.manual_seed(0)
-    net = RelationalVAE.from_config(make_cfg(["model=dider", "model.rollout_edges=argmax"]).model).eval()
+    net = RelationalVAE.from_config(make_cfg(["model=dider_paper", "model.rollout_edges=argmax"]).model).eval()
     present = comings_and_goings()
     h_fwd = torch.randn(2, 6, 20, net.duration.head[0].in_features)
     lefts: list[torch.Tensor] = []

@@ -233,7 +233,7 @@ BAD_CONFIGS = [
     (["data.num_steps=20", "data.horizons=[1,5,16]"], r"data.horizons=\[1, 5, 16\]: each must lie in 1..15"),
     (["data.horizons=[0,5]"], r"data.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
-    (["model=dider", "model.duration.max_segments=0"], r"model.duration.max_segments=0: must be >= 1"),
+    (["model=dider", "model.duration.rate=1.5"], r"model.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
     (["model.capacity_edge=-0.5"], r"model.capacity_edge=-0.5: must be >= 0"),
     (["model.capacity_duration=-1"], r"model.capacity_duration=-1: must be >= 0"),
     (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
@@ -275,7 +275,7 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
 
 def test_valid_configs_pass(make_cfg, tmp_path):
     for overrides in ([], ["model=dnri"], ["model=nri"], ["data=ind"], ["data=basketball"], ["data=trajectories"],
-                      ["data=ind", f"data.root={tmp_path}"], ["model.duration.max_segments=1"]):
+                      ["data=ind", f"data.root={tmp_path}"], ["model.duration.rate=0.1"]):
         validate_config(make_cfg(overrides))
     npz = tmp_path / "t.npz"
     npz.write_bytes(b"")

@@ -45,8 +45,9 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     acc = events(out / "tb")
     tags = acc.Tags()
     assert "test/mse/h01" in tags["scalars"] and "val/nll" in tags["scalars"] and "train/loss_epoch" in tags["scalars"]
-    for tag in ("val/nelbo", "val/edge_acc/posterior/interaction", "train/schedule/kl_weight", "train/schedule/tau",
-                "train/segments/segments_per_edge", "val/segments/steps_per_segment", "train/segments/sigma"):
+    for tag in ("val/nelbo", "val/edge_acc/posterior/interaction", "train/schedule/kl_weight",
+                "train/segments/segments_per_edge", "val/segments/steps_per_segment", "val/segments/boundary_f1",
+                "test/segments/boundary_f1"):
         assert tag in tags["scalars"], tag
     assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
     assert any(t.startswith("test/timeline/") for t in tags["images"])

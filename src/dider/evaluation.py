@@ -23,6 +23,7 @@ from dider.metrics import (
     EdgeAccuracy,
     HorizonMSE,
     InteractionRunLength,
+    OwnCut,
     PairConsistency,
     SegmentStats,
 )
@@ -63,14 +64,16 @@ class TestMetrics(nn.Module):
         # on past the truth's end show here while they barely move the recalls.
         self.run_length = nn.ModuleDict({k: InteractionRunLength() for k in ("posterior", "prior", "truth")})
         self.boundary = BoundaryF1(tolerance=2)
+        self.own_cut = OwnCut(tolerance=2)  # the duration plugin's own boundaries
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
 
     def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
                normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
-               prior_per_step: torch.Tensor | None = None) -> None:
+               prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
         by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
-        prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held)."""
+        prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held).
+        own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own)."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
@@ -89,6 +92,8 @@ class TestMetrics(nn.Module):
                 self.acc_prior_per_step.update(prior_per_step.transpose(1, 2), batch["edges"], present)
             self.boundary.update(posterior, batch["edges"].transpose(1, 2))
             self.run_length["truth"].update(batch["edges"].transpose(1, 2), present.any(1))
+        if own_cut is not None:
+            self.own_cut.update(**own_cut)
         if "pair_kind" in batch:
             self.pairs.update(posterior, batch["pair_kind"], present.transpose(1, 2))
 
@@ -104,6 +109,8 @@ class TestMetrics(nn.Module):
         out["test/segments_per_edge"], out["test/switches_per_100"] = self.segments.compute()
         if self.boundary.update_count:
             out["test/boundary_f1"] = self.boundary.compute()
+        if self.own_cut.update_count:
+            out |= own_cut_values("test/segments", self.own_cut)
         runs = {k: m.compute() for k, m in self.run_length.items() if m.update_count}
         lengths = {f"test/run_length/{k}": v[0] for k, v in runs.items()}
         _warn_empty(lengths, "no step of any interaction type")
@@ -141,6 +148,14 @@ def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:
     out = {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, values, strict=True)}
     _warn_empty(out, "no present agent reached this horizon")
     return out
+
+
+def own_cut_values(prefix: str, metric: OwnCut) -> dict[str, torch.Tensor]:
+    """``prefix/on_switch`` (the share of own boundaries where the held type changes; left out without an own
+    boundary) and, with ground truth, ``prefix/boundary_f1`` (own boundaries against the true switches, +-2
+    steps)."""
+    values = dict(zip(("on_switch", "boundary_f1"), metric.compute(), strict=True))
+    return {f"{prefix}/{k}": v for k, v in values.items() if not bool(torch.isnan(v))}  # NaN: no own boundary / truth
 
 
 def edge_acc_values(prefix: str, metric: EdgeAccuracy) -> dict[str, torch.Tensor]:

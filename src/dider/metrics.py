@@ -211,7 +211,10 @@ class BoundaryF1(Metric):
 
     def update(self, pred: torch.Tensor, target: torch.Tensor) -> None:
         # Switches of the raw types on both sides: a change 1 -> 2 of the truth is a switch too.
-        p, g = switches(pred), switches(target)
+        self.update_events(switches(pred), switches(target))
+
+    def update_events(self, p: torch.Tensor, g: torch.Tensor) -> None:
+        """Predicted and true events [..., T] bool, matched within the tolerance along the last axis."""
         self.pred_hit += (p & self._near(g)).sum().double()
         self.true_hit += (g & self._near(p)).sum().double()
         self.pred_all += p.sum().double()
@@ -223,6 +226,39 @@ class BoundaryF1(Metric):
         precision = self.pred_hit / self.pred_all.clamp_min(1)
         recall = self.true_hit / self.true_all.clamp_min(1)
         return (2 * precision * recall / (precision + recall).clamp_min(1e-12)).float()
+
+
+class OwnCut(BoundaryF1):
+    """Where a duration plugin's own segments start, against the types they hold and the true switches.
+
+    Only the boundaries a plugin chooses count: not the clip's first step, the burn-in's end or an edge's
+    entry (``free`` false there). ``on_switch``: the share of own boundaries where the held type changes (a
+    boundary whose new segment reads the type held before it cuts nothing readable); ``boundary_f1``: own
+    boundaries against the true type switches at the free steps, within +-``tolerance`` steps.
+
+    update(slot [B, E, T] long (each step's slot), held [B, E, T] long (the type held at each step), free
+    [B, E, T] bool (steps where the plugin may start a segment), truth [B, E, T] long or None);
+    compute() -> [on_switch, boundary_f1] (on_switch NaN without an own boundary; boundary_f1 NaN without truth).
+    """
+
+    def __init__(self, tolerance: int = 2, **kwargs) -> None:
+        super().__init__(tolerance, **kwargs)
+        for name in ("own", "own_on_switch", "with_truth"):
+            self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
+
+    def update(self, slot: torch.Tensor, held: torch.Tensor, free: torch.Tensor,  # type: ignore[override]
+               truth: torch.Tensor | None = None) -> None:
+        own = switches(slot) & free[..., 1:]  # [B, E, T-1]: a new slot at step t >= 1
+        self.own += own.sum().double()
+        self.own_on_switch += (own & switches(held)).sum().double()
+        if truth is not None:
+            self.with_truth += 1
+            self.update_events(own, switches(truth) & free[..., 1:])
+
+    def compute(self) -> torch.Tensor:
+        share = self.own_on_switch / self.own if self.own > 0 else torch.tensor(float("nan"), dtype=torch.float64)
+        f1 = super().compute() if self.with_truth > 0 else torch.tensor(float("nan"))
+        return torch.stack([share.float(), f1.float()])
 
 
 class PairConsistency(Metric):

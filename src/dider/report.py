@@ -39,7 +39,7 @@ SECTIONS = (("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (d
             ("Edge accuracy", r"edge_acc/"),
             ("Duration slots: the model's own cut", r"segments/"),
             ("Segments", r"(segments_per_edge|switches_per_100|boundary_f1|run_length/\w+|interaction_rate/\w+)$"),
-            ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration|prior_fit|duration_fit|nelbo)$"),
+            ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration|prior_fit|nelbo)$"),
             ("Other", r""))
 NOT_GROUPED = {"seed", "model", "model.num_edges"}  # model and num_edges are read from each job's record
 

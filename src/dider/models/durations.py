@@ -20,7 +20,7 @@ from torch import nn
 
 from dider.losses import gaussian_kl
 from dider.models.plugins import Progress
-from dider.models.segments import Segmentation, entries, run_lengths
+from dider.models.segments import Segmentation, entries
 from dider.validation import require, within_open
 
 
@@ -48,7 +48,8 @@ class StaticDuration(nn.Module):
         start = torch.zeros(b, e, 1, dtype=torch.long, device=h_fwd.device)
         valid = torch.ones(b, e, 1, dtype=torch.bool, device=h_fwd.device)
         assign = h_fwd.new_ones(b, e, t, 1, dtype=torch.float32)
-        seg = Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32))
+        fixed = torch.ones(b, e, t, dtype=torch.bool, device=h_fwd.device)  # no boundary is chosen
+        seg = Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32), fixed=fixed)
         return seg if present is None else seg.split_at(entries(present))  # one type per stretch of presence
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
@@ -64,9 +65,7 @@ class LearnedDuration(nn.Module):
     features at the slot's first step give mu = tanh(f_mu(h)), sigma = sigma_min + (1 - sigma_min) *
     sigmoid(f_sigma(h)); z = mu + sigma * eps (z = mu in eval); rho = clamp((z + 1) / 2, rho_min, 1);
     d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
-    the fixed prior N(prior_mu, prior_sigma^2). ``max_segments`` caps the slots per edge (None: one per
-    step at most, no cap); with a cap, the last slot holds whatever the others leave, however long (the cap
-    counts the drawn durations: a split where an edge enters, below, adds a slot beyond it).
+    the fixed prior N(prior_mu, prior_sigma^2). An edge has at most one slot per step.
 
     How this implementation settles what the paper leaves open:
     - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
@@ -74,7 +73,7 @@ class LearnedDuration(nn.Module):
     - continuous d against discrete steps: step j belongs to slot k when s_k <= j < s_{k+1} (hard,
       exact one-hot in the forward pass); the gradient reaches the boundaries through a soft step
       sigmoid((j + 0.5 - s) / tau_s), straight-through; tau_s anneals from ``tau_start`` to
-      ``tau_end`` over ``tau_anneal_steps`` optimiser steps;
+      ``tau_end`` over the first ``tau_anneal`` of training;
     - the boundary step starts the new segment and its latents are read there;
     - where agents come and go (``present``), a slot that its edge enters part-way is split at the entry:
       the type held from there on is read at the entry (an absent edge's features say nothing), the drawn
@@ -83,20 +82,8 @@ class LearnedDuration(nn.Module):
     ``source`` picks what the duration is read from: ``past`` (DIDER: the forward LSTM state, online,
     usable when forecasting) or ``future`` (DIDER with SKID: the reverse LSTM state, i.e. the whole
     remaining trajectory). When forecasting there is no future (the paper evaluates every model online), so
-    ``skid_online`` picks what sets SKID's durations then: ``prior_mean``, the duration prior's mean fraction,
-    or ``head``, the duration head fed the past-only (forward LSTM) state.
+    SKID's durations then come from the same head fed the past-only (forward LSTM) state.
     ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
-    ``encoder_grad``: whether the duration's gradients (the NLL's through the boundaries, the duration KL's)
-    reach the encoder's LSTM states, which the edge prior and posterior read too (False: the head reads
-    them detached). ``sample``: whether training draws the latent (the paper's reparametrised z) or takes its
-    mean, as evaluation does.
-
-    ``fit(h_fwd, h_rev, types)`` is the error of the head against the run lengths of given per-step types
-    (a fit outside the ELBO, ``model.duration_fit``): how long each step's type lasts, as a fraction of the
-    remaining steps, is the head's target, and ``fit_quantile`` the quantile of it that the head learns
-    (a pinball loss; 0.5, the median). A slot that runs past its type's end costs the forecast far more
-    than one that ends early, and a head that reads the past only cannot know when a run ends, so a low
-    quantile asks for slots that rarely overshoot.
     """
 
     def __init__(
@@ -104,7 +91,6 @@ class LearnedDuration(nn.Module):
         rnn_hidden: int = 64,
         hidden: int = 64,
         source: str = "past",
-        max_segments: int | None = None,
         min_duration: float = 1.0,
         rho_min: float = 0.0,
         sigma_min: float = 1e-2,
@@ -113,34 +99,24 @@ class LearnedDuration(nn.Module):
         tau_start: float = 1.5,
         tau_end: float = 0.5,
         tau_anneal: float = 1.0,
-        tau_anneal_steps: int | None = None,
         fixed_duration: int | None = None,
         sigma_init: float = 0.5,
         burn_in: int | None = None,
-        skid_online: str = "prior_mean",
-        encoder_grad: bool = True,
-        fit_quantile: float = 0.5,
-        sample: bool = True,
     ) -> None:
         super().__init__()
         require({
-            "model.duration.source": source, "model.duration.max_segments": max_segments,
+            "model.duration.source": source,
             "model.duration.min_duration": min_duration, "model.duration.rho_min": rho_min,
             "model.duration.sigma_min": sigma_min, "model.duration.prior_sigma": prior_sigma,
             "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
             "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
-            "model.duration.tau_anneal_steps": tau_anneal_steps, "model.duration.burn_in": burn_in,
-            "model.duration.skid_online": skid_online, "model.duration.encoder_grad": encoder_grad,
-            "model.duration.sample": sample,
-        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0)),
-            "model.duration.fit_quantile": (fit_quantile, within_open(0.0, 1.0))})
-        self.source, self.max_segments, self.fixed_duration = source, max_segments, fixed_duration
-        self.skid_online, self.encoder_grad, self.fit_quantile = skid_online, encoder_grad, fit_quantile
-        self.sample = sample
+            "model.duration.burn_in": burn_in,
+        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
+        self.source, self.fixed_duration = source, fixed_duration
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma
         self.tau_start, self.tau_end = tau_start, tau_end
-        self.tau_anneal, self.tau_anneal_steps = tau_anneal, tau_anneal_steps
+        self.tau_anneal = tau_anneal
         # Transitions 0..burn_in-2 only lead up to the last observed frame: one segment of their own, and
         # the first learned segment starts at transition burn_in-1, read from x_0..x_{burn_in-1}.
         self.observed = 0 if burn_in is None or fixed_duration is not None else burn_in - 1
@@ -150,13 +126,8 @@ class LearnedDuration(nn.Module):
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
 
     def tau(self, progress: Progress) -> float:
-        """The soft-step temperature: annealed linearly over the first ``tau_anneal`` of training (or over
-        ``tau_anneal_steps`` optimiser steps when that is set)."""
-        if self.tau_anneal_steps is not None:
-            span = self.tau_anneal_steps
-            frac = min(1.0, progress.step / span) if span > 0 else 1.0
-        else:
-            frac = min(1.0, progress.fraction / self.tau_anneal) if self.tau_anneal > 0 else 1.0
+        """The soft-step temperature: annealed linearly over the first ``tau_anneal`` of training."""
+        frac = min(1.0, progress.fraction / self.tau_anneal) if self.tau_anneal > 0 else 1.0
         return self.tau_start + (self.tau_end - self.tau_start) * frac
 
     def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -167,29 +138,34 @@ class LearnedDuration(nn.Module):
 
     def features(self, h_fwd: torch.Tensor, h_rev: torch.Tensor) -> torch.Tensor:
         """What the head reads, [B, E, T, R]: the past (forward LSTM) or, for SKID, the remaining trajectory
-        (reverse LSTM); detached without ``encoder_grad``, so the head learns from the states without
-        reshaping them."""
-        feats = h_fwd if self.source == "past" else h_rev
-        return feats if self.encoder_grad else feats.detach()
+        (reverse LSTM)."""
+        return h_fwd if self.source == "past" else h_rev
 
-    def fit(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, types: torch.Tensor) -> torch.Tensor:
-        """The head's pinball loss at ``fit_quantile`` against the run lengths of ``types`` [B, E, T] long (the
-        per-step posterior's, say; absent steps a type of their own) -> [B, E, T], 0 inside the observed
-        burn-in span.
-
-        At step j a run of r steps is the fraction rho = r / (T - j) of the remaining steps, i.e. the latent
-        z = 2 rho - 1. The error is taken before the tanh, where z = tanh(a) means a = logit(rho) / 2: a log
-        scale for short runs, and a gradient that a saturated head still gets (rho clipped to [0.01, 0.99])."""
+    def cut_kl(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, gate: torch.Tensor, free: torch.Tensor,
+               steps: torch.Tensor) -> torch.Tensor:
+        """The duration KL of a posterior certain of a given cut: -log of the prior's probability of the
+        latents that give exactly its slot lengths, summed over the learned slots. A slot of L steps at s
+        (T - s remaining) needs d = max(rho (T - s), min_duration) in (L - 1, L] (the last slot: d > L - 1), i.e.
+        z in an interval; the prior N(prior_mu, prior_sigma^2) gives its probability. gate [B, E, T] bool (slot
+        starts), free [B, E, T] bool (unused: the learned slots are those from the burn-in's end on), steps [B]
+        -> [B]. Slot starts are integers here, where the model's are continuous: the durations are rounded up."""
         if self.fixed_duration is not None:
-            raise ValueError(f"model.duration_fit: the durations are fixed (model.duration.fixed_duration="
-                             f"{self.fixed_duration}); there is no head to fit")
-        t = types.shape[-1]
-        raw_mu = self.head(self.features(h_fwd, h_rev))[..., 0].float()  # [B, E, T]
-        remaining = torch.arange(t, 0, -1, device=types.device, dtype=torch.float32)
-        rho = (run_lengths(types).float() / remaining).clamp(0.01, 0.99)
-        under = 0.5 * torch.logit(rho) - raw_mu  # > 0: the head cuts the run short
-        err = torch.maximum(self.fit_quantile * under, (self.fit_quantile - 1) * under)
-        return err.masked_fill(torch.arange(t, device=types.device) < self.observed, 0.0)
+            return h_fwd.new_zeros(h_fwd.shape[0], dtype=torch.float32)
+        t = gate.shape[-1]
+        step = torch.arange(t, device=gate.device)
+        nxt = torch.where(gate, step, t).flip(-1).cummin(-1).values.flip(-1)  # the first start at or after each step
+        nxt = torch.nn.functional.pad(nxt[..., 1:], (0, 1), value=t)  # ... strictly after it
+        length, remaining = (nxt - step).float(), (t - step).float()
+        prior = torch.distributions.Normal(self.prior_mu, self.prior_sigma)
+
+        def z_of(d: torch.Tensor) -> torch.Tensor:  # the latent whose fraction of the remaining steps is d
+            return 2 * d / remaining - 1
+
+        lo = torch.where(length - 1 >= self.min_duration, z_of(length - 1), torch.full_like(length, -torch.inf))
+        hi = torch.where(nxt >= t, torch.full_like(length, torch.inf), z_of(length))
+        mass = (prior.cdf(hi) - prior.cdf(lo)).clamp_min(1e-12)
+        learned = gate & (step >= self.observed)
+        return (-mass.log() * learned).flatten(1).sum(1) / steps
 
     def fraction(self, z: torch.Tensor) -> torch.Tensor:
         return ((z + 1) / 2).clamp(self.rho_min, 1.0)
@@ -201,8 +177,7 @@ class LearnedDuration(nn.Module):
         fixed = self.fixed_duration
         span = min(self.observed, t)  # the observed burn-in span: slot 0, no duration latent
         learned = t - span
-        cap = learned if self.max_segments is None else min(self.max_segments, learned)
-        slots = (cap if fixed is None else -(-t // fixed)) if learned > 0 else 0
+        slots = (learned if fixed is None else -(-t // fixed)) if learned > 0 else 0
         s = h_fwd.new_zeros(b, e, dtype=torch.float32)  # continuous start of the current slot
         bounds, starts, mus, sigmas = [s], [], [], []
         if span > 0:
@@ -222,7 +197,7 @@ class LearnedDuration(nn.Module):
             else:
                 at = start.unsqueeze(-1)
                 mu, sigma = mu_all.gather(2, at).squeeze(2), sigma_all.gather(2, at).squeeze(2)
-                z = mu + sigma * torch.randn_like(mu) if self.training and self.sample else mu
+                z = mu + sigma * torch.randn_like(mu) if self.training else mu
                 d = torch.maximum(self.fraction(z) * remaining, torch.full_like(s, self.min_duration))
                 mus.append(mu)
                 sigmas.append(sigma)
@@ -237,7 +212,11 @@ class LearnedDuration(nn.Module):
             mu, sd = torch.stack(mus, -1), torch.stack(sigmas, -1)
             kl = (gaussian_kl(mu, sd, self.prior_mu, self.prior_sigma) * learned_valid).flatten(1).sum(1) / (e * t)
             sigma = (sd.detach() * learned_valid).sum() / learned_valid.sum().clamp_min(1)
-        seg = Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma)
+        step = torch.arange(t, device=h_fwd.device)
+        fixed_steps = step <= self.observed  # the first step, and the burn-in span's end
+        if present is not None:  # a slot starts where an edge enters; no choice where it is absent
+            fixed_steps = fixed_steps | entries(present) | ~present
+        seg = Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma, fixed=fixed_steps)
         return seg if present is None else seg.split_at(entries(present))
 
     def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -259,9 +238,5 @@ class LearnedDuration(nn.Module):
             return torch.full(h_t.shape[:2], self.fixed_duration, dtype=torch.long, device=h_t.device)
         if t < self.observed:  # inside the burn-in: its span ends where the forecast starts
             return torch.full(h_t.shape[:2], self.observed - t, dtype=torch.long, device=h_t.device)
-        if self.source == "past" or self.skid_online == "head":
-            # SKID with ``head``: the head trained on the remaining trajectory, fed the past-only state
-            rho = self.fraction(self.gaussian(h_t)[0])
-        else:  # the future-reading posterior is unavailable online: the prior mean sets the fraction
-            rho = self.fraction(torch.full(h_t.shape[:2], self.prior_mu, device=h_t.device))
+        rho = self.fraction(self.gaussian(h_t)[0])  # SKID: the head trained on the remaining trajectory, fed the past
         return (rho * remaining).round().clamp_min(self.min_duration).long()

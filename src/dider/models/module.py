@@ -19,9 +19,9 @@ from dider import __version__
 from dider.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.data.batch import Batch
 from dider.data.common import data_description
-from dider.evaluation import Forecast, TestMetrics, edge_acc_values, horizon_values
+from dider.evaluation import Forecast, TestMetrics, edge_acc_values, horizon_values, own_cut_values
 from dider.graph import edge_mask
-from dider.metrics import EdgeAccuracy, HorizonMSE
+from dider.metrics import EdgeAccuracy, HorizonMSE, OwnCut
 from dider.models.plugins import Progress
 from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons
@@ -51,6 +51,7 @@ class RelationalVAEModule(L.LightningModule):
         self.model = RelationalVAE.from_config(model)
         self.val_mse = HorizonMSE(horizons)
         self.val_acc = EdgeAccuracy()
+        self.val_cut = OwnCut(tolerance=2)
         self.test_metrics = TestMetrics(horizons, self.model.num_types)
         # Prediction's optional forecast: (burn_in, steps) from each clip's first frames, or None (set by
         # ``mode=predict``, not a hyper-parameter: it does not change the model).
@@ -99,6 +100,18 @@ class RelationalVAEModule(L.LightningModule):
         stats = {f"{stage}/segments/{k}": v for k, v in out.seg.stats(present).items()}
         self.log_dict(stats, on_step=False, on_epoch=True, batch_size=batch["states"].shape[0], sync_dist=True)
 
+    @staticmethod
+    def own_cut(out: Inference, batch: Batch) -> dict[str, torch.Tensor] | None:
+        """What :class:`~dider.metrics.OwnCut` reads of a pass: each step's slot, the held types, the free steps
+        and (where known) the true types, each [B, E, T-1]; None for a plugin without a cut of its own (a slot
+        per step)."""
+        if out.seg.assign is None:
+            return None
+        present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)
+        truth = batch["edges"].transpose(1, 2) if "edges" in batch else None
+        return {"slot": out.seg.step_slot(), "held": out.posterior_types(), "free": out.seg.free(present),
+                "truth": truth}
+
     def training_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
         out = self._infer(batch, hard=False)
         progress = self.progress()
@@ -133,6 +146,8 @@ class RelationalVAEModule(L.LightningModule):
         f = self._forecast(batch)
         self.val_mse.update(f.pred, f.target, f.mask, f.horizon)
         self._log_segments("val", out, batch)
+        if (cut := self.own_cut(out, batch)) is not None:
+            self.val_cut.update(**cut)
         if "edges" in batch:
             present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
             self.val_acc.update(out.posterior_types().transpose(1, 2), batch["edges"], present)
@@ -143,6 +158,9 @@ class RelationalVAEModule(L.LightningModule):
         if self.val_acc.update_count:
             self.log_dict(edge_acc_values("val/edge_acc/posterior", self.val_acc))
             self.val_acc.reset()
+        if self.val_cut.update_count:
+            self.log_dict(own_cut_values("val/segments", self.val_cut))
+            self.val_cut.reset()
 
     def test_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
         """Scores the batch and returns its per-clip outputs for the export and figure callbacks:
@@ -163,7 +181,8 @@ class RelationalVAEModule(L.LightningModule):
         if "edges" in batch:
             by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
         prior_per_step = self.model.prior(out.h_fwd).argmax(-1)
-        self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step)
+        self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
+                                 self.own_cut(out, batch))
         absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),

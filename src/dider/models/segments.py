@@ -17,21 +17,38 @@ def _einsum_fp32(equation: str, a: torch.Tensor, b: torch.Tensor) -> torch.Tenso
         return torch.einsum(equation, a.float(), b.float())
 
 
-def run_lengths(types: torch.Tensor) -> torch.Tensor:
-    """[..., T] long types -> [..., T] long: how many steps, from each step on, its type lasts unchanged (the
-    step itself counted; a run open at the clip's end ends there)."""
-    t = types.shape[-1]
-    step = torch.arange(t, device=types.device)
-    last = torch.ones_like(types, dtype=torch.bool)
-    last[..., :-1] = types[..., 1:] != types[..., :-1]  # a run's last step
-    end = torch.where(last, step, t).flip(-1).cummin(-1).values.flip(-1)  # the next run end at or after each step
-    return end - step + 1
+def _pool_ahead(values: torch.Tensor, starts: torch.Tensor) -> torch.Tensor:
+    """values [B, E, T, F], starts [B, E, T] bool -> [B, E, T, F]: at each step t, the mean of values over t up to
+    the first start after t (or the end), in fp32."""
+    t = values.shape[2]
+    step = torch.arange(t, device=values.device)
+    ahead = torch.where(starts, step, t).flip(-1).cummin(-1).values.flip(-1)  # the first start at or after t
+    nxt = torch.nn.functional.pad(ahead[..., 1:], (0, 1), value=t)  # ... strictly after t
+    v = values.float()
+    tail = torch.nn.functional.pad(v.flip(2).cumsum(2).flip(2), (0, 0, 0, 1))  # [B, E, T+1, F]: sum over t' >= t
+    index = nxt.unsqueeze(-1).expand(*nxt.shape, v.shape[-1])
+    return (tail[:, :, :t] - tail.gather(2, index)) / (nxt - step).unsqueeze(-1).to(v.dtype)
 
 
 def entries(present: torch.Tensor) -> torch.Tensor:
     """[..., T] bool, an edge present at each step -> [..., T] bool: where it enters, present after a step
     without it (never at step 0, where every segmentation starts anyway)."""
     return present & ~torch.nn.functional.pad(present[..., :-1], (1, 0), value=True)
+
+
+def forced_boundaries(t: int, observed: int, device: torch.device,
+                      present: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Steps whose boundary no plugin chooses, and whether a segment starts there: [T] bool each, or
+    [B, E, T] with ``present`` [B, E, T] bool. A segment starts at step 0, at ``observed`` (the first forecast
+    transition, when the burn-in is one observed segment; 0: none) and where an edge enters; none inside the
+    burn-in or where the edge is absent."""
+    step = torch.arange(t, device=device)
+    fixed, value = step <= observed, (step == 0) | (step == observed)
+    if present is None:
+        return fixed, value
+    entered = entries(present)
+    value = (value | entered) & (present | (step == 0))  # step 0 opens the first slot even when absent
+    return fixed | entered | ~present, value
 
 
 @dataclass
@@ -44,6 +61,16 @@ class Segmentation:
     # [B, E, S] float: 1 forward for the slots that hold steps, with the gradient of the boundary that opens
     # them (straight-through), so a slot's edge KL reaches its boundary; None: ``valid``, no gradient.
     weight: torch.Tensor | None = field(default=None)
+    # [B, E, T] bool (or broadcastable): steps whose boundary the plugin does not choose (the clip's first step,
+    # the burn-in, where an edge enters or is absent); None: the first step only.
+    fixed: torch.Tensor | None = field(default=None)
+
+    def free(self, present: torch.Tensor) -> torch.Tensor:
+        """[B, E, T] bool: the present steps where the plugin chooses whether a segment starts (``present``
+        [B, E, T] bool)."""
+        fixed = torch.zeros_like(present).index_fill(-1, torch.tensor([0], device=present.device), True) \
+            if self.fixed is None else self.fixed
+        return present & ~fixed
 
     @property
     def num_steps_per_slot(self) -> torch.Tensor:
@@ -65,9 +92,16 @@ class Segmentation:
         return values.gather(2, index)
 
     def pool(self, values: torch.Tensor) -> torch.Tensor:
-        """Mean of per-step values over each slot's steps: [B, E, T, F] -> [B, E, S, F] (0 for empty slots)."""
+        """Mean of per-step values over each slot's steps: [B, E, T, F] -> [B, E, S, F] (0 for empty slots).
+
+        Where slot s is the segment starting at step s (a boundary-based plugin: ``weight`` set), slot s holds,
+        whether or not a segment starts there, the mean over s up to the next start after it: for a segment
+        its own steps, and elsewhere the type a segment starting there would hold, which is what a boundary's
+        straight-through gradient compares with the type held before it."""
         if self.assign is None:
             return values
+        if self.weight is not None:
+            return _pool_ahead(values, self.valid)
         total = _einsum_fp32("bets,betf->besf", self.assign, values)
         return total / self.assign.sum(2).unsqueeze(-1).clamp_min(1.0)
 
@@ -115,7 +149,7 @@ class Segmentation:
         start = torch.full((*slot.shape[:2], width), t - 1, dtype=torch.long, device=cuts.device)
         start = start.scatter_reduce(-1, new_slot, step.expand_as(new_slot), "amin")
         valid = torch.zeros_like(start, dtype=torch.bool).scatter(-1, new_slot, True)
-        return Segmentation(start, valid, assign, self.kl, self.sigma)
+        return Segmentation(start, valid, assign, self.kl, self.sigma, fixed=self.fixed)
 
     def step_slot(self) -> torch.Tensor:
         """[B, E, T] long: the slot index of every step."""
@@ -123,3 +157,4 @@ class Segmentation:
             b, e, s = self.start.shape
             return torch.arange(s, device=self.start.device).expand(b, e, s)
         return self.assign.argmax(dim=-1)
+

@@ -24,13 +24,14 @@ from torch import nn
 
 from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_nll
+from dider.models.hazard import hold_assignment
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
-from dider.models.segments import Segmentation, entries
+from dider.models.segments import Segmentation, entries, forced_boundaries
 from dider.protocol import burn_in_mask, fill_absent
 from dider.validation import require
 
-LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit", "duration_fit")
+LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit")
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
 
@@ -50,7 +51,6 @@ class Inference:
     kl_edge: torch.Tensor  # [B]
     kl_duration: torch.Tensor  # [B]
     prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
-    duration_fit: torch.Tensor  # [B] the duration head's error against the per-step posterior's run lengths (0: none)
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
@@ -72,8 +72,8 @@ def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
 
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
-    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit + duration_fit x
-    the duration head's fit to the posterior's run lengths, both off by default)."""
+    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by
+    default)."""
 
     def __init__(
         self,
@@ -100,8 +100,6 @@ class RelationalVAE(nn.Module):
         decoder_edges: bool = True,
         prior_fit: float = 0.0,
         prior_fit_warmup: bool = True,
-        duration_fit: float = 0.0,
-        duration_fit_from: float = 0.0,
         name: str = "model",
     ) -> None:
         """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
@@ -123,12 +121,7 @@ class RelationalVAE(nn.Module):
         posterior's gradient stopped; with segments the ELBO's KL trains the prior at segment starts only
         (0: the paper's loss). prior_fit_warmup: the fit's weight ramps up with the KL warm-up, as the ELBO's
         KL terms do (False: full weight from the first step, when the fit, through the encoder the posterior
-        shares, can settle the posterior on an edge type that does no harm). duration_fit: weight of a term
-        outside the ELBO, not ramped with the KL warm-up, that fits the duration head at every step to
-        how long the per-step posterior's type lasts from there (its run length, the posterior's gradient
-        stopped); the ELBO alone lets the head cut one-step slots (0: the paper's loss). duration_fit_from: the
-        fraction of training from which the duration fit counts (before it, the per-step posterior has not yet
-        found its types, and a head fitted to its runs cuts slots that hold a whole clip)."""
+        shares, can settle the posterior on an edge type that does no harm)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
@@ -138,8 +131,7 @@ class RelationalVAE(nn.Module):
             "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
             "model.sparsity_form": sparsity_form, "model.forecast_edges": forecast_edges,
             "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
-            "model.prior_fit_warmup": prior_fit_warmup, "model.duration_fit": duration_fit,
-            "model.duration_fit_from": duration_fit_from,
+            "model.prior_fit_warmup": prior_fit_warmup,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -147,9 +139,6 @@ class RelationalVAE(nn.Module):
             if missing := missing_members(plugin, interface):  # a user's plugin: say what it lacks, up front
                 raise TypeError(f"model.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
                                 f"(missing {missing}; see dider.models.plugins)")
-        if duration_fit > 0 and not callable(getattr(duration, "fit", None)):
-            raise ValueError(f"model.duration_fit={duration_fit}: {type(duration).__name__} has no duration head to "
-                             "fit (a learned duration, model=dider or dider_skid, has)")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.num_types, self.name = num_edges, name
         self.nll_variance, self.gumbel_tau = nll_variance, gumbel_tau
@@ -158,8 +147,7 @@ class RelationalVAE(nn.Module):
         self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
         self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
         self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
-        self.prior_fit, self.prior_fit_warmup, self.duration_fit = prior_fit, prior_fit_warmup, duration_fit
-        self.duration_fit_from = duration_fit_from
+        self.prior_fit, self.prior_fit_warmup = prior_fit, prior_fit_warmup
         self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
 
     @classmethod
@@ -175,17 +163,21 @@ class RelationalVAE(nn.Module):
         return self
 
     # ------------------------------------------------------------------ inference and loss
-    def infer(self, batch: Mapping[str, torch.Tensor], hard: bool, progress: Progress = Progress()) -> Inference:
+    def infer(self, batch: Mapping[str, torch.Tensor], hard: bool, progress: Progress = Progress(),
+              cut: torch.Tensor | None = None) -> Inference:
         """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame.
 
-        batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool."""
+        batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool. cut: [B, E, T-1] bool, a given segmentation
+        (a segment starts at each true step; the fixed boundaries of :func:`forced_boundaries` are added) in
+        place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.diagnose``)."""
         x, mask = batch["states"], batch["mask"]
         # With every agent present (the synthetic sets) the plugins skip their masking passes.
         plugin_mask = None if bool(mask.all()) else mask
         enc = self.encoder(x, plugin_mask)
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
-        seg: Segmentation = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress,
-                                                  None if plugin_mask is None else present)
+        given = None if plugin_mask is None else present
+        seg: Segmentation = (self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given) if cut is None
+                             else self.cut_segmentation(enc.h_fwd, enc.h_rev, cut, present))
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
         # The prior always reads a segment's first step, so it stays online.
         p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
@@ -210,13 +202,25 @@ class RelationalVAE(nn.Module):
         q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
         kl_fit = categorical_kl_probs(q_held, F.log_softmax(p_step, dim=-1))
         prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
-        duration_fit = torch.zeros_like(prior_fit)
-        if self.duration_fit > 0:  # absent steps are a type of their own, so a run ends where its edge leaves
-            types = enc.posterior_logits.argmax(-1).masked_fill(~present, -1)
-            err = self.duration.fit(enc.h_fwd, enc.h_rev, types)
-            duration_fit = (err * present).flatten(1).sum(1) / steps
         return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
-                         prior_fit, duration_fit)
+                         prior_fit)
+
+    def cut_segmentation(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, cut: torch.Tensor,
+                         present: torch.Tensor) -> Segmentation:
+        """A given cut as a segmentation of held types: cut, present [B, E, T] bool -> slots starting at each cut
+        step and at the fixed boundaries (the clip's start, the burn-in's end where the plugin has one, entries),
+        with the duration KL of a posterior certain of the cut (the plugin's ``cut_kl``; 0 for a plugin without
+        a duration latent)."""
+        b, e, t, _ = h_fwd.shape
+        fixed, value = forced_boundaries(t, getattr(self.duration, "observed", 0), h_fwd.device, present)
+        gate = torch.where(fixed, value, cut)
+        steps = present.flatten(1).sum(1).clamp_min(1)
+        if (cut_kl := getattr(self.duration, "cut_kl", None)) is not None:
+            kl = cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps)
+        else:
+            kl = h_fwd.new_zeros(b, dtype=torch.float32)
+        slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
+        return Segmentation(slots, gate, hold_assignment(gate.float().detach()), kl, fixed=fixed.expand(b, e, t))
 
     def sparsity_kl(self, probs: torch.Tensor, present: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
         """The sparsity term against the fixed prior [no_edge_prob, ...], in ``sparsity_form``.
@@ -248,20 +252,17 @@ class RelationalVAE(nn.Module):
         """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
         et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
         al.), so the posterior carries information before the prior may pull it in; the optional prior fit is
-        added with weight prior_fit (times w with ``prior_fit_warmup``), the duration fit with weight
-        duration_fit from ``duration_fit_from`` of training on. -> scalar terms, and
+        added with weight prior_fit (times w with ``prior_fit_warmup``). -> scalar terms, and
         ``nelbo`` = NLL + KL_e + KL_d, the objective free of schedules (for model selection)."""
         sched = self.schedule(progress)
         w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
         nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
         loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
-        fit, dur_fit = out.prior_fit.mean(), out.duration_fit.mean()
+        fit = out.prior_fit.mean()
         if self.prior_fit > 0:
             loss = loss + (w if self.prior_fit_warmup else 1.0) * self.prior_fit * fit
-        if self.duration_fit > 0 and progress.fraction >= self.duration_fit_from:
-            loss = loss + self.duration_fit * dur_fit
         return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "prior_fit": fit,
-                "duration_fit": dur_fit, "nelbo": (nll + kl_e + kl_d).detach()}
+                "nelbo": (nll + kl_e + kl_d).detach()}
 
     @torch.no_grad()
     def describe(self, out: Inference, mask: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -292,8 +293,11 @@ class RelationalVAE(nn.Module):
         need = left <= 0
         if (boundary := getattr(self.duration, "boundary", None)) is not None:
             need = need | boundary(h_t, t, end)
+        logits = self.prior(h_t)
+        if getattr(self.duration, "online_retype", False) and t > getattr(self.duration, "observed", 0):
+            need = need | (logits.argmax(-1) != etype)  # the past shows another type than the one held
         retype = need if entered is None else need | entered
-        etype = torch.where(retype, pick_types(self.prior(h_t), sample), etype)
+        etype = torch.where(retype, pick_types(logits, sample), etype)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
         return etype, left
 

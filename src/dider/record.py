@@ -1,0 +1,120 @@
+"""A committed record of sweeps: every job's metrics, per-model summaries and differences paired by seed.
+
+    python -m dider.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
+        [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...]
+
+Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), keys it by its model's
+name and seed, and writes one JSON file: the jobs, and per model the mean, sample std, min and max of each
+metric and, against ``--baseline``, the mean and standard error of the difference model - baseline over the
+seeds both have. The documentation quotes these files, so each of its figures comes with its record.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from dider.io import atomic_write_text
+
+# What a record keeps of each job when no --metric is given: the forecast, edge recalls, the own cut.
+DEFAULT_METRICS = (
+    "test/mse/h01", "test/mse/h15", "test/mse/h25", "test/mse_posterior/h15", "test/mse_posterior/h25",
+    "test/mse_oracle/h15", "test/mse_oracle/h25", "test/edge_acc/posterior/none",
+    "test/edge_acc/posterior/interaction", "test/edge_acc/prior/none", "test/edge_acc/prior/interaction",
+    "test/edge_acc/prior_per_step/interaction", "test/segments_per_edge", "test/boundary_f1",
+    "test/segments/segments_per_edge", "test/segments/steps_per_segment", "test/segments/on_switch",
+    "test/segments/boundary_f1", "test/run_length/posterior", "test/run_length/prior", "test/run_length/truth",
+)
+
+
+def job_folders(paths: Sequence[Path]) -> list[Path]:
+    """Run folders: each path that holds a metrics.json, else its subfolders that do (a sweep)."""
+    found = []
+    for path in paths:
+        if (path / "metrics.json").is_file():
+            found.append(path)
+        elif path.is_dir():
+            found.extend(sorted(p.parent for p in path.glob("*/metrics.json")))
+        else:
+            raise FileNotFoundError(f"{path}: no such run or sweep folder")
+    if not found:
+        raise FileNotFoundError(f"{', '.join(map(str, paths))}: no job with a metrics.json")
+    return found
+
+
+def summary(values: list[float]) -> dict[str, float]:
+    n = len(values)
+    mean = sum(values) / n
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (n - 1)) if n > 1 else math.nan
+    return {"n": n, "mean": mean, "std": std, "min": min(values), "max": max(values)}
+
+
+def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, float] | None:
+    """model - baseline over the seeds both have: mean, standard error, and on how many seeds it is below 0."""
+    seeds = sorted(set(model) & set(baseline))
+    if not seeds:
+        return None
+    diffs = [model[s] - baseline[s] for s in seeds]
+    stats = summary(diffs)
+    return {"n": stats["n"], "mean": stats["mean"], "se": stats["std"] / math.sqrt(stats["n"]),
+            "below": sum(d < 0 for d in diffs), "ratio_of_means": (sum(model[s] for s in seeds)
+                                                                   / sum(baseline[s] for s in seeds))}
+
+
+def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,
+          label: str = "name", by_overrides: bool = True) -> dict[str, Any]:
+    jobs = []
+    for folder in job_folders(paths):
+        record = json.loads((folder / "metrics.json").read_text())
+        model = record.get("config", {}).get("model", {})
+        jobs.append({"folder": str(folder), "model": model.get(label, record.get("model")), "seed": record["seed"],
+                     "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")],
+                     "metrics": {k: record["metrics"][k] for k in metrics if k in record["metrics"]}})
+    # a job's group: its model's name and the overrides that not every job shares (besides model= itself)
+    common = set.intersection(*(set(j["overrides"]) for j in jobs))
+    for job in jobs if by_overrides else ():
+        own = sorted(o for o in set(job["overrides"]) - common if not o.startswith("model="))
+        job["model"] = job["model"] + (f" [{' '.join(own)}]" if own else "")
+    by_model: dict[str, dict[str, dict[int, float]]] = {}
+    for job in jobs:
+        for k, v in job["metrics"].items():
+            if v is not None and not math.isnan(v):
+                by_model.setdefault(job["model"], {}).setdefault(k, {})[job["seed"]] = v
+    models = {}
+    for name, per_metric in by_model.items():
+        models[name] = {k: summary(list(v.values())) for k, v in per_metric.items()}
+        if baseline is not None and name != baseline and baseline in by_model:
+            for k, v in per_metric.items():
+                if (diff := paired(v, by_model[baseline].get(k, {}))) is not None:
+                    models[name][k]["vs_" + baseline] = diff
+    return {"command": command, "baseline": baseline, "models": models, "jobs": jobs}
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(prog="python -m dider.record", description=__doc__.split("\n\n")[0])
+    parser.add_argument("paths", nargs="+", type=Path, help="sweep folders or run folders")
+    parser.add_argument("--out", type=Path, required=True, help="the JSON file to write")
+    parser.add_argument("--baseline", help="a model name: differences paired by seed against it")
+    parser.add_argument("--command", help="the command that ran the sweeps (kept in the record)")
+    parser.add_argument("--metric", action="append", help="a metric to keep (repeatable; default: a standard set)")
+    parser.add_argument("--label", default="name", help="the model config key that names a job's model "
+                        "(default: name)")
+    parser.add_argument("--by-name", action="store_true", help="group jobs by their model's name alone, not by "
+                        "the overrides that differ between them (sweeps of one configuration run apart)")
+    args = parser.parse_args(argv)
+    record = build(args.paths, args.metric or DEFAULT_METRICS, args.baseline, args.command, args.label,
+                   by_overrides=not args.by_name)
+    atomic_write_text(args.out, json.dumps(record, indent=1))
+    for name, per_metric in record["models"].items():
+        cells = [f"{k.removeprefix('test/')} {v['mean']:.4g}" for k, v in per_metric.items()
+                 if k in ("test/mse/h15", "test/mse/h25", "test/segments/steps_per_segment")]
+        print(f"{name:24s} n={max(v['n'] for v in per_metric.values())}  " + "  ".join(cells))
+    return record
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""Records of sweeps (``python -m dider.record``): grouping by model and seed, summaries, paired differences."""
+
+import json
+import math
+
+import pytest
+
+from dider.record import main
+
+
+def fake_job(root, name, model, seed, h15, overrides=()):
+    folder = root / name
+    folder.mkdir(parents=True)
+    record = {"seed": seed, "model": model, "overrides": [f"model={model}", f"seed={seed}", *overrides],
+              "config": {"model": {"name": model}}, "metrics": {"test/mse/h15": h15, "test/mse/h25": 2 * h15}}
+    (folder / "metrics.json").write_text(json.dumps(record))
+
+
+def test_record_summarises_and_pairs_by_seed(tmp_path):
+    sweep = tmp_path / "sweep"
+    for seed, (a, b) in {1: (1.0, 2.0), 2: (3.0, 2.0), 3: (2.0, 5.0)}.items():
+        fake_job(sweep, f"dider{seed}", "dider", seed, a)
+        fake_job(sweep, f"dnri{seed}", "dnri", seed, b)
+    fake_job(sweep, "dnri4", "dnri", 4, 100.0)  # a seed the other model lacks: in its summary, not in the pairs
+    out = tmp_path / "rec.json"
+    record = main([str(sweep), "--out", str(out), "--baseline", "dnri", "--command", "cmd", "--metric", "test/mse/h15"])
+    assert json.loads(out.read_text()) == record and record["command"] == "cmd"
+    h15 = record["models"]["dider"]["test/mse/h15"]
+    assert h15["n"] == 3 and h15["mean"] == pytest.approx(2.0) and h15["std"] == pytest.approx(1.0)
+    diff = h15["vs_dnri"]  # differences -1, 1, -3: mean -1, sample std 2, standard error 2 / sqrt(3)
+    assert diff["n"] == 3 and diff["mean"] == pytest.approx(-1.0) and diff["se"] == pytest.approx(2 / math.sqrt(3))
+    assert diff["below"] == 2 and diff["ratio_of_means"] == pytest.approx(6 / 9)
+    baseline = record["models"]["dnri"]["test/mse/h15"]
+    assert baseline["n"] == 4 and "vs_dnri" not in baseline
+
+
+def test_jobs_that_differ_by_an_override_are_grouped_apart_unless_asked(tmp_path):
+    fake_job(tmp_path / "a", "j1", "dider", 1, 1.0, ["model.prior_fit=1"])
+    fake_job(tmp_path / "b", "j2", "dider", 2, 3.0)
+    out = tmp_path / "rec.json"
+    assert sorted(main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)])["models"]) == [
+        "dider", "dider [model.prior_fit=1]"]
+    assert list(main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out), "--by-name"])["models"]) == ["dider"]
+    with pytest.raises(FileNotFoundError, match="no such run or sweep folder"):
+        main([str(tmp_path / "nothing"), "--out", str(out)])
