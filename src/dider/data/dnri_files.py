@@ -15,7 +15,8 @@ advanced, and the result is stored as feats[t]. So raw edges[:, t] is the intera
 from step t-1: the convention of our own simulator (:mod:`dider.data.simulate`). Batches carry
 edges[:, 1:], [B, T-1, E], labelling the transitions t -> t+1 of the clip, as ``data=synth`` does. (The
 DNRI code's own edge scoring, ``eval_edges`` in ``dnri/experiments/small_synth_experiment.py``, compares
-its T-1 inferred edges with gt_edges[:, :-1], one step earlier; docs/journal/results_history.md discusses the difference.)
+its T-1 inferred edges with gt_edges[:, :-1], one step earlier; docs/journal/results_history.md discusses the
+difference.)
 
 Normalisation. DNRI maps positions and velocities separately to [-1, 1] with scalar min/max over every
 value of ``train_feats`` (its default), or one range for all four features (``--same_data_norm``), or not

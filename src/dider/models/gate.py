@@ -1,6 +1,7 @@
 """A hold gate: each edge's segments end where a per-step boundary fires, not after a drawn duration.
 
-A departure from the paper's duration latent (``model=dider_gate``; docs/journal/results_history.md says why it was built).
+A departure from the paper's duration latent (``model=dider_gate``; docs/journal/results_history.md says why it
+was built).
 At every transition t of an edge a boundary b_t in {0, 1} says whether a new segment starts there; the edge
 type held at t is the one drawn at the last boundary, z_t = b_t y_t + (1 - b_t) z_{t-1}.
 
