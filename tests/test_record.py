@@ -43,3 +43,15 @@ def test_jobs_that_differ_by_an_override_are_grouped_apart_unless_asked(tmp_path
     assert list(main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out), "--by-name"])["models"]) == ["dider"]
     with pytest.raises(FileNotFoundError, match="no such run or sweep folder"):
         main([str(tmp_path / "nothing"), "--out", str(out)])
+
+
+def test_training_metrics_come_from_the_csv_log(tmp_path):
+    """train/ and val/ metrics are read from csv/metrics.csv: the last row that holds a value."""
+    fake_job(tmp_path, "j1", "dider", 1, 1.0)
+    (tmp_path / "j1" / "csv").mkdir()
+    (tmp_path / "j1" / "csv" / "metrics.csv").write_text(
+        "epoch,train/segments/steps_per_segment,val/x\n0,3.5,\n0,,7\n1,4.5,\n1,,\n")
+    record = main([str(tmp_path), "--out", str(tmp_path / "r.json"), "--metric", "train/segments/steps_per_segment",
+                   "--metric", "val/x", "--metric", "test/mse/h15"])
+    assert record["jobs"][0]["metrics"] == {"test/mse/h15": 1.0, "train/segments/steps_per_segment": 4.5,
+                                            "val/x": 7.0}

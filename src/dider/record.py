@@ -3,8 +3,9 @@
     python -m dider.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
         [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...]
 
-Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), keys it by its model's
-name and seed, and writes one JSON file: the jobs, and per model the mean, sample std, min and max of each
+Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), and for ``train/`` and
+``val/`` metrics the last value the job's CSV log (``csv/metrics.csv``, ``logger=csv``) holds; keys it by its
+model's name and seed, and writes one JSON file: the jobs, and per model the mean, sample std, min and max of each
 metric and, against ``--baseline``, the mean and standard error of the difference model - baseline over the
 seeds both have. The documentation quotes these files, so each of its figures comes with its record.
 """
@@ -12,6 +13,7 @@ seeds both have. The documentation quotes these files, so each of its figures co
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 from collections.abc import Sequence
@@ -28,6 +30,7 @@ DEFAULT_METRICS = (
     "test/edge_acc/prior_per_step/interaction", "test/segments_per_edge", "test/boundary_f1",
     "test/segments/segments_per_edge", "test/segments/steps_per_segment", "test/segments/on_switch",
     "test/segments/boundary_f1", "test/run_length/posterior", "test/run_length/prior", "test/run_length/truth",
+    "train/segments/steps_per_segment",
 )
 
 
@@ -43,6 +46,18 @@ def job_folders(paths: Sequence[Path]) -> list[Path]:
             raise FileNotFoundError(f"{path}: no such run or sweep folder")
     if not found:
         raise FileNotFoundError(f"{', '.join(map(str, paths))}: no job with a metrics.json")
+    return found
+
+
+def last_logged(folder: Path, names: Sequence[str]) -> dict[str, float]:
+    """The last non-empty value of each of ``names`` in the job's CSV log (``csv/metrics.csv``); {} without one."""
+    path = folder / "csv" / "metrics.csv"
+    if not names or not path.is_file():
+        return {}
+    found: dict[str, float] = {}
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            found |= {k: float(row[k]) for k in names if row.get(k) not in (None, "")}
     return found
 
 
@@ -73,7 +88,8 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
         model = record.get("config", {}).get("model", {})
         jobs.append({"folder": str(folder), "model": model.get(label, record.get("model")), "seed": record["seed"],
                      "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")],
-                     "metrics": {k: record["metrics"][k] for k in metrics if k in record["metrics"]}})
+                     "metrics": {k: record["metrics"][k] for k in metrics if k in record["metrics"]}
+                     | last_logged(folder, [k for k in metrics if k.startswith(("train/", "val/"))])})
     # a job's group: its model's name and the overrides that not every job shares (besides model= itself)
     common = set.intersection(*(set(j["overrides"]) for j in jobs))
     for job in jobs if by_overrides else ():
