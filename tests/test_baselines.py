@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -51,5 +52,12 @@ def test_static_decoder_ignores_the_edges(make_cfg):
 @pytest.mark.parametrize("model", ["constant_velocity", "static_decoder"])
 def test_baselines_run_through_the_test_loop(make_cfg, tmp_path, model):
     metrics = train(make_cfg([f"model={model}", "model/decoder=recurrent"], out=tmp_path / "run"))
-    assert all(k in metrics for k in ("test/mse/h01", "test/ade", "test/fde"))
-    assert 0 < metrics["test/ade"] <= metrics["test/fde"] < float("inf")  # errors grow along a roll-out
+    horizons = sorted(k.rsplit("/", 1)[1] for k in metrics if k.startswith("test/ade/h"))
+    assert len(horizons) >= 2 and "test/mse/h01" in metrics
+    ade, fde = (np.array([metrics[f"test/{m}/{h}"] for h in horizons]) for m in ("ade", "fde"))
+    assert (0 < ade).all() and (ade <= fde).all() and (fde < float("inf")).all()  # errors grow along a roll-out
+    cv = np.array([metrics[f"test/cv/ade/{h}"] for h in horizons])
+    ratio = np.array([metrics[f"test/ade_vs_cv/{h}"] for h in horizons])
+    np.testing.assert_allclose(ratio, ade / cv, rtol=1e-5)
+    if model == "constant_velocity":  # scored against itself on the same clips and masks
+        np.testing.assert_allclose(ratio, 1.0, rtol=1e-5)

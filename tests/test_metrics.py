@@ -15,10 +15,11 @@ import torch
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_sum
 
+from dider.evaluation import cv_verdict, displacement_values, leading_first
 from dider.metrics import (
     BoundaryF1,
-    DisplacementError,
     EdgeAccuracy,
+    HorizonDisplacement,
     HorizonMSE,
     InteractionRunLength,
     OwnCut,
@@ -65,9 +66,10 @@ def assert_same_states(a: Metric, b: Metric) -> None:
 
 
 @pytest.mark.parametrize("make", [
-    lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3), DisplacementError,
+    lambda: HorizonMSE([1, 2]), EdgeAccuracy, SegmentStats, BoundaryF1, lambda: PairConsistency(3),
+    lambda: HorizonDisplacement([1, 2]),
     InteractionRunLength, OwnCut,
-], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "DisplacementError",
+], ids=["HorizonMSE", "EdgeAccuracy", "SegmentStats", "BoundaryF1", "PairConsistency", "HorizonDisplacement",
         "InteractionRunLength", "OwnCut"])
 def test_every_state_is_a_sum(make: Callable[[], Metric]) -> None:
     """The module promises DDP safety by summing every state: what makes merge_state (and the all-reduce)
@@ -483,28 +485,49 @@ def test_pair_consistency_merge() -> None:
     assert dominant.tolist() == [2, 1] and total.tolist() == [8.0, 11.0]
 
 
-# ---------------------------------------------------------------------------------------- DisplacementError
-def test_displacement_error_hand_example() -> None:
+# -------------------------------------------------------------------------------------- HorizonDisplacement
+def _displacement_example() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One sample, 3 frames, 2 agents; positions are features 0-1 (the velocities, 2-3, never count).
     Agent 0 misses by 3-4-5 triangles at every frame: distances 5, 10, 5. Agent 1 is present at frames 0
-    and 1 only, off by 1 and 2. ADE = (5 + 10 + 5 + 1 + 2) / 5 = 4.6; FDE = (5 + 2) / 2 = 3.5."""
+    and 1 only, off by 1 and 2."""
     pred = torch.zeros(1, 3, 2, 4)
     pred[0, :, 0, :2] = torch.tensor([[3.0, 4.0], [6.0, 8.0], [3.0, 4.0]])
     pred[0, :, 1, :2] = torch.tensor([[1.0, 0.0], [0.0, 2.0], [9.0, 9.0]])
     pred[..., 2:] = 100.0
     mask = torch.tensor([[[True, True], [True, True], [True, False]]])
-    ade, fde = whole(DisplacementError, (pred, torch.zeros_like(pred), mask)).compute()
-    assert ade.item() == pytest.approx(4.6) and fde.item() == pytest.approx(3.5)
+    return pred, torch.zeros_like(pred), mask
 
 
-def test_displacement_error_empty_is_nan_and_merges() -> None:
+def test_horizon_displacement_hand_example() -> None:
+    """ADE at h: frames of horizon 1..h. h1: (5 + 1) / 2 = 3; h2: (5 + 10 + 1 + 2) / 4 = 4.5;
+    h3: (5 + 10 + 5 + 1 + 2) / 5 = 4.6. FDE at h: frames of horizon h: 3, (10 + 2) / 2 = 6, 5."""
+    (ade, fde) = whole(lambda: HorizonDisplacement([1, 2, 3]), _displacement_example()).compute()
+    assert_values(ade, [3.0, 4.5, 4.6])
+    assert_values(fde, [3.0, 6.0, 5.0])
+
+
+def test_horizon_displacement_per_agent_horizons() -> None:
+    """With each frame's own horizon: agent 0's frames are horizons 0 (burn-in, not scored), 1, 2; agent 1's
+    1, 2, 3 (absent at 3). ADE h1 = (10 + 1) / 2 = 5.5, h2 = (10 + 5 + 1 + 2) / 4 = 4.5; FDE h2 = (5 + 2) / 2."""
+    pred, target, mask = _displacement_example()
+    horizon = torch.tensor([[[0, 1], [1, 2], [2, 3]]])
+    (ade, fde) = whole(lambda: HorizonDisplacement([1, 2]), (pred, target, mask, horizon)).compute()
+    assert_values(ade, [5.5, 4.5])
+    assert_values(fde, [5.5, 3.5])
+
+
+def test_horizon_displacement_empty_is_nan_merges_and_checks_horizons() -> None:
     pred = torch.ones(2, 3, 2, 4)
-    empty = whole(DisplacementError, (pred, torch.zeros_like(pred), torch.zeros(2, 3, 2, dtype=torch.bool)))
-    assert empty.compute().isnan().all()
-    mask = torch.rand(2, 3, 2) > 0.3
-    target = torch.randn(2, 3, 2, 4)
+    never = torch.zeros(2, 3, 2, dtype=torch.bool)
+    assert whole(lambda: HorizonDisplacement([1, 3]), (pred, torch.zeros_like(pred), never)).compute().isnan().all()
+    mask, target = torch.rand(2, 3, 2) > 0.3, torch.randn(2, 3, 2, 4)
     first, second = [(pred[:1], target[:1], mask[:1])], [(pred[1:], target[1:], mask[1:])]
-    assert_same_states(merged(DisplacementError, first, second), whole(DisplacementError, *first, *second))
+    make = lambda: HorizonDisplacement([1, 3])  # noqa: E731
+    assert_same_states(merged(make, first, second), whole(make, *first, *second))
+    with pytest.raises(ValueError, match="horizon 4 exceeds the 3 predicted steps"):
+        HorizonDisplacement([4]).update(pred, target, mask)
+    with pytest.raises(ValueError, match="each >= 1"):
+        HorizonDisplacement([0])
 
 
 # ------------------------------------------------------------------------------------- InteractionRunLength
@@ -555,3 +578,24 @@ def test_own_cut_without_own_boundaries_or_truth_is_nan() -> None:
     m.update(torch.zeros(1, 2, 6, dtype=torch.long), torch.zeros(1, 2, 6, dtype=torch.long),
              torch.ones(1, 2, 6, dtype=torch.bool))
     assert torch.isnan(m.compute()).all()
+
+
+def test_displacement_values_and_the_verdict_against_constant_velocity() -> None:
+    """The model misses by 2 and 4 at horizons 1 and 2, constant velocity by 4 and 4: ADE 2, 3 against 4, 4,
+    so the ratio is 0.5 and 0.75; a model that misses by 8 at horizon 2 is worse than constant velocity there."""
+    target, mask = torch.zeros(1, 2, 1, 4), torch.ones(1, 2, 1, dtype=torch.bool)
+    model, cv = HorizonDisplacement([1, 2]), HorizonDisplacement([1, 2])
+    along_x, along_y = torch.tensor([1.0, 0, 0, 0]), torch.tensor([0, 1.0, 0, 0])
+    model.update(torch.tensor([2.0, 4.0]).view(1, 2, 1, 1) * along_x, target, mask)
+    cv.update(torch.tensor([4.0, 4.0]).view(1, 2, 1, 1) * along_y, target, mask)
+    out = {k: float(v) for k, v in displacement_values("test", model, cv).items()}
+    assert out == pytest.approx({"test/ade/h01": 2.0, "test/fde/h01": 2.0, "test/ade/h02": 3.0, "test/fde/h02": 4.0,
+                                 "test/cv/ade/h01": 4.0, "test/cv/fde/h01": 4.0, "test/cv/ade/h02": 4.0,
+                                 "test/cv/fde/h02": 4.0, "test/ade_vs_cv/h01": 0.5, "test/ade_vs_cv/h02": 0.75})
+    text, beats = cv_verdict(out)
+    assert beats and "h01 0.50x, h02 0.75x" in text
+    text, beats = cv_verdict(out | {"test/ade_vs_cv/h02": 1.5})
+    assert not beats and "NOT better than constant velocity at h02" in text
+    assert cv_verdict({"test/mse/h01": 1.0}) is None
+    assert list(leading_first(["test/mse/h01", "test/cv/ade/h01", "test/ade_vs_cv/h01", "test/ade/h01"])) == [
+        "test/ade_vs_cv/h01", "test/ade/h01", "test/cv/ade/h01", "test/mse/h01"]

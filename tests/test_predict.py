@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -18,6 +20,7 @@ import dider
 from dider.data.batch import Normalizer
 from dider.data.trajectories import TrajectoryDataModule
 from dider.run import predict, train, validate_config
+from dider.trained import training_settings
 from dider.validation import ConfigError
 from fixtures import write_trajectories
 
@@ -108,7 +111,9 @@ def test_forecast_reads_the_burn_in_only(run, new_data):
 def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
     path, arrays = new_data
     ckpt = run / "checkpoints" / "last.ckpt"
-    cfg = compose_cfg([*TINY, "mode=predict", f"ckpt_path={ckpt}", f"data.path={path}", "predict.forecast_steps=6",
+    # data.frame_rate left out (the data config's is 1.0): the checkpoint's 10 is used, as dider.load does
+    given = [o for o in TINY if not o.startswith("data.frame_rate=")]
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={path}", "predict.forecast_steps=6",
                        "model=dnri"],  # ignored: the checkpoint's own model is used
                       tmp_path / "pred")
     validate_config(cfg)
@@ -131,10 +136,56 @@ def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
     assert explore.main([str(tmp_path / "pred")]) == 0
     page = (tmp_path / "pred" / "explorer.html").read_text()
     assert page.count('"row":') == 7 and "dider" in page
+    # what each type means: a row per type in types.csv, the same line in the explorer's legend
+    types = pd.read_csv(out / "types.csv")
+    assert types["type"].tolist() == [0, 1] and types["share"].sum() == pytest.approx(1.0)
+    held = types[types["share"] > 0]  # a type that never holds has no statistics (NaN)
+    assert len(held) and (held["distance"] > 0).all() and held["relative_heading_deg"].between(0, 180).all()
+    assert page.count("of edge-steps") == 2
     forecast = pd.read_csv(out / "forecast.csv")
     # every agent is present at the burn-in's last step (input frame 5; the fourth leaves at frame 6)
     assert len(forecast) == 7 * 6 * 4
     assert forecast["step"].min() == 5 and forecast["frame"].min() == 6
+    # the clips hold the forecast's future: it is scored in the input's units, beside constant velocity
+    scores = json.loads((out / "forecast_scores.json").read_text())
+    with np.load(out / "clips.npz", allow_pickle=False) as z:
+        pos, mask = arrays["positions"][:, 1:], arrays["mask"][:, 1:]  # the model's frames
+        dist = np.linalg.norm(z["forecast"] - pos[:, 5:11], axis=-1)  # [S, 6, N]
+    scored = mask[:, 5:11] & mask[:, 4:5]
+    horizons = sorted(int(k.rsplit("/h", 1)[1]) for k in scores if k.startswith("predict/ade/h"))
+    assert horizons and max(horizons) <= 6
+    for h in horizons:
+        assert scores[f"predict/ade/h{h:02d}"] == pytest.approx(dist[:, :h][scored[:, :h]].mean(), rel=1e-4)
+        assert scores[f"predict/fde/h{h:02d}"] == pytest.approx(dist[:, h - 1][scored[:, h - 1]].mean(), rel=1e-4)
+        ratio = scores[f"predict/ade/h{h:02d}"] / scores[f"predict/cv/ade/h{h:02d}"]
+        assert scores[f"predict/ade_vs_cv/h{h:02d}"] == pytest.approx(ratio, rel=1e-5)
+
+
+def test_predict_refuses_another_frame_rate_unless_forced(run, new_data, tmp_path):
+    ckpt = run / "checkpoints" / "last.ckpt"
+    given = [o for o in TINY if not o.startswith("data.frame_rate=")]
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={new_data[0]}",
+                       "data.frame_rate=4"], tmp_path / "pred")
+    with pytest.raises(ConfigError, match=r"data.frame_rate=4: the checkpoint .*last.ckpt was trained with "
+                                          r"data.frame_rate=10, .*predict.force=true"):
+        predict(cfg)
+    assert not (tmp_path / "pred" / "predictions").exists()  # refused before any work
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={new_data[0]}",
+                       "data.frame_rate=4", "predict.force=true"], tmp_path / "forced")
+    assert {p.name for p in predict(cfg)} >= {"segments.csv", "clips.npz"}
+
+
+def test_training_settings_take_the_checkpoints_unless_set():
+    trained = SimpleNamespace(data={"frame_rate": 10.0, "downsample": 2, "seq_len": 20}, path="m.ckpt")
+    given = {"frame_rate": 1.0, "downsample": 2, "seq_len": 8, "stride": 3}
+    assert training_settings(trained, given, set()) == {"frame_rate": 10.0}  # seq_len does not shape features
+    assert training_settings(trained, given | {"frame_rate": 10.0}, {"data.frame_rate"}) == {}
+    with pytest.raises(ValueError, match=r"data.downsample=3: the checkpoint m.ckpt was trained with "
+                                         r"data.downsample=2"):
+        training_settings(trained, given | {"downsample": 3}, {"data.downsample"})
+    assert training_settings(trained, given | {"downsample": 3}, {"data.downsample"}, force=True) == {
+        "frame_rate": 10.0}
+    assert training_settings(SimpleNamespace(data={}, path="m.ckpt"), given, set()) == {}  # nothing recorded
 
 
 def test_older_and_foreign_checkpoints_are_named(run, tmp_path):

@@ -345,9 +345,9 @@ def test_warnings_name_suspicious_settings(make_cfg, caplog):
 
 @pytest.mark.parametrize("native", [True, False])
 def test_bf16_on_a_cpu_that_emulates_it_is_named(make_cfg, caplog, monkeypatch, native):
-    import dider.run
+    import dider.preflight
 
-    monkeypatch.setattr(dider.run, "native_bf16", lambda device: native)
+    monkeypatch.setattr(dider.preflight, "native_bf16", lambda device: native)
     with caplog.at_level("WARNING"):
         validate_config(make_cfg(["trainer.precision=bf16-mixed", "trainer.accelerator=cpu"]))
     assert ("trainer.precision=bf16-mixed: this CPU has no native bf16" in caplog.text) is not native

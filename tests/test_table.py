@@ -153,6 +153,17 @@ def test_integer_ids_and_one_scene(tmp_path):
     assert ds.agent_ids.tolist() == [3, 7, 3, 7, 11]  # original ids, in id order
 
 
+def test_a_column_called_scene_is_read_as_the_scene(tmp_path, table, caplog):
+    """data.columns.scene unset and a column named "scene": it splits the scenes, and the log says so."""
+    hand_table().rename(columns={"place": "scene"}).to_csv(tmp_path / "t.csv", index=False)
+    _, named = windows(table)
+    with caplog.at_level("INFO", logger="dider.data.table_reading"):
+        _, found = windows(tmp_path / "t.csv", columns={k: v for k, v in COLUMNS.items() if k != "scene"})
+    assert "column 'scene' read as the scene id" in caplog.text
+    assert found.sources["scene"].tolist() == named.sources["scene"].tolist() == [0, 1, 1]
+    torch.testing.assert_close(found.states, named.states)
+
+
 def test_agent_class(table):
     _, ds = windows(table, columns={**COLUMNS, "agent_class": "kind"})
     assert ds.class_names == ["car", "pedestrian"] and ds.agent_class.tolist() == [1, 0, 1, 1, 1, 1, 1]
@@ -258,8 +269,10 @@ def test_bad_input(tmp_path, table):
     df.to_csv(p, index=False)
     with pytest.raises(ValueError, match=r"more than one 'kind' for \('place', 'who', 't'\) = \('north', 'bob'"):
         windows(p, columns={**COLUMNS, "agent_class": "kind"})
-    with pytest.raises(ValueError, match=r"too few frames for one window of data.seq_len=9 steps: the longest scene "
-                                         r"has 7 step\(s\)"):
+    with pytest.raises(ValueError, match=r"too few frames for one window of data.seq_len=9 steps: a window needs 9 "
+                                         r"step\(s\) \+ 1 for the finite-difference velocities of data.downsample=1 "
+                                         r"frame\(s\), i.e. a scene spanning >= 10 frames, and the longest scene has "
+                                         r"8 step\(s\): set data.seq_len <= 7$"):
         windows(table, seq_len=9)
     with pytest.raises(ValueError, match=r"no window of data.seq_len=4 steps has >= data.min_agents=4"):
         windows(table, min_agents=4)
@@ -301,3 +314,24 @@ def test_command_line_run(tmp_path):
     assert np.isfinite(metrics["test/mse/h01"]) and np.isfinite(metrics["test/mse/h05"])
     clips = json.loads((tmp_path / "run" / "segments.json").read_text())["clips"]
     assert {c["source"]["scene"] for c in clips} <= {f"scene_{i}" for i in range(100, 104)}
+
+
+def test_a_window_too_long_fails_before_the_trainer_starts(make_cfg, tmp_path, monkeypatch):
+    """13 frames a scene, velocities from differences: 12 steps. data.seq_len=13 is named, with the arithmetic,
+    before any training step (the trainer's fit is never entered)."""
+    import lightning as L
+
+    from dider.run import train
+
+    path = table_of_scenes(tmp_path / "t.csv", scenes=3)
+
+    def started(*args, **kwargs):
+        raise AssertionError("the trainer started before the data were checked")
+
+    monkeypatch.setattr(L.Trainer, "fit", started)
+    cfg = make_cfg(["data=table", f"data.path={path}", "data.columns.scene=place", "data.columns.agent=who",
+                    "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=13",
+                    "data.burn_in=4", "model.burn_in=4", "data.horizons=[1,5]"])
+    with pytest.raises(ValueError, match=r"a scene spanning >= 14 frames, and the longest scene has 13 step\(s\): "
+                                         r"set data.seq_len <= 12"):
+        train(cfg)

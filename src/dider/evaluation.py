@@ -7,7 +7,8 @@ Shapes: B batch, P predicted steps, N agents, D features, E edges, T-1 transitio
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -19,14 +20,15 @@ from dider.data.pairs import KIND_NAMES
 from dider.graph import edge_mask
 from dider.metrics import (
     BoundaryF1,
-    DisplacementError,
     EdgeAccuracy,
+    HorizonDisplacement,
     HorizonMSE,
     InteractionRunLength,
     OwnCut,
     PairConsistency,
     SegmentStats,
 )
+from dider.type_meaning import TypeProfile, pair_features, profile_values
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +55,9 @@ class TestMetrics(nn.Module):
     def __init__(self, horizons: Sequence[int], num_types: int) -> None:
         super().__init__()
         self.mse, self.mse_raw = HorizonMSE(horizons), HorizonMSE(horizons)
-        self.displacement = DisplacementError()  # ADE / FDE of positions in data units
+        # ADE / FDE of positions in data units, the model's and constant velocity's on the same clips and masks:
+        # the bar a forecaster has to clear, in the units its users read.
+        self.displacement = nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
         self.mse_by_edges = nn.ModuleDict({k: HorizonMSE(horizons) for k in EDGE_SOURCES})
         self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
         # The prior read at every step, as if it could re-decide each step (for DNRI it is ``prior``): beside
@@ -66,21 +70,27 @@ class TestMetrics(nn.Module):
         self.boundary = BoundaryF1(tolerance=2)
         self.own_cut = OwnCut(tolerance=2)  # the duration plugin's own boundaries
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
+        self.types = TypeProfile(num_types)  # what each posterior type means, in data units
 
     def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
                normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
-               prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None) -> None:
+               prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None,
+               cv: Forecast | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
         by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
         prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held).
-        own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own)."""
+        own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own).
+        cv: the constant-velocity forecast of the same clips under the same protocol."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
+        units = data_units(normalizer)
+        for name, f in {"model": forecast, "cv": cv}.items():
+            if f is not None:
+                self.displacement[name].update(units(f.pred), units(f.target), f.mask, f.horizon)
         if normalizer is not None:
-            pred, target = normalizer.denormalize(forecast.pred), normalizer.denormalize(forecast.target)
-            self.mse_raw.update(pred, target, forecast.mask, forecast.horizon)
-            self.displacement.update(pred, target, forecast.mask)
+            self.mse_raw.update(units(forecast.pred), units(forecast.target), forecast.mask, forecast.horizon)
+        self.types.update(posterior, *pair_features(units(batch["states"]), batch["mask"]))
         present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
         self.segments.update(posterior, present.any(1))
         self.run_length["posterior"].update(posterior, present.any(1))
@@ -99,10 +109,10 @@ class TestMetrics(nn.Module):
 
     def compute(self) -> dict[str, torch.Tensor]:
         """Every metric that saw data, then reset them all."""
-        out = horizon_values("test/mse", self.mse)
+        out = displacement_values("test", self.displacement["model"], self.displacement["cv"])
+        out |= horizon_values("test/mse", self.mse)
         if self.mse_raw.update_count:
             out |= horizon_values("test/mse_raw", self.mse_raw)
-            out["test/ade"], out["test/fde"] = self.displacement.compute()
         for source, metric in self.mse_by_edges.items():
             if metric.update_count:
                 out |= horizon_values(f"test/mse_{source}", metric)
@@ -121,6 +131,8 @@ class TestMetrics(nn.Module):
                 out |= edge_acc_values(f"test/edge_acc/{name}", metric)
         if self.pairs.update_count:
             out |= self._consistency()
+        if self.types.update_count:
+            out |= profile_values("test", self.types)
         for metric in self.modules():
             if isinstance(metric, Metric):
                 metric.reset()
@@ -141,11 +153,33 @@ class TestMetrics(nn.Module):
         return out
 
 
+def data_units(normalizer: Normalizer | None) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Maps model states [..., D] to the data's units (identity without a normaliser)."""
+    return normalizer.denormalize if normalizer is not None else (lambda states: states)
+
+
 def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:
     """``prefix/hXX`` -> the metric's value at each of its horizons; NaN, with a warning naming it, for a
     horizon that no present agent reached (e.g. tracks shorter than the burn-in plus the horizon)."""
     values = metric.compute().reshape(-1)  # 0-d for a single horizon: torchmetrics squeezes it
     out = {f"{prefix}/h{h:02d}": v for h, v in zip(metric.horizons, values, strict=True)}
+    _warn_empty(out, "no present agent reached this horizon")
+    return out
+
+
+def displacement_values(prefix: str, model: HorizonDisplacement, cv: HorizonDisplacement) -> dict[str, torch.Tensor]:
+    """``prefix/ade/hXX``, ``prefix/fde/hXX`` of the model, ``prefix/cv/ade/hXX``, ``prefix/cv/fde/hXX`` of
+    constant velocity, and ``prefix/ade_vs_cv/hXX`` (the model's ADE over constant velocity's: below 1 beats
+    it), for the metrics that saw data."""
+    out: dict[str, torch.Tensor] = {}
+    for name, metric in {"": model, "cv/": cv}.items():
+        if metric.update_count:
+            ade, fde = metric.compute()
+            for h, a, f in zip(metric.horizons, ade, fde, strict=True):
+                out[f"{prefix}/{name}ade/h{h:02d}"], out[f"{prefix}/{name}fde/h{h:02d}"] = a, f
+    if model.update_count and cv.update_count:
+        for h in model.horizons:
+            out[f"{prefix}/ade_vs_cv/h{h:02d}"] = out[f"{prefix}/ade/h{h:02d}"] / out[f"{prefix}/cv/ade/h{h:02d}"]
     _warn_empty(out, "no present agent reached this horizon")
     return out
 
@@ -170,3 +204,32 @@ def edge_acc_values(prefix: str, metric: EdgeAccuracy) -> dict[str, torch.Tensor
 def _warn_empty(values: dict[str, torch.Tensor], why: str) -> None:
     if empty := [k for k, v in values.items() if bool(torch.isnan(v))]:
         log.warning("%s: reported as NaN (%s)", ", ".join(empty), why)
+
+
+# What the end-of-run table, the report and TensorBoard's HParams tab lead with: the forecast against constant
+# velocity in data units.
+LEADING = ("test/ade_vs_cv/", "test/ade/", "test/cv/ade/", "test/fde/", "test/cv/fde/")
+
+
+def leading_first(names: Sequence[str]) -> list[str]:
+    """Metric names sorted with :data:`LEADING`'s groups first, in that order, then the rest alphabetically."""
+    def rank(name: str) -> tuple[int, str]:
+        return next((i for i, p in enumerate(LEADING) if name.startswith(p)), len(LEADING)), name
+    return sorted(names, key=rank)
+
+
+def cv_verdict(metrics: Mapping[str, float]) -> tuple[str, bool] | None:
+    """One line on whether the forecast beats constant velocity (position ADE in data units, on the same clips:
+    the ``.../ade_vs_cv/hXX`` values of :func:`displacement_values`),
+    with the ratio per horizon, and whether it beats it at every horizon; None when the run has no ratio."""
+    ratios = {k.rsplit("/", 1)[1]: float(v) for k, v in metrics.items()
+              if "/ade_vs_cv/" in k and math.isfinite(float(v))}
+    if not ratios:
+        return None
+    text = ", ".join(f"{h} {v:.2f}x" for h, v in ratios.items())
+    if worse := [h for h, v in ratios.items() if v >= 1.0]:
+        return (f"the forecast is NOT better than constant velocity at {', '.join(worse)} (position ADE over "
+                f"constant velocity's on the same clips: {text}); its edges explain no motion that "
+                f"constant velocity misses there", False)
+    return (f"the forecast beats constant velocity at every horizon (position ADE over constant velocity's: "
+            f"{text})", True)

@@ -31,6 +31,7 @@ import numpy as np
 
 from dider.graph import edge_index
 from dider.io import atomic_write_text
+from dider.type_meaning import profile_notes
 
 REQUIRED_KEYS = ("positions", "mask", "segments", "probs", "per_step", "prior", "clip", "num_types", "model")
 # Timeline strip order: the reference first, then the posterior before and after segmentation, then the prior.
@@ -257,6 +258,7 @@ def page_payload(data: dict[str, np.ndarray], path: Path, rows: list[int], note:
     num_types = int(data["num_types"])
     return {"model": str(data["model"]), "path": str(path), "total": int(data["positions"].shape[0]),
             "note": note, "num_types": num_types, "type_names": type_names(data), "colors": type_colors(num_types),
+            "type_notes": profile_notes(data["type_profile"]) if "type_profile" in data else [],
             "sources": sources_of(data), "edge_fields": edge_fields(data),
             "backgrounds": {str(k): background_payload(data[f"background_{k}"], data[f"background_{k}_extent"])
                             for k in used},
@@ -323,6 +325,7 @@ button,select{font:inherit}
 #side table td{padding:0 8px 0 0;vertical-align:top}
 .sw{display:inline-block;width:12px;height:12px;border-radius:2px;vertical-align:-2px;margin-right:5px}
 #legend div{margin:2px 0}
+#legend .note{color:#555;font-size:11px;margin-left:17px}
 #tlwrap{padding:0 12px 16px}
 #tl{background:#fff;border:1px solid #ccc;display:block}
 #tl text,#scene text{font-size:11px}
@@ -717,6 +720,11 @@ function setup() {
     d.innerHTML = '<span class="sw"></span>';
     d.firstChild.style.background = k === 0 ? EMPTY : DATA.colors[k];
     d.appendChild(document.createTextNode(k + ": " + name + (k === 0 ? " (arrows hidden or faint)" : "")));
+    if (DATA.type_notes[k]) {  // what the type means: its pairs while it holds, beside the others
+      const n = document.createElement("div");
+      n.className = "note"; n.textContent = DATA.type_notes[k];
+      d.appendChild(n);
+    }
     $("legend").appendChild(d);
   });
   wire();

@@ -112,5 +112,6 @@ class SegmentExport(L.Callback):
         atomic_write_text(self.path, json.dumps(segments_json(arrays, frame_step, names)))
         if self.explore_clips > 0:
             first = {k: v[: self.explore_clips] for k, v in arrays.items()}
+            scores = {k: float(v) for k, v in trainer.callback_metrics.items()}  # the test's, logged by now
             write_clips_npz(self.path.parent / "clips.npz", explore_arrays(first, dm),
-                            explore_extras(pl_module, dm, "test", first))
+                            explore_extras(pl_module, dm, "test", first, scores))

@@ -59,35 +59,46 @@ class HorizonMSE(Metric):
         return (self.sum_sq / self.count).float()
 
 
-class DisplacementError(Metric):
-    """ADE and FDE of forecast positions (the first two features): the mean Euclidean distance over every
-    present predicted frame, and over each agent's last present predicted frame.
+class HorizonDisplacement(Metric):
+    """ADE and FDE of forecast positions (the first two features) at forecast horizons, in the units of
+    pred and target: ADE at h is the mean Euclidean distance over the present predicted frames of horizons
+    1..h, FDE at h over those of horizon h.
 
-    update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool); compute() -> [2] (ADE, FDE), NaN
-    when no frame was present (an empty metric is not a perfect 0).
+    update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool, horizon [B, P, N] long or None), with
+    horizons read as in :class:`HorizonMSE` (frame p is horizon p + 1 without ``horizon``); compute() -> [2, H]
+    (ADE, FDE), NaN at a horizon that no present agent reached (an empty metric is not a perfect 0).
     """
 
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, horizons: Sequence[int], **kwargs) -> None:
         super().__init__(**kwargs)
-        self.add_state("sums", torch.zeros(2, dtype=torch.float64), dist_reduce_fx="sum")
-        self.add_state("counts", torch.zeros(2, dtype=torch.float64), dist_reduce_fx="sum")
+        if not horizons or min(horizons) < 1:
+            raise ValueError(f"horizons={list(horizons)}: need at least one horizon, each >= 1")
+        self.horizons = [int(h) for h in horizons]
+        self.add_state("sums", torch.zeros(2, len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("counts", torch.zeros(2, len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
 
-    def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> None:
+    def update(
+        self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, horizon: torch.Tensor | None = None
+    ) -> None:
+        if max(self.horizons) > pred.shape[1]:
+            raise ValueError(f"horizon {max(self.horizons)} exceeds the {pred.shape[1]} predicted steps")
+        if horizon is None:
+            horizon = torch.arange(1, mask.shape[1] + 1, device=mask.device).view(1, -1, 1).expand_as(mask)
         dist = (pred[..., :2].double() - target[..., :2].double()).norm(dim=-1)  # [B, P, N]
-        m = mask.to(dist.dtype)
-        steps = torch.arange(1, mask.shape[1] + 1, device=mask.device).view(1, -1, 1)
-        last = (mask * steps).argmax(dim=1, keepdim=True)  # [B, 1, N]: the last present frame of each agent
-        seen = mask.any(dim=1)  # [B, N]
-        final = dist.gather(1, last).squeeze(1) * seen
-        self.sums += torch.stack([(dist * m).sum(), final.sum()])
-        self.counts += torch.stack([m.sum(), seen.sum().double()])
+        hs = torch.tensor(self.horizons, device=pred.device).view(-1, 1, 1, 1)
+        scored = (mask & (horizon >= 1)).unsqueeze(0)  # burn-in frames (horizon <= 0) are never scored
+        upto, at = scored & (horizon.unsqueeze(0) <= hs), scored & (horizon.unsqueeze(0) == hs)  # [H, B, P, N]
+        both = torch.stack([upto, at])  # [2, H, B, P, N]
+        self.sums += torch.where(both, dist, 0.0).sum(dim=(2, 3, 4))  # a masked NaN (absent agent) never counts
+        self.counts += both.sum(dim=(2, 3, 4)).double()
 
     def compute(self) -> torch.Tensor:
-        return (self.sums / self.counts).float()  # 0 / 0 = NaN for an empty metric
+        """[2, H]: ADE and FDE per horizon."""
+        return (self.sums / self.counts).float()  # 0 / 0 = NaN for an empty horizon
 
 
 class EdgeAccuracy(Metric):

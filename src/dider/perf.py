@@ -73,3 +73,8 @@ def compile_modules(model: torch.nn.Module) -> None:
     static at first and marked dynamic when they change (real data: the agent count varies per batch)."""
     for name in ("encoder", "decoder"):
         getattr(model, name).compile()
+
+
+def trains_on_cpu(accelerator: str | None) -> bool:
+    """Whether a trainer with ``trainer.accelerator=accelerator`` runs on the CPU."""
+    return accelerator == "cpu" or (accelerator in (None, "auto") and not torch.cuda.is_available())

@@ -8,11 +8,19 @@
   ``step_probs`` [S, E, T-1, K] per-step edge-type probabilities, ``positions`` [S, T, N, 2] and ``mask``
   [S, T, N] in the input's units, source ids), read by ``python -m dider.explore``;
 - with ``predict.forecast_steps``: ``forecast.csv`` (clip, agent, step, x, y) and ``forecast`` [S, P, N, 2]
-  in ``clips.npz``, rolled out from each clip's first ``predict.burn_in`` frames.
+  in ``clips.npz``, rolled out from each clip's first ``predict.burn_in`` frames; where the clips hold the
+  forecast's future, ``forecast_scores.json``: its ADE / FDE in data units beside constant velocity's on the
+  same clips and agents, and their ratio (``predict/ade_vs_cv/hXX``);
+- ``types.csv``: what each edge type means, one row per type (:mod:`dider.type_meaning`): its share of the
+  present edge-steps and the mean distance, closing speed, relative heading and receiver acceleration (data
+  units) while it holds (``distance``...) and over the other edge-steps (``others_distance``...).
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -32,7 +40,10 @@ from dider.clips import (
     write_clips_npz,
     write_table,
 )
-from dider.io import atomic_write_bytes
+from dider.io import atomic_write_bytes, atomic_write_text
+from dider.type_meaning import degenerate_types, profile_rows
+
+log = logging.getLogger(__name__)
 
 
 def forecast_frame(arrays: Mapping[str, torch.Tensor], burn_in: int, frame_step: int = 1) -> pd.DataFrame:
@@ -66,6 +77,7 @@ class PredictionWriter(BasePredictionWriter):
         self.output_dir, self.burn_in = Path(output_dir), burn_in
         self.clips: list[dict[str, torch.Tensor]] = []
         self.written: list[Path] = []
+        self.scores: dict[str, float] = {}  # the forecast against constant velocity, where the input has its future
 
     def on_predict_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.clips = []
@@ -76,6 +88,8 @@ class PredictionWriter(BasePredictionWriter):
 
     def on_predict_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.clips = gather_in_order(trainer, self.clips)
+        scores = getattr(pl_module, "prediction_scores", dict)()  # every rank: its metrics reduce over ranks
+        self.scores = {k: float(v) for k, v in scores.items()}
         if not trainer.is_global_zero or not self.clips:
             return
         dm = getattr(trainer, "datamodule", None)
@@ -83,10 +97,19 @@ class PredictionWriter(BasePredictionWriter):
         arrays = explore_arrays(stack_clips(self.clips), dm)
         out = self.output_dir
         self.written = write_table(segment_frame(arrays, frame_step, names), out / "segments.csv")
-        write_clips_npz(out / "clips.npz", arrays, explore_extras(pl_module, dm, "predict", arrays))
+        write_clips_npz(out / "clips.npz", arrays, explore_extras(pl_module, dm, "predict", arrays, self.scores))
         self.written.append(out / "clips.npz")
         if "forecast" in arrays and self.burn_in is not None:
             table = forecast_frame(arrays, self.burn_in, frame_step)
             atomic_write_bytes(out / "forecast.csv", table.to_csv(index=False).encode())
             self.written.append(out / "forecast.csv")
+        forecast = {k: v for k, v in self.scores.items() if "/type" not in k}
+        if forecast:
+            strict = {k: v if math.isfinite(v) else None for k, v in forecast.items()}  # NaN: no agent got there
+            atomic_write_text(out / "forecast_scores.json", json.dumps(strict, indent=2))
+            self.written.append(out / "forecast_scores.json")
+        if rows := profile_rows(self.scores, "predict"):
+            self.written += write_table(pd.DataFrame(rows), out / "types.csv")
+            if warning := degenerate_types(self.scores, "predict"):
+                log.warning(warning)
         self.clips = []

@@ -32,13 +32,15 @@ from omegaconf import OmegaConf  # noqa: E402
 
 from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
 
-SECTIONS = (("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
+SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
+            ("Displacement error of the forecast positions (data units)", r"(cv/)?(ade|fde)/h\d+$"),
+            ("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
             ("Forecast MSE with the edges inferred from the whole clip", r"mse_posterior/h\d+$"),
             ("Forecast MSE with the ground-truth edges", r"mse_oracle/h\d+$"),
-            ("Displacement error of the forecast positions (data units)", r"(ade|fde)$"),
             ("Edge accuracy", r"edge_acc/"),
             ("Duration slots: the model's own cut", r"segments/"),
             ("Segments", r"(segments_per_edge|switches_per_100|boundary_f1|run_length/\w+|interaction_rate/\w+)$"),
+            ("What each edge type means (data units; others: the other edge-steps)", r"type\d+/"),
             ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration|prior_fit|nelbo)$"),
             ("Other", r""))
 NOT_GROUPED = {"seed", "model", "model.num_edges"}  # model and num_edges are read from each job's record
@@ -294,7 +296,9 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         cols = [m for m in s.metrics if _section(m) == i]
         if not cols:
             continue
-        names = [m.removeprefix("test/").split("/")[-1] if i < 2 else m.removeprefix("test/") for m in cols]
+        # one family per horizon (mse/h01, mse/h15...): the horizons name the columns; else the whole names
+        one_family = len({m.rsplit("/", 1)[0] for m in cols}) == 1
+        names = [m.rsplit("/", 1)[-1] if one_family else m.removeprefix("test/") for m in cols]
         lines += [f"## {title}", "", "| " + " | ".join([*keys, "n", *names]) + " |",
                   "|" + "---|" * (len(keys) + 1 + len(cols))]
         for g in s.groups:

@@ -23,18 +23,20 @@ from lightning.fabric.plugins import CheckpointIO
 from lightning.pytorch.callbacks import LearningRateMonitor, ModelCheckpoint
 from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dider import __version__
 from dider.checkpoint import AtomicCheckpointIO
+from dider.data.soccer import kloppy_sample
+from dider.evaluation import cv_verdict, leading_first
 from dider.io import atomic_write_text
 from dider.models.module import RelationalVAEModule
-from dider.perf import compile_modules, native_bf16, tune_allocator
+from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocator
 from dider.prediction import PredictionWriter
-from dider.protocol import horizons_problem
+from dider.preflight import validate_config
 from dider.runfolder import RunLock, check_checkpoint, check_fresh, is_rank_zero, mark_failed, resolve_ckpt
-from dider.trained import load
-from dider.validation import RULES, ConfigError, problem
+from dider.trained import load, training_settings
+from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -48,11 +50,6 @@ def job_name(override_dirname: str, limit: int = 120) -> str:
 
 
 OmegaConf.register_new_resolver("dider_job_name", job_name, replace=True)
-
-
-def trains_on_cpu(accelerator: str | None) -> bool:
-    """Whether a trainer with ``trainer.accelerator=accelerator`` runs on the CPU."""
-    return accelerator == "cpu" or (accelerator in (None, "auto") and not torch.cuda.is_available())
 
 
 # What $DIDER_DEFAULT_PRECISION may say (Lightning's precision names).
@@ -73,13 +70,16 @@ def default_precision(accelerator: str | None) -> str:
 
 
 OmegaConf.register_new_resolver("dider_precision", default_precision, replace=True)
+OmegaConf.register_new_resolver("kloppy_sample", kloppy_sample, replace=True)
 
 
 def hparam_metrics(cfg: DictConfig) -> list[str]:
-    """The metrics shown in TensorBoard's HParams tab: the forecast MSE at the data set's own horizons, the
-    edge recall (where the data have ground truth), the model-selection objective."""
+    """The metrics shown in TensorBoard's HParams tab: at the data set's own horizons the forecast's ADE over
+    constant velocity's, its ADE in data units and its MSE; the edge recall (where the data have ground truth);
+    the model-selection objective."""
     horizons = OmegaConf.select(cfg, "data.horizons", default=None) or []
-    return [*(f"test/mse/h{int(h):02d}" for h in horizons), "test/ade", "test/fde",
+    return [*(f"test/ade_vs_cv/h{int(h):02d}" for h in horizons), *(f"test/ade/h{int(h):02d}" for h in horizons),
+            *(f"test/mse/h{int(h):02d}" for h in horizons),
             "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "val/select"]
 
 
@@ -133,99 +133,7 @@ def _build_list(group: DictConfig | None) -> list[Any]:
     return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
 
 
-MODES = ("train", "eval", "predict")
 TERMINATED = 143  # the exit status of a run stopped by SIGTERM (128 + 15, as a shell reports it)
-
-# The key holding the clip length of each data module that knows it from its config alone.
-CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
-
-
-def validate_config(cfg: DictConfig) -> None:
-    """Check the values that would otherwise fail late (after data preparation, or mid-training), before any
-    work: raises :class:`ConfigError` listing every problem by its key."""
-    problems: list[str] = []
-
-    def get(key: str) -> Any:
-        try:
-            return OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=True)
-        except Exception as e:  # an interpolation that cannot resolve, e.g. a missing environment variable
-            problems.append(f"{key}: cannot resolve ({e})")
-            return None
-
-    for key in RULES:  # the rules every constructor applies too, here all at once before any work
-        value = get(key)
-        if value is not None and (found := problem(key, value)) is not None:
-            problems.append(found)
-    mode = get("mode")
-    if mode not in MODES:
-        problems.append(f"mode={mode!r}: expected one of {list(MODES)}")
-    ckpt = get("ckpt_path")
-    if mode in ("eval", "predict") and not ckpt:
-        problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
-    if mode == "predict" and ckpt == "last":
-        problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's checkpoint "
-                        "file (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
-    for key in ("predict.forecast_steps", "predict.burn_in"):
-        value = get(key)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            problems.append(f"{key}={value!r}: must be an integer >= 1 (or null)")
-    if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
-        problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
-
-    clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
-    clip = get(clip_key) if clip_key else None
-    for section in ("data", "model"):
-        burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
-        burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
-        if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
-            problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
-        horizons = get(f"{section}.horizons")
-        if horizons is None:
-            continue
-        longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
-        longest = longest if longest is not None and longest >= 1 else None  # else burn_in is reported above
-        context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
-        if (found := horizons_problem(horizons, longest, f"{section}.horizons", context)) is not None:
-            problems.append(found)
-
-    for key, kind in (("data.root", "folder"), ("data.path", "file")):
-        value = get(key)
-        if value is None:
-            continue
-        path = Path(str(value)).expanduser()
-        if not (path.is_dir() if kind == "folder" else path.is_file()):
-            problems.append(f"{key}={value}: no such {kind}")
-
-    if problems:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
-    for warning in config_warnings(cfg):
-        log.warning(warning)
-
-
-# The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
-TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
-                  "optimized_metric", "predict", "data", "model", "trainer", "logger", "callbacks", "hydra",
-                  "hparams_search", "edges_per_model"}
-
-
-def config_warnings(cfg: DictConfig) -> list[str]:
-    """Settings that are valid but probably not meant, each named: a run that trains nothing, a burn-in the
-    model and the data disagree on, top-level keys nothing reads (a `+key=value` typo)."""
-    found = []
-    if cfg.get("mode") == "train" and OmegaConf.select(cfg, "trainer.max_epochs") == 0:
-        found.append("trainer.max_epochs=0: nothing is trained; the test scores the initial weights")
-    model_b, data_b = OmegaConf.select(cfg, "model.burn_in"), OmegaConf.select(cfg, "data.burn_in")
-    if model_b is not None and data_b is not None and model_b != data_b:
-        found.append(f"model.burn_in={model_b} differs from data.burn_in={data_b}: the model forecasts after "
-                     f"{model_b} frames, the data module's horizons count from {data_b}")
-    precision, accelerator = OmegaConf.select(cfg, "trainer.precision"), OmegaConf.select(cfg, "trainer.accelerator")
-    if "bf16" in str(precision) and trains_on_cpu(accelerator) and not native_bf16("cpu"):
-        found.append(f"trainer.precision={precision}: this CPU has no native bf16 (no AVX-512), so autocast "
-                     "emulates it, many times slower than fp32 (trainer.precision=32-true)")
-    if unknown := sorted(set(cfg.keys()) - TOP_LEVEL_KEYS):
-        found.append(f"{', '.join(unknown)}: top-level key(s) that nothing reads (a typo of {sorted(TOP_LEVEL_KEYS)}?)")
-    return found
-
 
 def trainer_plugins(cfg: DictConfig) -> list[Any]:
     """The trainer's plugins from ``trainer.plugins`` (if any), with atomic checkpoint writes unless a
@@ -239,7 +147,7 @@ def trainer_plugins(cfg: DictConfig) -> list[Any]:
 def format_table(metrics: dict[str, float]) -> str:
     width = max((len(k) for k in metrics), default=10)
     lines = [f"{'metric':<{width}}  value", f"{'-' * width}  ----------"]
-    lines += [f"{k:<{width}}  {v:.4g}" for k, v in sorted(metrics.items())]
+    lines += [f"{k:<{width}}  {metrics[k]:.4g}" for k in leading_first(list(metrics))]
     return "\n".join(lines)
 
 
@@ -250,11 +158,21 @@ def predict(cfg: DictConfig) -> list[Path]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     ckpt = Path(str(cfg.ckpt_path)).expanduser()
     trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
+    set_by_user = {o.split("=", 1)[0].lstrip("+~") for o in _overrides()}
+    try:
+        take = training_settings(trained, cfg.data, set_by_user, bool(cfg.predict.force))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    for key, value in take.items():
+        log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
+                 key, value, key, cfg.data[key])
+    with open_dict(cfg):
+        cfg.data.update(take)
     out_dir = Path(cfg.output_dir)
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
         raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
-                          f"data=trajectories (npz), table (CSV/Parquet), dnri_files or ind/round/unid")
+                          f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
     datamodule.use_normalizer(trained.normalizer)
     module = RelationalVAEModule.from_config(trained.config)
     module.model.load_state_dict(trained.network.state_dict())
@@ -267,6 +185,8 @@ def predict(cfg: DictConfig) -> list[Path]:
     if trainer.is_global_zero:
         for path in writer.written:
             print(f"predictions: {path}")
+        if verdict := cv_verdict(writer.scores):
+            (log.info if verdict[1] else log.warning)(verdict[0])
     return writer.written
 
 
@@ -319,6 +239,9 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
     callbacks = [c for c in _build_list(cfg.get("callbacks")) if loggers or not isinstance(c, LearningRateMonitor)]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
+    if trainer.world_size == 1:  # the data's problems (files, window lengths) surface before any training
+        datamodule.prepare_data()
+        datamodule.setup("fit" if cfg.mode == "train" else "test")
     for lg in loggers if trainer.is_global_zero else []:  # every logger gets the settings worth comparing
         if not isinstance(lg, TensorBoardLogger):  # TensorBoard's HParams entry waits for the results (below)
             lg.log_hyperparams(_hparams(cfg))
@@ -354,6 +277,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
         }
         atomic_write_text(out_dir / "metrics.json", json.dumps(record, indent=2, default=str))
         print(f"\n{format_table(metrics)}\n")
+        if verdict := cv_verdict(metrics):
+            (log.info if verdict[1] else log.warning)(verdict[0])
         print(f"metrics: {out_dir / 'metrics.json'}")
         figs = out_dir / "figures"
         if figs.exists():

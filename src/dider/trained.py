@@ -14,7 +14,7 @@ Nothing here needs Lightning. Shapes: S clips, T frames, N agents, E = N(N-1) ed
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,8 +98,9 @@ class TrainedModel:
         index of step 0 (1 when velocities come from finite differences, which use the first frame).
 
         positions [S, T, N, 2] or [T, N, 2]; mask the same without the last axis (absent agents may be
-        NaN); velocities like positions, else (pos[t] - pos[t-1]) * frame_rate (default: the training
-        data's ``frame_rate``)."""
+        NaN); velocities like positions, else (pos[t] - pos[t-1]) * frame_rate, the rate of the given frames
+        (default: the training data's steps per second, its ``frame_rate`` / ``downsample``: give positions
+        at the model's step rate)."""
         arrays = {"positions": _numpy(positions)}
         single = arrays["positions"].ndim == 3
         for key, value in (("mask", mask), ("velocities", velocities)):
@@ -109,6 +110,8 @@ class TrainedModel:
             arrays = {k: v[None] for k, v in arrays.items()}
         if velocities is None and frame_rate is None:
             frame_rate = self.data.get("frame_rate")
+            if frame_rate is not None:  # the training data's steps: every downsample-th frame
+                frame_rate = frame_rate / self.data.get("downsample", 1)
             if frame_rate is None:
                 raise ValueError("frame_rate: needed for finite-difference velocities (the training data did not "
                                  "record one); pass frame_rate=... or velocities=...")
@@ -161,6 +164,31 @@ class TrainedModel:
             pred = self.network.forecast_after(states, m, burn_in, steps)
         xy = self.normalizer.denormalize(pred.float().cpu())[..., :2]
         return xy.masked_fill(~m[:, burn_in - 1, None, :, None].cpu(), float("nan")).numpy()
+
+
+# The data settings that shape the features a model reads (velocities are finite differences x frame_rate /
+# downsample): new data must be read with the training data's values.
+FEATURE_SETTINGS = ("frame_rate", "downsample")
+
+
+def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_user: Collection[str],
+                      force: bool = False, where: str = "data") -> dict[str, Any]:
+    """The values of :data:`FEATURE_SETTINGS` that reading new data for ``trained`` needs, for the keys that
+    both ``given`` (the data config) and the checkpoint have: the checkpoint's where the user did not set the
+    key (``set_by_user`` holds ``where.key`` names), the user's where set and equal or ``force``. A value set
+    and different raises a ValueError naming both. Returns the keys whose value changes, with it."""
+    take: dict[str, Any] = {}
+    for key in FEATURE_SETTINGS:
+        if key not in given or key not in trained.data or given[key] == trained.data[key]:
+            continue
+        name, theirs = f"{where}.{key}", trained.data[key]
+        if name not in set_by_user:
+            take[key] = theirs
+        elif not force:
+            raise ValueError(f"{name}={given[key]}: the checkpoint {trained.path} was trained with {name}={theirs}, "
+                             f"which shapes the features it reads (velocities); leave {name} out to use "
+                             f"{theirs}, or set predict.force=true to read the data with {given[key]} anyway")
+    return take
 
 
 def _numpy(value: ArrayLike) -> np.ndarray:

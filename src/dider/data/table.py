@@ -1,9 +1,10 @@
 """Long-format trajectory tables: one ``.csv`` or ``.parquet`` file (``data.path``), one row per agent per frame.
 
-Columns are named in ``data.columns``: ``agent``, ``frame``, ``x``, ``y`` (required), ``scene`` (null: the
-whole file is one scene), ``vx``/``vy`` (null: finite differences), ``agent_class`` (optional, one class per
-agent). Extra columns are ignored. Scene and agent ids may be integers (kept as they are) or strings
-(coded; the names are in ``source_names``); an agent is a (scene, agent id) pair.
+Columns are named in ``data.columns``: ``agent``, ``frame``, ``x``, ``y`` (required), ``scene`` (null: a
+column called ``scene`` if the file has one, else the whole file is one scene), ``vx``/``vy`` (null: finite
+differences), ``agent_class`` (optional, one class per agent). Extra columns are ignored. Scene and agent ids
+may be integers (kept as they are) or strings (coded; the names are in ``source_names``); an agent is a
+(scene, agent id) pair.
 
 Each scene is downsampled to every ``downsample``-th frame counted from the scene's first frame, and laid
 on a grid of steps x agents: a frame missing inside an agent's span is an absent step (mask False).
@@ -28,7 +29,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 import torch
 
 from dider.data.batch import Normalizer
@@ -41,195 +41,13 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
-from dider.data.levelx.reading import _header
 from dider.data.levelx.windows import MAX_GRID_CELLS
+from dider.data.table_reading import check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.protocol import fill_absent
 from dider.validation import above, require
 
 log = logging.getLogger(__name__)
-
-DEFAULT_COLUMNS: dict[str, str | None] = {"scene": None, "agent": "agent", "frame": "frame", "x": "x", "y": "y",
-                                          "vx": None, "vy": None, "agent_class": None}
-REQUIRED = ("agent", "frame", "x", "y")
-NUMERIC = ("frame", "x", "y", "vx", "vy")
-SUFFIXES = (".csv", ".parquet")
-
-
-def check_columns(columns: Mapping[str, Any] | None) -> dict[str, str | None]:
-    """``data.columns`` merged over the defaults; raises naming the key of an unknown, missing or clashing entry."""
-    given = dict(columns or {})
-    if unknown := sorted(set(given) - set(DEFAULT_COLUMNS)):
-        raise ValueError(f"data.columns: unknown key(s) {unknown} (known: {list(DEFAULT_COLUMNS)})")
-    cols = {**DEFAULT_COLUMNS, **given}
-    for key, name in cols.items():
-        if name is None and key in REQUIRED:
-            raise ValueError(f"data.columns.{key} is null: the {key} column is required")
-        if name is not None and not (isinstance(name, str) and name):
-            raise ValueError(f"data.columns.{key}={name!r}: expected a column name or null")
-    if (cols["vx"] is None) != (cols["vy"] is None):
-        raise ValueError(f"data.columns: vx={cols['vx']!r}, vy={cols['vy']!r}: give both velocity columns or "
-                         f"neither (null: finite differences)")
-    named = [n for n in cols.values() if n is not None]
-    if clash := sorted({n for n in named if named.count(n) > 1}):
-        raise ValueError(f"data.columns: column(s) {clash} named for more than one key")
-    return cols
-
-
-# -- reading and validating
-
-
-def _row(path: Path, i: int) -> str:
-    """Where row i of the table is in the file: the CSV line (line 1 is the header) or the parquet row."""
-    return f"line {i + 2}" if path.suffix.lower() == ".csv" else f"row {i}"
-
-
-def _read_frame(path: Path, names: list[str]) -> pd.DataFrame:
-    """The named columns of the file (types inferred; checked by the callers)."""
-    if path.suffix.lower() not in SUFFIXES:
-        raise ValueError(f"data.path={path}: unknown extension {path.suffix!r}; expected one of {list(SUFFIXES)}")
-    if not path.is_file():
-        raise FileNotFoundError(f"data.path={path}: no such file")
-    csv = path.suffix.lower() == ".csv"
-    # CSV: the header first, so a missing column is named before the rows are read. Parquet: every column
-    # (reading the schema alone needs engine-specific code).
-    whole = None if csv else _read_parquet(path)
-    found = _header(path) if whole is None else [str(c) for c in whole.columns]
-    if missing := [n for n in names if n not in found]:
-        raise ValueError(f"{path}: missing column(s) {missing} (found {found}); name them in data.columns")
-    try:
-        df = pd.read_csv(path, usecols=names, low_memory=False) if whole is None else whole[names]
-    except (ValueError, OSError, pd.errors.ParserError) as e:
-        raise ValueError(f"{path}: not a readable table ({type(e).__name__}: {e})") from e
-    if len(df) == 0:
-        raise ValueError(f"{path}: no rows (expected one row per agent per frame)")
-    return df
-
-
-def _read_parquet(path: Path) -> pd.DataFrame:
-    try:
-        return pd.read_parquet(path)
-    except ImportError as e:
-        raise ImportError(f"data.path={path}: reading .parquet needs pyarrow (pip install pyarrow) or fastparquet; "
-                          f"or save the table as .csv ({e})") from None
-    except (ValueError, OSError) as e:
-        raise ValueError(f"{path}: not a readable parquet file ({type(e).__name__}: {e})") from e
-
-
-def _numbers(path: Path, s: pd.Series) -> np.ndarray:
-    """A required numeric column -> [R] float64; words, empty cells, NaN and inf raise with the first line."""
-    if pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
-        a = s.to_numpy(dtype=np.float64, na_value=np.nan)
-    else:
-        parsed = pd.to_numeric(s, errors="coerce")
-        words = (parsed.isna() & s.notna()).to_numpy()
-        if words.any():
-            i = int(np.argmax(words))
-            raise ValueError(f"{path}: column {s.name!r} has {int(words.sum())} non-numeric value(s) (first on "
-                             f"{_row(path, i)}: {s.iloc[i]!r})")
-        a = parsed.to_numpy(dtype=np.float64, na_value=np.nan)
-    bad = ~np.isfinite(a)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise ValueError(f"{path}: column {s.name!r} has {int(bad.sum())} empty, NaN or inf value(s) (first on "
-                         f"{_row(path, i)}: {s.iloc[i]!r})")
-    big = np.abs(a) > np.finfo(np.float32).max  # would become inf in the float32 windows
-    if big.any():
-        i = int(np.argmax(big))
-        raise ValueError(f"{path}: column {s.name!r} has values beyond the float32 range (first on "
-                         f"{_row(path, i)}: {float(a[i])!r})")
-    return a
-
-
-def _ids(path: Path, s: pd.Series, sort: bool, integers: bool = True) -> tuple[np.ndarray, list[str] | None]:
-    """An id column -> ([R] int64 ids, None) when every id is an integer (and ``integers``), else ([R]
-    codes, names).
-
-    sort: codes in sorted name order (agents: a window lists its agents by id) or in order of appearance
-    (scenes: reading order)."""
-    empty = s.isna().to_numpy()
-    if empty.any():
-        i = int(np.argmax(empty))
-        raise ValueError(f"{path}: column {s.name!r} is empty on {_row(path, i)}")
-    if integers:
-        num = pd.to_numeric(s, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
-        if np.isfinite(num).all() and (num == np.round(num)).all() and np.abs(num).max() < 2**53:
-            return num.astype(np.int64), None
-    codes, names = pd.factorize(s.astype(str), sort=sort)
-    return codes.astype(np.int64), [str(n) for n in names]
-
-
-def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
-    """Read and validate the table; rows sorted by (scene in reading order, agent, frame).
-
-    Returns: scene [R] int64 (reading-order index), scene_ids [Z] int64 (each scene's source id), agent
-    [R] int64 (ids or codes), frame [R] int64, xy [R, 2] float64, vel [R, 2] float64 or None,
-    agent_class [R] int64 or None, line [R] int64 (each row's index in the file) and names (key -> names
-    of string ids: scene, agent, agent_class).
-    """
-    named = {k: v for k, v in columns.items() if v is not None}
-    df = _read_frame(path, list(named.values()))
-    nums = {k: _numbers(path, df[named[k]]) for k in NUMERIC if k in named}
-    frame = nums["frame"]
-    if (frac := frame != np.round(frame)).any():
-        i = int(np.argmax(frac))
-        raise ValueError(f"{path}: column {named['frame']!r} has non-integer frames (first on {_row(path, i)}: "
-                         f"{float(frame[i])!r})")
-    names: dict[str, list[str]] = {}
-    agent, agent_names = _ids(path, df[named["agent"]], sort=True)
-    if agent_names is not None:
-        names["agent"] = agent_names
-    if "scene" in named:
-        scene_ids, scene_names = _ids(path, df[named["scene"]], sort=False)
-        scene, first = _appearance(scene_ids)
-        if scene_names is not None:
-            names["scene"] = scene_names
-    else:
-        scene, first = np.zeros(len(df), np.int64), np.zeros(1, np.int64)
-        scene_ids = scene
-    klass = None
-    if "agent_class" in named:
-        klass, names["agent_class"] = _ids(path, df[named["agent_class"]], sort=True, integers=False)
-    order = np.lexsort((frame, agent, scene))
-    out = {"scene": scene[order], "scene_ids": scene_ids[first], "agent": agent[order],
-           "frame": frame[order].astype(np.int64), "line": order,
-           "xy": np.stack([nums["x"], nums["y"]], 1)[order],
-           "vel": np.stack([nums["vx"], nums["vy"]], 1)[order] if "vx" in nums else None,
-           "agent_class": None if klass is None else klass[order], "names": names}
-    _check_rows(path, out, named)
-    return out
-
-
-def _appearance(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ids [R] -> (index of each row's id in order of first appearance [R], first row of each id [Z])."""
-    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
-    rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")
-    return rank[inverse], np.sort(first)
-
-
-def _check_rows(path: Path, t: dict[str, Any], named: Mapping[str, str]) -> None:
-    """Duplicate (scene, agent, frame) rows and agents whose class changes; rows sorted as read_table's."""
-    same_agent = (t["scene"][1:] == t["scene"][:-1]) & (t["agent"][1:] == t["agent"][:-1])
-    checks = [(same_agent & (t["frame"][1:] == t["frame"][:-1]), "duplicate rows for")]
-    if t["agent_class"] is not None:
-        checks.append((same_agent & (t["agent_class"][1:] != t["agent_class"][:-1]),
-                       f"more than one {named['agent_class']!r} for"))
-    for bad, what in checks:
-        if bad.any():
-            i = int(np.argmax(bad))
-            keys = [k for k in ("scene", "agent", "frame") if k in named]
-            scene = t["scene_ids"][t["scene"][i]]
-            values = {"scene": _name(t, "scene", scene), "agent": _name(t, "agent", t["agent"][i]),
-                      "frame": int(t["frame"][i])}
-            lines = [_row(path, j) for j in sorted(int(t["line"][k]) for k in (i, i + 1))]
-            raise ValueError(f"{path}: {what} ({', '.join(repr(named[k]) for k in keys)}) = "
-                             f"({', '.join(str(values[k]) for k in keys)}) on {' and '.join(lines)}")
-
-
-def _name(t: dict[str, Any], key: str, value: int) -> str:
-    names = t["names"].get(key)
-    return repr(names[int(value)]) if names is not None else str(int(value))
-
 
 # -- windows
 
@@ -275,15 +93,16 @@ def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: 
     return grid[1:] * both[..., None], both
 
 
-def table_windows(path: Path, columns: Mapping[str, str | None], frame_rate: float, downsample: int, seq_len: int,
+def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsample: int, seq_len: int,
                   stride: int, min_agent_steps: int, min_agents: int) -> dict[str, Any]:
-    """Read the table and cut every scene into packed windows (raw units), in reading order.
+    """Cut every scene of a read table (:func:`~dider.data.table_reading.read_table`'s dict; ``path`` names
+    it in messages) into packed windows (raw units), in reading order.
 
     Returns states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w
     owns rows offsets[w]:offsets[w+1]), agent [P] long (ids or codes), agent_class [P] long or None, clip,
-    scene, frame [W] long (source ids), scene_index [W] long (the scene's reading-order index) and names.
+    scene, frame [W] long (source ids), scene_index [W] long (the scene's reading-order index), names and
+    has_scene.
     """
-    t = read_table(path, columns)
     bounds = np.flatnonzero(np.diff(t["scene"])) + 1
     lo_hi = list(zip([0, *bounds.tolist()], [*bounds.tolist(), len(t["scene"])], strict=True))
     first_frame = np.minimum.reduceat(t["frame"], np.array([lo for lo, _ in lo_hi]))  # [Z]
@@ -301,8 +120,9 @@ def table_windows(path: Path, columns: Mapping[str, str | None], frame_rate: flo
         rows = lo + np.flatnonzero(keep[lo:hi])
         ids, first, local = np.unique(t["agent"][rows], return_index=True, return_inverse=True)
         if (int(step[rows].max()) + 1) * ids.size > MAX_GRID_CELLS:
-            raise ValueError(f"{path}: scene {_name(t, 'scene', t['scene_ids'][z])} spans {int(step[rows].max()) + 1} "
-                             f"steps x {ids.size} agents: implausibly large (is data.downsample={downsample} right?)")
+            scene, span = id_name(t, "scene", t["scene_ids"][z]), int(step[rows].max()) + 1
+            raise ValueError(f"{path}: scene {scene} spans {span} steps x {ids.size} agents: implausibly large (is "
+                             f"data.downsample={downsample} right?)")
         grid, present = scene_grid(t["xy"][rows], None if drop else t["vel"][rows], step[rows], local,
                                    frame_rate / downsample)
         longest = max(longest, present.shape[0])
@@ -315,9 +135,13 @@ def table_windows(path: Path, columns: Mapping[str, str | None], frame_rate: flo
             "scene_index": np.full(len(starts), z), "frame": first_frame[z] + (starts + drop) * downsample,
         })
     if longest < seq_len:
-        raise ValueError(f"{path}: too few frames for one window of data.seq_len={seq_len} steps: the longest scene "
-                         f"has {longest} step(s) of data.downsample={downsample} frame(s)"
-                         + (" (its first step went to finite-difference velocities)" if drop else ""))
+        need = (seq_len + drop - 1) * downsample + 1
+        raise ValueError(
+            f"{path}: too few frames for one window of data.seq_len={seq_len} steps: a window needs "
+            f"{seq_len} step(s){' + 1 for the finite-difference velocities' if drop else ''} of "
+            f"data.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
+            f"scene has {longest + drop} step(s): set data.seq_len <= {longest}"
+            + (", or lower data.downsample" if downsample > 1 else ""))
     out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts]))
            for k in ("states", "mask", "agent", "scene_index", "frame")}
     if len(out["frame"]) == 0:
@@ -329,7 +153,7 @@ def table_windows(path: Path, columns: Mapping[str, str | None], frame_rate: flo
         np.concatenate([p["agent_class"] for p in parts]))
     out["clip"] = torch.arange(len(out["frame"]))
     out["scene"] = torch.from_numpy(t["scene_ids"])[out["scene_index"]]
-    out["names"] = t["names"]
+    out["names"], out["has_scene"] = t["names"], t["has_scene"]
     return out
 
 
@@ -392,6 +216,14 @@ class TableDataModule(ClipDataModule):
         self.frame_step = downsample
         self.dt = downsample / frame_rate
 
+    def _read(self) -> dict[str, Any]:
+        """The rows (:func:`~dider.data.table_reading.read_table`'s dict); other sources override it."""
+        return read_table(self._path(), self.columns)
+
+    def _source(self) -> str:
+        """What messages name as the data's origin."""
+        return str(self._path())
+
     def _path(self) -> Path:
         if self.hparams.path is None:
             raise ValueError("data.path is not set: point it at a .csv or .parquet table with one row per agent "
@@ -400,7 +232,7 @@ class TableDataModule(ClipDataModule):
 
     def _windows(self) -> dict[str, Any]:
         h = self.hparams
-        data = table_windows(self._path(), self.columns, h.frame_rate, h.downsample, h.seq_len,
+        data = table_windows(self._read(), self._source(), h.frame_rate, h.downsample, h.seq_len,
                              h.stride or h.seq_len, h.min_agent_steps, h.min_agents)
         self.source_names = {k: v for k, v in data["names"].items() if k in ("scene", "agent")}
         return data
@@ -410,7 +242,7 @@ class TableDataModule(ClipDataModule):
         rows, offsets = ragged_rows(data["offsets"], idx)
         mask = data["mask"][rows]
         states = fill_absent(normalizer.normalize(data["states"][rows]), mask)
-        keys = ("clip", "scene", "frame") if self.columns["scene"] else ("clip", "frame")
+        keys = ("clip", "scene", "frame") if data["has_scene"] else ("clip", "frame")
         ds = PackedClipDataset(states, mask, offsets, sources={k: data[k][idx] for k in keys},
                                agent_ids=data["agent"][rows])
         if data["agent_class"] is not None:
@@ -425,7 +257,7 @@ class TableDataModule(ClipDataModule):
         try:
             parts = split_indices(len(scenes) if by == "scene" else len(data["clip"]), h.split, h.seed)
         except ValueError as e:
-            raise ValueError(f"{self._path()}: {len(data['clip'])} windows: {e}") from None
+            raise ValueError(f"{self._source()}: {len(data['clip'])} windows: {e}") from None
         if by == "scene":
             parts = {s: torch.isin(data["scene_index"], scenes[p]).nonzero().squeeze(1) for s, p in parts.items()}
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
@@ -435,7 +267,7 @@ class TableDataModule(ClipDataModule):
         h = self.hparams
         if stage == "predict":  # every window, no split, the trained model's normalisation
             if "predict" not in self.datasets:
-                normalizer = self.predict_normalizer(f"data.path={self._path()}")
+                normalizer = self.predict_normalizer(self._source())
                 data = self._windows()
                 self.datasets["predict"] = self._dataset(data, data["clip"], normalizer)
             return
@@ -447,10 +279,10 @@ class TableDataModule(ClipDataModule):
         try:
             self.normalizer = Normalizer.fit(data["states"][rows], data["mask"][rows])
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
-            raise ValueError(f"{self._path()}: cannot fit the normalisation on the train split: {e}") from None
+            raise ValueError(f"{self._source()}: cannot fit the normalisation on the train split: {e}") from None
         for split, idx in parts.items():
             self.datasets[split] = self._dataset(data, idx, self.normalizer)
-        log.info("table %s: %d windows from %d scenes, split by %s: %s", self._path(), len(data["clip"]),
+        log.info("%s: %d windows from %d scenes, split by %s: %s", self._source(), len(data["clip"]),
                  len(torch.unique(data["scene_index"])), by, {s: len(d) for s, d in self.datasets.items()})
         if by == "window" and (h.stride or h.seq_len) < h.seq_len:
             log.warning("data.stride=%d < data.seq_len=%d with a split by window: val / test windows share steps "

@@ -7,25 +7,39 @@ Shapes: B batch, T frames, N agents, D features, E edges, K edge types, P predic
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import logging
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import lightning as L
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig
+from torchmetrics import Metric
 
 from dider import __version__
 from dider.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.data.batch import Batch
 from dider.data.common import data_description
-from dider.evaluation import Forecast, TestMetrics, edge_acc_values, horizon_values, own_cut_values
+from dider.evaluation import (
+    Forecast,
+    TestMetrics,
+    data_units,
+    displacement_values,
+    edge_acc_values,
+    horizon_values,
+    own_cut_values,
+)
 from dider.graph import edge_mask
-from dider.metrics import EdgeAccuracy, HorizonMSE, OwnCut
+from dider.metrics import EdgeAccuracy, HorizonDisplacement, HorizonMSE, OwnCut
+from dider.models.baselines import ConstantVelocity
 from dider.models.plugins import Progress
 from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons
+from dider.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
 from dider.validation import require
+
+log = logging.getLogger(__name__)
 
 
 class RelationalVAEModule(L.LightningModule):
@@ -53,9 +67,11 @@ class RelationalVAEModule(L.LightningModule):
         self.val_acc = EdgeAccuracy()
         self.val_cut = OwnCut(tolerance=2)
         self.test_metrics = TestMetrics(horizons, self.model.num_types)
+        self.constant_velocity = ConstantVelocity()  # no parameters: scored beside the model at test
         # Prediction's optional forecast: (burn_in, steps) from each clip's first frames, or None (set by
         # ``mode=predict``, not a hyper-parameter: it does not change the model).
         self.predict_forecast: tuple[int, int] | None = None
+        self.predict_scores: torch.nn.ModuleDict | None = None  # set at the start of each prediction
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -124,13 +140,14 @@ class RelationalVAEModule(L.LightningModule):
         self._log_segments("train", out, batch)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
-    def _forecast(self, batch: Batch, edges: torch.Tensor | None = None) -> Forecast:
+    def _forecast(self, batch: Batch, edges: torch.Tensor | None = None, decoder: torch.nn.Module | None = None
+                  ) -> Forecast:
         """Roll out over the whole clip after the burn-in (each agent's own burn-in in ``per_agent`` mode,
         where each target carries its own horizon; frame p is horizon p + 1 in ``global`` mode), with the
-        model's own edges or given ones (edges [B, E, T-1])."""
+        model's own edges or given ones (edges [B, E, T-1]), with the model's decoder or another one."""
         x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in
         mode = self.burn_in_mode
-        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges)
+        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges, decoder)
         horizon = agent_horizons(mask, b)[:, b:] if mode == "per_agent" else None
         return Forecast(pred, x[:, b:], mask[:, b:], types, horizon)
 
@@ -181,15 +198,20 @@ class RelationalVAEModule(L.LightningModule):
         if "edges" in batch:
             by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
         prior_per_step = self.model.prior(out.h_fwd).argmax(-1)
+        cv = self._forecast(batch, torch.zeros_like(posterior), self.constant_velocity)
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
-                                 self.own_cut(out, batch))
+                                 self.own_cut(out, batch), cv)
         absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
                 "prior": prior, "per_step": out.step_logits.argmax(-1)}
 
     def on_test_epoch_end(self) -> None:
-        self.log_dict(self.test_metrics.compute())
+        values = self.test_metrics.compute()
+        self.log_dict(values)
+        if self.trainer.is_global_zero and (warning := degenerate_types({k: float(v) for k, v in values.items()},
+                                                                          "test")):
+            log.warning(warning)
 
     def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
         """What the model says about clips without ground truth: :meth:`RelationalVAE.describe` (each
@@ -200,7 +222,46 @@ class RelationalVAEModule(L.LightningModule):
         out: dict[str, Any] = {"states": x, "mask": mask, "source": batch.get("source", {})}
         if self.predict_forecast is not None:  # first: its sampled edges are the first draws from eval_seed
             out["forecast"] = self.model.forecast_after(x, mask, *self.predict_forecast)
-        return out | self.model.describe(self.model.infer(batch, hard=True), mask)
+            self._score_forecast(x, mask, out["forecast"])
+        out |= self.model.describe(self.model.infer(batch, hard=True), mask)
+        self.predict_scores["types"].update(out["segments"], *pair_features(self._data_units()(x), mask))
+        return out
+
+    def _data_units(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        return data_units(getattr(getattr(self.trainer, "datamodule", None), "normalizer", None))
+
+    def on_predict_epoch_start(self) -> None:
+        scores: dict[str, Metric] = {"types": TypeProfile(self.model.num_types)}
+        if self.predict_forecast is not None:
+            steps = self.predict_forecast[1]
+            horizons = [h for h in self.hparams.horizons if h <= steps] or [steps]
+            scores |= {k: HorizonDisplacement(horizons) for k in ("model", "cv")}
+        self.predict_scores = torch.nn.ModuleDict(scores).to(self.device)
+
+    def _score_forecast(self, x: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor) -> None:
+        """Where the input holds the forecast's future, score the forecast [B, P, N, D] and constant
+        velocity's in data units, over the agents that carry on and are present at each predicted frame."""
+        burn_in, steps = self.predict_forecast
+        if x.shape[1] < burn_in + steps:
+            return
+        cv = self.model.forecast_after(x, mask, burn_in, steps, self.constant_velocity)
+        units = self._data_units()
+        target = units(x[:, burn_in:burn_in + steps])
+        scored = mask[:, burn_in:burn_in + steps] & mask[:, burn_in - 1 : burn_in]
+        for name, pred in {"model": forecast, "cv": cv}.items():
+            self.predict_scores[name].update(units(pred), target, scored)
+
+    def prediction_scores(self) -> dict[str, torch.Tensor]:
+        """After ``mode=predict``: what each edge type means (``predict/typeK/...``, :func:`profile_values`)
+        and, with a forecast on inputs that hold its future, ``predict/ade/hXX``, ``predict/cv/ade/hXX``,
+        ``predict/ade_vs_cv/hXX``, ... (:func:`displacement_values`). Every rank calls it (the metrics reduce
+        over ranks)."""
+        scores, out = self.predict_scores or {}, {}
+        if "types" in scores and scores["types"].update_count:
+            out |= profile_values("predict", scores["types"])
+        if "model" in scores and scores["model"].update_count:
+            out |= displacement_values("predict", scores["model"], scores["cv"])
+        return out
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         # What a checkpoint needs to be used on new data on its own (dider.load): the package version and

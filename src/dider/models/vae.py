@@ -334,7 +334,7 @@ class RelationalVAE(nn.Module):
     @torch.no_grad()
     def rollout(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global",
-        edges: torch.Tensor | None = None,
+        edges: torch.Tensor | None = None, decoder: nn.Module | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Forecast: ground truth during the burn-in, then the model's own predictions.
 
@@ -351,8 +351,10 @@ class RelationalVAE(nn.Module):
         posterior of the whole clip, to tell the decoder's error from the edge forecast's). mask:
         [B, >=burn_in+P, N] (agents present) -> predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an
         agent's frame t is predicted from its input at t-1) and the edge types used at each transition
-        [B, E, burn_in+P-1].
+        [B, E, burn_in+P-1]. ``decoder``: another decoder to roll out under the same protocol and masks (the
+        constant-velocity forecast that test scores beside the model's), else the model's own.
         """
+        decoder = self.decoder if decoder is None else decoder
         if burn_in < 1 or num_pred < 1:
             raise ValueError(f"rollout: need burn_in >= 1 and num_pred >= 1, got {burn_in}, {num_pred}")
         b, n = x.shape[0], x.shape[2]
@@ -381,7 +383,7 @@ class RelationalVAE(nn.Module):
             raise ValueError(f"rollout: edges cover {edges.shape[-1]} transitions, need {end}")
         etype = torch.zeros(b, n * (n - 1), dtype=torch.long, device=x.device)
         left = torch.zeros_like(etype)
-        dec_state = self.decoder.init_state(b, n, x)
+        dec_state = decoder.init_state(b, n, x)
         preds, types = [], []
         cur = x[:, 0]
         present = edge_mask(mask[:, :end])  # [B, end, E]
@@ -404,21 +406,29 @@ class RelationalVAE(nn.Module):
             types.append(etype)
             # No input before burn_in - 1 is ever a prediction (an agent needs burn_in present frames
             # first), so a stateless decoder has nothing to do there.
-            if t < burn_in - 1 and self.decoder.stateless:
+            if t < burn_in - 1 and decoder.stateless:
                 continue
             z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (present[:, t, :, None] & self.decoder_edges)
-            out, dec_state = self.decoder.step(cur, z_t, dec_state, m_t)
+            out, dec_state = decoder.step(cur, z_t, dec_state, m_t)
             if t >= burn_in - 1:
                 preds.append(out)
                 cur = out
         return torch.stack(preds, dim=1), torch.stack(types, dim=2)
 
     @torch.no_grad()
-    def forecast_after(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, steps: int) -> torch.Tensor:
+    def forecast_after(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, steps: int,
+                       decoder: nn.Module | None = None) -> torch.Tensor:
         """Forecast where nothing after the burn-in is known (new data, prediction): the agents present at the
-        burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D]."""
+        burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D].
+        ``decoder``: another decoder under the same protocol (as in :meth:`rollout`), which reads no edges:
+        the model's encoder and prior are left alone (and draw nothing)."""
         future = mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)
-        return self.rollout(x[:, :burn_in], torch.cat([mask[:, :burn_in], future], dim=1), burn_in, steps)[0]
+        mask = torch.cat([mask[:, :burn_in], future], dim=1)
+        edges = None
+        if decoder is not None:
+            edges = torch.zeros(x.shape[0], x.shape[2] * (x.shape[2] - 1), burn_in + steps - 1, dtype=torch.long,
+                                device=x.device)
+        return self.rollout(x[:, :burn_in], mask, burn_in, steps, edges, decoder)[0]
 
     def forward(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"

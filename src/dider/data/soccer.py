@@ -1,0 +1,185 @@
+"""Soccer tracking data through kloppy (``data=soccer``): players, and optionally the ball, as agents in metres.
+
+kloppy (``pip install 'dider[soccer]'``) reads the tracking data of many providers into one model; the
+provider's loader is named by ``data.provider`` and its files by ``data.files`` (the loader's own argument
+names, e.g. Hawk-Eye's ``ball_feeds`` and ``player_centroid_feeds``). Positions are read in a metric,
+pitch-centred coordinate system (kloppy's ``secondspectrum``: metres, x along the pitch), each period is a
+scene, every player is an agent (class ``home`` / ``away``, the ball ``ball``), present where the provider
+has a position; players come and go (substitutions, a broadcast camera's view) with masks. The frame rate is
+the provider's (``data.frame_rate: null``) and travels into the checkpoint, so ``mode=predict`` reads new
+matches the same way. Windows, downsampling, the split and the normalisation are :mod:`dider.data.table`'s.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dider.data.table import TableDataModule, table_windows
+
+log = logging.getLogger(__name__)
+
+# data.provider -> (kloppy module, loader, the loader's file arguments: required, optional).
+PROVIDERS: dict[str, tuple[str, str, tuple[str, ...], tuple[str, ...]]] = {
+    "hawkeye": ("hawkeye", "load", ("ball_feeds", "player_centroid_feeds"), ("meta_data",)),
+    "skillcorner": ("skillcorner", "load", ("meta_data", "raw_data"), ()),
+    "metrica_csv": ("metrica", "load_tracking_csv", ("home_data", "away_data"), ()),
+    "metrica_epts": ("metrica", "load_tracking_epts", ("meta_data", "raw_data"), ()),
+    "tracab": ("tracab", "load", ("meta_data", "raw_data"), ()),
+    "sportec": ("sportec", "load_tracking", ("meta_data", "raw_data"), ()),
+    "secondspectrum": ("secondspectrum", "load", ("meta_data", "raw_data"), ("additional_meta_data",)),
+    "pff": ("pff", "load_tracking", ("meta_data", "roster_meta_data", "raw_data"), ()),
+}
+# Two recordings whose frame rates differ by less than this share are read as one rate (kloppy infers some
+# providers' rates from the timestamps).
+RATE_TOLERANCE = 0.02
+CLASSES = ("away", "ball", "home")
+
+
+def kloppy_sample(name: str) -> str:
+    """The path of a sample file that ships inside kloppy's distribution (its test files), e.g.
+    ``skillcorner_match_data.json``: the ``${kloppy_sample:NAME}`` config resolver."""
+    try:
+        kloppy = importlib.import_module("kloppy")
+    except ImportError as e:
+        raise ImportError(f"kloppy_sample:{name}: kloppy is not installed: pip install 'dider[soccer]' ({e})") from None
+    path = Path(kloppy.__file__).parent / "tests" / "files" / name
+    if not path.is_file():
+        raise FileNotFoundError(f"kloppy_sample:{name}: kloppy {kloppy.__version__} ships no such sample ({path})")
+    return str(path)
+
+
+def kloppy_tracking(provider: str, files: Mapping[str, Any], options: Mapping[str, Any] | None = None) -> Any:
+    """The provider's tracking data set, in metres (kloppy's TrackingDataset); errors name the setting."""
+    if provider not in PROVIDERS:
+        raise ValueError(f"data.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
+    module, loader, arguments, optional = PROVIDERS[provider]
+    given = dict(files or {})
+    if unknown := sorted(set(given) - set(arguments) - set(optional)):
+        raise ValueError(f"data.files: unknown key(s) {unknown} for data.provider={provider} (its loader reads "
+                         f"{list(arguments)}" + (f", optionally {list(optional)}" if optional else "") + ")")
+    if needed := [a for a in arguments if a not in given]:
+        raise ValueError(f"data.files: data.provider={provider} needs {needed} (kloppy.{module}.{loader}'s files)")
+    for key, value in given.items():
+        for path in value if isinstance(value, (list, tuple)) else [value]:
+            if not Path(str(path)).expanduser().exists():
+                raise FileNotFoundError(f"data.files.{key}={path}: no such file or folder")
+    try:
+        kloppy = importlib.import_module(f"kloppy.{module}")
+    except ImportError as e:
+        raise ImportError(f"data=soccer reads tracking data with kloppy >= 3.19, which is not installed (or too "
+                          f"old for data.provider={provider}): pip install 'dider[soccer]' ({e})") from None
+    paths = {k: [str(Path(str(p)).expanduser()) for p in v] if isinstance(v, (list, tuple))
+             else str(Path(str(v)).expanduser()) for k, v in given.items()}
+    try:
+        return getattr(kloppy, loader)(**paths, coordinates="secondspectrum", **dict(options or {}))
+    except Exception as e:  # kloppy raises many types for a file it cannot parse
+        raise ValueError(f"data.files {paths}: kloppy.{module}.{loader} could not read them as "
+                         f"data.provider={provider} ({type(e).__name__}: {e})") from e
+
+
+def tracking_rows(dataset: Any, ball: bool, source: str) -> tuple[dict[str, Any], float | None]:
+    """A kloppy TrackingDataset -> the rows :func:`dider.data.table.table_windows` cuts (scenes = periods,
+    agents = players and the ball, classes home / away / ball) and the provider's frame rate (None if unknown)."""
+    df = dataset.to_df(engine="pandas")
+    grounds = {team.team_id: str(team.ground).lower() for team in dataset.metadata.teams}
+    # players of the two teams (a provider may list referees as a team of their own: not agents here)
+    team_of = {str(p.player_id): grounds[team.team_id] for team in dataset.metadata.teams for p in team.players
+               if grounds[team.team_id] in ("home", "away")}
+    players = [c[:-2] for c in df.columns if c.endswith("_x") and c[:-2] in team_of]
+    if not players:
+        raise ValueError(f"{source}: no player positions in the tracking data ({len(df)} frames)")
+    names = players + (["ball"] if ball else [])
+    x = df[[f"{p}_x" for p in names]].to_numpy(np.float64)  # [F, A]
+    y = df[[f"{p}_y" for p in names]].to_numpy(np.float64)
+    frame_i, agent = np.nonzero(np.isfinite(x) & np.isfinite(y))
+    periods, scene = np.unique(df["period_id"].to_numpy()[frame_i], return_inverse=True)
+    order = np.lexsort((frame_i, agent, scene))
+    frame_i, agent, scene = frame_i[order], agent[order], scene[order]
+    klass = np.array([CLASSES.index(team_of.get(n, "ball")) for n in names])
+    rows = {"scene": scene, "scene_ids": periods.astype(np.int64), "agent": agent.astype(np.int64),
+            "frame": df["frame_id"].to_numpy(np.int64)[frame_i], "line": order,
+            "xy": np.stack([x[frame_i, agent], y[frame_i, agent]], 1), "vel": None,
+            "agent_class": klass[agent], "has_scene": True,
+            "names": {"agent": names, "agent_class": list(CLASSES)}}
+    rate = dataset.metadata.frame_rate
+    return rows, (float(rate) if rate else None)
+
+
+class SoccerDataModule(TableDataModule):
+    """Windows of a match's tracking data read through kloppy (see the module docstring). Batches and
+    attributes as :class:`~dider.data.table.TableDataModule`'s; ``agent_class`` is each agent's team (or the
+    ball); after reading, ``hparams.frame_rate`` is the provider's rate, which the features were computed at."""
+
+    def __init__(
+        self,
+        provider: str = "hawkeye",
+        files: Mapping[str, Any] | None = None,
+        options: Mapping[str, Any] | None = None,
+        ball: bool = False,
+        frame_rate: float | None = None,
+        downsample: int = 1,
+        seq_len: int = 20,
+        stride: int | None = None,
+        min_agent_steps: int = 1,
+        min_agents: int = 2,
+        split: Sequence[float] = (0.8, 0.1, 0.1),
+        seed: int = 1,
+        num_train: int | None = None,
+        num_val: int | None = None,
+        num_test: int | None = None,
+        burn_in: int = 5,
+        horizons: Sequence[int] = (1, 5, 10),
+        batch_size: int = 16,
+        eval_batch_size: int = 64,
+        num_workers: int = 0,
+        pin_memory: bool = False,
+        cache_dir: str | None = None,
+        burn_in_mode: str = "per_agent",
+    ) -> None:
+        """options: further keyword arguments of the kloppy loader (e.g. ``sample_rate``, ``limit``,
+        ``only_alive``). frame_rate: null takes the provider's (a value given must match it)."""
+        if provider not in PROVIDERS:
+            raise ValueError(f"data.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
+        if frame_rate is not None and not (isinstance(frame_rate, int | float) and 0 < frame_rate < float("inf")):
+            raise ValueError(f"data.frame_rate={frame_rate!r}: must be null (the provider's) or a number > 0")
+        super().__init__(None, None, frame_rate or 1.0, downsample, seq_len, stride, min_agent_steps, min_agents,
+                         split, seed, num_train, num_val, num_test, burn_in, horizons, batch_size, eval_batch_size,
+                         num_workers, pin_memory, cache_dir, burn_in_mode)
+        self._rows: dict[str, Any] | None = None
+
+    def _source(self) -> str:
+        return f"data.provider={self.hparams.provider} data.files={dict(self.hparams.files or {})}"
+
+    def _read(self) -> dict[str, Any]:
+        if self._rows is None:
+            h = self.hparams
+            dataset = kloppy_tracking(h.provider, h.files, h.options)
+            self._rows, rate = tracking_rows(dataset, h.ball, self._source())
+            if rate is None and h.frame_rate is None:
+                raise ValueError(f"{self._source()}: the tracking data give no frame rate; set data.frame_rate")
+            if rate is not None and h.frame_rate is not None and abs(rate - h.frame_rate) > RATE_TOLERANCE * rate:
+                raise ValueError(f"data.frame_rate={h.frame_rate} (given, or a checkpoint's in prediction): the "
+                                 f"tracking data run at {rate} frames per second; leave it null to use theirs (in "
+                                 f"prediction, set data.frame_rate and data.downsample to the same step rate as "
+                                 f"the checkpoint's, with predict.force=true)")
+            if h.frame_rate is None:  # recorded, so that the checkpoint (and prediction) carries the rate
+                h.frame_rate = rate
+                self.dt = h.downsample / rate
+            log.info("%s: %d players%s over %d period(s) at %s Hz", self._source(),
+                     len(self._rows["names"]["agent"]) - int(h.ball), " and the ball" if h.ball else "",
+                     len(self._rows["scene_ids"]), h.frame_rate)
+        return self._rows
+
+    def _windows(self) -> dict[str, Any]:
+        rows = self._read()  # first: it fixes data.frame_rate, which the windows' velocities use
+        h = self.hparams
+        data = table_windows(rows, self._source(), h.frame_rate, h.downsample, h.seq_len, h.stride or h.seq_len,
+                             h.min_agent_steps, h.min_agents)
+        self.source_names = {"agent": rows["names"]["agent"]}
+        return data

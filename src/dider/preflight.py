@@ -1,0 +1,108 @@
+"""What is checked before any work: every setting's rule at once, the clip arithmetic, files named in the
+config, and the settings that are valid but probably not meant (warnings)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from dider.perf import native_bf16, trains_on_cpu
+from dider.protocol import horizons_problem
+from dider.validation import RULES, ConfigError, problem
+
+log = logging.getLogger(__name__)
+
+MODES = ("train", "eval", "predict")
+
+# The key holding the clip length of each data module that knows it from its config alone.
+CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Check the values that would otherwise fail late (after data preparation, or mid-training), before any
+    work: raises :class:`ConfigError` listing every problem by its key."""
+    problems: list[str] = []
+
+    def get(key: str) -> Any:
+        try:
+            return OmegaConf.select(cfg, key, default=None, throw_on_resolution_failure=True)
+        except Exception as e:  # an interpolation that cannot resolve, e.g. a missing environment variable
+            problems.append(f"{key}: cannot resolve ({e})")
+            return None
+
+    for key in RULES:  # the rules every constructor applies too, here all at once before any work
+        value = get(key)
+        if value is not None and (found := problem(key, value)) is not None:
+            problems.append(found)
+    mode = get("mode")
+    if mode not in MODES:
+        problems.append(f"mode={mode!r}: expected one of {list(MODES)}")
+    ckpt = get("ckpt_path")
+    if mode in ("eval", "predict") and not ckpt:
+        problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
+    if mode == "predict" and ckpt == "last":
+        problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's checkpoint "
+                        "file (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
+    for key in ("predict.forecast_steps", "predict.burn_in"):
+        value = get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            problems.append(f"{key}={value!r}: must be an integer >= 1 (or null)")
+    if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
+
+    clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
+    clip = get(clip_key) if clip_key else None
+    for section in ("data", "model"):
+        burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
+        burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
+        if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
+            problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
+        horizons = get(f"{section}.horizons")
+        if horizons is None:
+            continue
+        longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
+        longest = longest if longest is not None and longest >= 1 else None  # else burn_in is reported above
+        context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
+        if (found := horizons_problem(horizons, longest, f"{section}.horizons", context)) is not None:
+            problems.append(found)
+
+    for key, kind in (("data.root", "folder"), ("data.path", "file")):
+        value = get(key)
+        if value is None:
+            continue
+        path = Path(str(value)).expanduser()
+        if not (path.is_dir() if kind == "folder" else path.is_file()):
+            problems.append(f"{key}={value}: no such {kind}")
+
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    for warning in config_warnings(cfg):
+        log.warning(warning)
+
+
+# The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
+TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
+                  "optimized_metric", "predict", "data", "model", "trainer", "logger", "callbacks", "hydra",
+                  "hparams_search", "edges_per_model"}
+
+
+def config_warnings(cfg: DictConfig) -> list[str]:
+    """Settings that are valid but probably not meant, each named: a run that trains nothing, a burn-in the
+    model and the data disagree on, top-level keys nothing reads (a `+key=value` typo)."""
+    found = []
+    if cfg.get("mode") == "train" and OmegaConf.select(cfg, "trainer.max_epochs") == 0:
+        found.append("trainer.max_epochs=0: nothing is trained; the test scores the initial weights")
+    model_b, data_b = OmegaConf.select(cfg, "model.burn_in"), OmegaConf.select(cfg, "data.burn_in")
+    if model_b is not None and data_b is not None and model_b != data_b:
+        found.append(f"model.burn_in={model_b} differs from data.burn_in={data_b}: the model forecasts after "
+                     f"{model_b} frames, the data module's horizons count from {data_b}")
+    precision, accelerator = OmegaConf.select(cfg, "trainer.precision"), OmegaConf.select(cfg, "trainer.accelerator")
+    if "bf16" in str(precision) and trains_on_cpu(accelerator) and not native_bf16("cpu"):
+        found.append(f"trainer.precision={precision}: this CPU has no native bf16 (no AVX-512), so autocast "
+                     "emulates it, many times slower than fp32 (trainer.precision=32-true)")
+    if unknown := sorted(set(cfg.keys()) - TOP_LEVEL_KEYS):
+        found.append(f"{', '.join(unknown)}: top-level key(s) that nothing reads (a typo of {sorted(TOP_LEVEL_KEYS)}?)")
+    return found

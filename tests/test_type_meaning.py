@@ -1,0 +1,69 @@
+"""What each learned edge type means: pair features and per-type statistics against hand-computed values."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dider.type_meaning import (
+    PAIR_FEATURES,
+    TypeProfile,
+    degenerate_types,
+    pair_features,
+    profile_rows,
+    profile_values,
+)
+
+
+def two_agents() -> tuple[torch.Tensor, torch.Tensor]:
+    """Agent 0 at (0, 0) moving (1, 0), steady; agent 1 at (3, 4) moving (0, -2), then (0, -1). [1, 2, 2, 4]."""
+    states = torch.tensor([[[[0.0, 0, 1, 0], [3, 4, 0, -2]], [[1, 0, 1, 0], [3, 3, 0, -1]]]])
+    return states, torch.ones(1, 2, 2, dtype=torch.bool)
+
+
+def test_pair_features_by_hand() -> None:
+    """Edge 0 is 0 -> 1, edge 1 is 1 -> 0. Distance 5 both ways; relative velocity (-1, -2) against the offset
+    (3, 4): closing at (3 + 8) / 5 = 2.2; headings (1, 0) and (0, -2) are 90 degrees apart; the receiver's
+    velocity changes by |(0, 1)| = 1 on edge 0 (receiver 1) and by 0 on edge 1 (receiver 0)."""
+    features, present = pair_features(*two_agents())
+    assert features.shape == (1, 2, 1, len(PAIR_FEATURES)) and present.all()
+    torch.testing.assert_close(features[0, :, 0].float(), torch.tensor([[5.0, 2.2, 90.0, 1.0], [5.0, 2.2, 90.0, 0.0]]))
+
+
+def test_an_edge_step_needs_both_agents_and_the_receiver_next() -> None:
+    states, mask = two_agents()
+    mask[0, 1, 1] = False  # agent 1 gone at frame 1: edge 0 (its receiver) has no next velocity
+    assert pair_features(states, mask)[1][0, :, 0].tolist() == [False, True]
+    mask[0, 0, 0] = False  # agent 0 absent at frame 0: no pair at all
+    assert not pair_features(states, mask)[1].any()
+
+
+def test_type_profile_with_and_without_by_hand() -> None:
+    """Three present edge-steps: type 1 at distances 2 and 4, type 0 at 9; one absent step (distance 100) never
+    counts. Type 1: share 2/3, distance 3 while it holds, 9 over the others; type 2 never holds (NaN)."""
+    features = torch.zeros(1, 4, 1, len(PAIR_FEATURES))
+    features[0, :, 0, 0] = torch.tensor([2.0, 4.0, 9.0, 100.0])
+    types = torch.tensor([1, 1, 0, 1]).view(1, 4, 1)
+    present = torch.tensor([True, True, True, False]).view(1, 4, 1)
+    metric = TypeProfile(3)
+    metric.update(types[:, :2], features[:, :2], present[:, :2])  # two batches add up
+    metric.update(types[:, 2:], features[:, 2:], present[:, 2:])
+    share, with_, without = metric.compute()
+    torch.testing.assert_close(share, torch.tensor([1 / 3, 2 / 3, 0.0]))
+    torch.testing.assert_close(with_[:2, 0], torch.tensor([9.0, 3.0]))
+    torch.testing.assert_close(without[:, 0], torch.tensor([3.0, 9.0, 5.0]))
+    assert with_[2].isnan().all()
+    values = {k: float(v) for k, v in profile_values("test", metric).items()}
+    assert values["test/type1/distance"] == pytest.approx(3.0) and values["test/type1/others/distance"] == 9.0
+    rows = profile_rows(values, "test")
+    assert [r["type"] for r in rows] == [0, 1, 2] and rows[1]["share"] == pytest.approx(2 / 3)
+    assert rows[0]["others_distance"] == pytest.approx(3.0)
+
+
+def test_degenerate_types_are_named_with_their_share() -> None:
+    fine = {"test/type0/share": 0.8, "test/type1/share": 0.2}
+    assert degenerate_types(fine, "test") is None
+    assert degenerate_types({}, "test") is None
+    warning = degenerate_types({"test/type0/share": 0.999, "test/type1/share": 0.001, "test/type1/distance": 3.0},
+                               "test")
+    assert warning is not None and "type 0 on 99.90%, type 1 on 0.10%" in warning and "sparsity" in warning
