@@ -297,8 +297,9 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         if not cols:
             continue
         # one family per horizon (mse/h01, mse/h15...): the horizons name the columns; else the whole names
-        one_family = len({m.rsplit("/", 1)[0] for m in cols}) == 1
-        names = [m.rsplit("/", 1)[-1] if one_family else m.removeprefix("test/") for m in cols]
+        by_horizon = len({m.rsplit("/", 1)[0] for m in cols}) == 1 and all(
+            re.fullmatch(r"h\d+", m.rsplit("/", 1)[-1]) for m in cols)
+        names = [m.rsplit("/", 1)[-1] if by_horizon else m.removeprefix("test/") for m in cols]
         lines += [f"## {title}", "", "| " + " | ".join([*keys, "n", *names]) + " |",
                   "|" + "---|" * (len(keys) + 1 + len(cols))]
         for g in s.groups:

@@ -428,7 +428,7 @@ class RelationalVAE(nn.Module):
         if decoder is not None:
             edges = torch.zeros(x.shape[0], x.shape[2] * (x.shape[2] - 1), burn_in + steps - 1, dtype=torch.long,
                                 device=x.device)
-        return self.rollout(x[:, :burn_in], mask, burn_in, steps, edges, decoder)[0]
+        return self.rollout(x[:, :burn_in], mask, burn_in, steps, edges=edges, decoder=decoder)[0]
 
     def forward(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global"
