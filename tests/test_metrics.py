@@ -596,6 +596,8 @@ def test_displacement_values_and_the_verdict_against_constant_velocity() -> None
     assert beats and "h01 0.50x, h02 0.75x" in text
     text, beats = cv_verdict(out | {"test/ade_vs_cv/h02": 1.5})
     assert not beats and "NOT better than constant velocity at h02" in text
+    text, beats = cv_verdict(out | {"test/ade_vs_cv/h01": 1.5})  # one step ahead only: judged at the longest
+    assert beats and "at h02 but not at h01" in text
     assert cv_verdict({"test/mse/h01": 1.0}) is None
     assert list(leading_first(["test/mse/h01", "test/cv/ade/h01", "test/ade_vs_cv/h01", "test/ade/h01"])) == [
         "test/ade_vs_cv/h01", "test/ade/h01", "test/cv/ade/h01", "test/mse/h01"]

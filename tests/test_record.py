@@ -55,3 +55,12 @@ def test_training_metrics_come_from_the_csv_log(tmp_path):
                    "--metric", "val/x", "--metric", "test/mse/h15"])
     assert record["jobs"][0]["metrics"] == {"test/mse/h15": 1.0, "train/segments/steps_per_segment": 4.5,
                                             "val/x": 7.0}
+
+
+def test_curves_keep_a_metric_over_the_epochs(tmp_path):
+    fake_job(tmp_path, "j1", "dnri", 1, 1.0)
+    (tmp_path / "j1" / "csv").mkdir()
+    (tmp_path / "j1" / "csv" / "metrics.csv").write_text(
+        "epoch,step,val/mse/h01,train/loss\n0,9,0.5,\n0,9,,3\n1,19,0.25,\n")
+    record = main([str(tmp_path), "--out", str(tmp_path / "r.json"), "--curve", "val/mse/h01", "--curve", "x"])
+    assert record["jobs"][0]["curves"] == {"val/mse/h01": [[0, 9, 0.5], [1, 19, 0.25]]}

@@ -120,3 +120,11 @@ def test_train_then_predict_on_another_half(make_cfg, tmp_path):
     assert {"segments.csv", "clips.npz", "types.csv", "forecast_scores.json"} <= written
     scores = json.loads((tmp_path / "pred" / "predictions" / "forecast_scores.json").read_text())
     assert 0 < scores["predict/cv/ade/h05"] < 5.0  # metres after 0.8 s
+
+
+def test_kloppy_sample_finds_the_files_kloppy_ships():
+    from dider.data.soccer import kloppy_sample
+
+    assert Path(kloppy_sample("tracab_meta.xml")) == FILES / "tracab_meta.xml"
+    with pytest.raises(FileNotFoundError, match=r"kloppy_sample:nope.xml: kloppy .* ships no such sample"):
+        kloppy_sample("nope.xml")

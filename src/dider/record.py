@@ -1,13 +1,14 @@
 """A committed record of sweeps: every job's metrics, per-model summaries and differences paired by seed.
 
     python -m dider.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
-        [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...]
+        [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...] [--curve val/mse/h01 ...]
 
 Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), and for ``train/`` and
 ``val/`` metrics the last value the job's CSV log (``csv/metrics.csv``, ``logger=csv``) holds; keys it by its
-model's name and seed, and writes one JSON file: the jobs, and per model the mean, sample std, min and max of each
-metric and, against ``--baseline``, the mean and standard error of the difference model - baseline over the
-seeds both have. The documentation quotes these files, so each of its figures comes with its record.
+model's name and seed (with ``--curve``, a metric's course over the epochs too), and writes one JSON file: the
+jobs, and per model the mean, sample std, min and max of each metric and, against ``--baseline``, the mean and
+standard error of the difference model - baseline over the seeds both have. The documentation quotes these
+files, so each of its figures comes with its record.
 """
 
 from __future__ import annotations
@@ -61,6 +62,21 @@ def last_logged(folder: Path, names: Sequence[str]) -> dict[str, float]:
     return found
 
 
+def logged_curves(folder: Path, names: Sequence[str]) -> dict[str, list[list[float]]]:
+    """Each of ``names`` over training from the job's CSV log: [[epoch, step, value], ...] of the rows that hold
+    it; {} without a log."""
+    path = folder / "csv" / "metrics.csv"
+    if not names or not path.is_file():
+        return {}
+    curves: dict[str, list[list[float]]] = {k: [] for k in names}
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            for k in names:
+                if row.get(k) not in (None, ""):
+                    curves[k].append([int(row["epoch"]), int(row["step"]), float(row[k])])
+    return {k: v for k, v in curves.items() if v}
+
+
 def summary(values: list[float]) -> dict[str, float]:
     n = len(values)
     mean = sum(values) / n
@@ -81,15 +97,18 @@ def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, flo
 
 
 def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,
-          label: str = "name", by_overrides: bool = True) -> dict[str, Any]:
+          label: str = "name", by_overrides: bool = True, curves: Sequence[str] = ()) -> dict[str, Any]:
     jobs = []
     for folder in job_folders(paths):
         record = json.loads((folder / "metrics.json").read_text())
         model = record.get("config", {}).get("model", {})
-        jobs.append({"folder": str(folder), "model": model.get(label, record.get("model")), "seed": record["seed"],
-                     "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")],
-                     "metrics": {k: record["metrics"][k] for k in metrics if k in record["metrics"]}
-                     | last_logged(folder, [k for k in metrics if k.startswith(("train/", "val/"))])})
+        kept = {k: record["metrics"][k] for k in metrics if k in record["metrics"]}
+        kept |= last_logged(folder, [k for k in metrics if k.startswith(("train/", "val/"))])
+        job = {"folder": str(folder), "model": model.get(label, record.get("model")), "seed": record["seed"],
+               "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")], "metrics": kept}
+        if curves:
+            job["curves"] = logged_curves(folder, curves)
+        jobs.append(job)
     # a job's group: its model's name and the overrides that not every job shares (besides model= itself)
     common = set.intersection(*(set(j["overrides"]) for j in jobs))
     for job in jobs if by_overrides else ():
@@ -119,11 +138,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--metric", action="append", help="a metric to keep (repeatable; default: a standard set)")
     parser.add_argument("--label", default="name", help="the model config key that names a job's model "
                         "(default: name)")
+    parser.add_argument("--curve", action="append", default=[], help="a training or validation metric to keep "
+                        "over the epochs, from each job's CSV log (repeatable)")
     parser.add_argument("--by-name", action="store_true", help="group jobs by their model's name alone, not by "
                         "the overrides that differ between them (sweeps of one configuration run apart)")
     args = parser.parse_args(argv)
     record = build(args.paths, args.metric or DEFAULT_METRICS, args.baseline, args.command, args.label,
-                   by_overrides=not args.by_name)
+                   by_overrides=not args.by_name, curves=args.curve)
     atomic_write_text(args.out, json.dumps(record, indent=1))
     for name, per_metric in record["models"].items():
         cells = [f"{k.removeprefix('test/')} {v['mean']:.4g}" for k, v in per_metric.items()
