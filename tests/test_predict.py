@@ -222,7 +222,7 @@ def test_predict_config_errors_name_the_key(tmp_path, overrides, key):
 def test_readme_example_runs(run, new_data):
     block = re.search(r"```python\n(import numpy as np\nimport dider\n.*?)```", README.read_text(), re.S)
     assert block, "README: the 'use a trained model' example is missing"
-    code = block.group(1).replace('"runs/2026-11-23/10-00-00"', repr(str(run))).replace('"new.npz"',
+    code = block.group(1).replace('"runs/RUN"', repr(str(run))).replace('"new.npz"',
                                                                                        repr(str(new_data[0])))
     scope: dict[str, object] = {}
     exec(compile(code, "README.md", "exec"), scope)

@@ -4,7 +4,7 @@ The checkpoint describes itself (the model config, the data's normaliser and fea
 version), so new trajectories are read the way the training data were, with no data module and no
 training data::
 
-    model = dider.load("runs/2026-11-23/10-00-00")          # a run folder or a .ckpt file
+    model = dider.load("runs/RUN")        # a run folder or a .ckpt file
     segs = model.segments(positions, frame_rate=2.5)        # pandas DataFrame, one row per segment
     future = model.forecast(positions, burn_in=5, steps=20)  # [S, 20, N, 2] positions
 

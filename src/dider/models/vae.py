@@ -12,19 +12,19 @@ R LSTM width, P predicted steps.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torch import nn
 
 from dider.graph import edge_mask
 from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_nll
 from dider.models.hazard import hold_assignment
+from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation, entries, forced_boundaries
@@ -34,40 +34,6 @@ from dider.validation import require
 LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit")
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
-
-
-@dataclass
-class Inference:
-    """Result of the teacher-forced pass over a clip."""
-
-    pred: torch.Tensor  # [B, T-1, N, D] predictions of x_1..x_{T-1}
-    posterior_logits: torch.Tensor  # [B, E, S, K] per segment
-    prior_logits: torch.Tensor  # [B, E, S, K] per segment
-    probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
-    step_logits: torch.Tensor  # [B, E, T-1, K] per-step posterior logits (before segmentation)
-    seg: Segmentation
-    h_fwd: torch.Tensor  # [B, E, T-1, R]
-    nll: torch.Tensor  # [B]
-    kl_edge: torch.Tensor  # [B]
-    kl_duration: torch.Tensor  # [B]
-    prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
-
-    def posterior_types(self) -> torch.Tensor:
-        """[B, E, T-1] long: the argmax type of each step's segment."""
-        one_hot = F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()
-        return self.seg.spread(one_hot).argmax(-1)
-
-
-def plain_config(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
-    """A model config as a plain, resolved dict (what checkpoints keep: they load with weights_only)."""
-    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
-
-
-def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
-    """Edge types from logits [..., K] -> [...] long: a categorical draw (Gumbel-max) or the argmax."""
-    if sample:
-        logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
-    return logits.argmax(-1)
 
 
 class RelationalVAE(nn.Module):
@@ -422,12 +388,9 @@ class RelationalVAE(nn.Module):
         burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D].
         ``decoder``: another decoder under the same protocol (as in :meth:`rollout`), which reads no edges:
         the model's encoder and prior are left alone (and draw nothing)."""
-        future = mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)
-        mask = torch.cat([mask[:, :burn_in], future], dim=1)
-        edges = None
-        if decoder is not None:
-            edges = torch.zeros(x.shape[0], x.shape[2] * (x.shape[2] - 1), burn_in + steps - 1, dtype=torch.long,
-                                device=x.device)
+        mask = torch.cat([mask[:, :burn_in], mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)], dim=1)
+        n = x.shape[2]
+        edges = None if decoder is None else x.new_zeros(x.shape[0], n * (n - 1), burn_in + steps - 1, dtype=torch.long)
         return self.rollout(x[:, :burn_in], mask, burn_in, steps, edges=edges, decoder=decoder)[0]
 
     def forward(

@@ -1,0 +1,51 @@
+"""What the relational VAE's teacher-forced pass returns (:class:`Inference`), and the small helpers that its
+callers share: a model config as a plain dict, edge types from logits.
+
+Shapes: B batch, T frames, N agents, D features, E edges, K edge types, S segment slots, R LSTM width.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from omegaconf import DictConfig, OmegaConf
+
+from dider.models.segments import Segmentation
+
+
+@dataclass
+class Inference:
+    """Result of the teacher-forced pass over a clip."""
+
+    pred: torch.Tensor  # [B, T-1, N, D] predictions of x_1..x_{T-1}
+    posterior_logits: torch.Tensor  # [B, E, S, K] per segment
+    prior_logits: torch.Tensor  # [B, E, S, K] per segment
+    probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
+    step_logits: torch.Tensor  # [B, E, T-1, K] per-step posterior logits (before segmentation)
+    seg: Segmentation
+    h_fwd: torch.Tensor  # [B, E, T-1, R]
+    nll: torch.Tensor  # [B]
+    kl_edge: torch.Tensor  # [B]
+    kl_duration: torch.Tensor  # [B]
+    prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
+
+    def posterior_types(self) -> torch.Tensor:
+        """[B, E, T-1] long: the argmax type of each step's segment."""
+        one_hot = F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()
+        return self.seg.spread(one_hot).argmax(-1)
+
+
+def plain_config(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """A model config as a plain, resolved dict (what checkpoints keep: they load with weights_only)."""
+    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+
+
+def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
+    """Edge types from logits [..., K] -> [...] long: a categorical draw (Gumbel-max) or the argmax."""
+    if sample:
+        logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
+    return logits.argmax(-1)
