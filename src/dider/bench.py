@@ -53,6 +53,7 @@ from omegaconf import DictConfig
 from torch import nn
 
 from dider.bench_memory import largest_agents
+from dider.bench_outputs import time_outputs
 from dider.bench_result import JOBS, time_to_result
 from dider.bench_summary import plot, summary
 from dider.io import atomic_write_text
@@ -72,13 +73,14 @@ class Case:
     iters: int = 5
     warmup: int = 2
     settings: dict[str, Any] = field(default_factory=dict)
-    kind: str = "train"  # train | rollout | generate | preprocess | load | gemm | largest | result
+    kind: str = "train"  # train | rollout | generate | preprocess | load | outputs | gemm | largest | result
 
 
 # The encoder's edge-MLP matmul at batch 128, N = 3, T = 50: [B*T*E, 256] x [256, 256].
 GEMM_SHAPE = (128 * 50 * 6, 256, 256)
 
 SCALE_AGENTS = (3, 5, 10, 20, 50)
+OUTPUT_AGENTS = (40, 100)
 SCALE_STEPS = (50, 100, 200)
 # The scaling series: DNRI's step with narrower networks (N = 50 has 2450 edges; full width would need
 # tens of GB), so the growth in N and T shows, not the constant.
@@ -144,6 +146,8 @@ def cases() -> list[Case]:
     for workers in (0, 2):
         out.append(Case(f"load/synth/workers{workers}", [], 128, 3, 50, iters=1, warmup=0, kind="load",
                         settings={"num_workers": workers}))
+    for n in OUTPUT_AGENTS:  # the end-of-run outputs of a test set of 64 clips (step_s: all of them)
+        out.append(Case(f"outputs/N{n:03d}", [], 64, n, 50, iters=1, warmup=0, kind="outputs"))
     for n in SCALE_AGENTS:
         out.append(Case(f"scale/agents/N{n:02d}", SCALE_MODEL, 8, n, 50, iters=3, warmup=1))
     for t in SCALE_STEPS:
@@ -509,6 +513,9 @@ def _data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict
         return _timed(lambda: simulate_push(case.batch, case.steps, seed=0), case.iters, case.warmup, device), {}
     if case.kind == "preprocess":
         return benchmark_preprocess(tmpdir, minutes=20.0, num_tracks=case.agents), {"unit": "recordings"}
+    if case.kind == "outputs":
+        record = time_outputs(case.agents, clips=case.batch, steps=case.steps, tmpdir=tmpdir)
+        return record["seconds"]["total"] / case.batch, {"seconds": record["seconds"], "edges": record["edges"]}
     # load: one epoch of the synthetic training loader (2000 clips) with the given workers
     from dider.data.synth import SynthDataModule
 

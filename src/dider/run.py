@@ -37,6 +37,7 @@ from dider.preflight import validate_config
 from dider.runfolder import RunLock, check_checkpoint, check_fresh, is_rank_zero, mark_failed, resolve_ckpt
 from dider.trained import load, training_settings
 from dider.validation import ConfigError
+from dider.viz import draw_figures
 
 log = logging.getLogger(__name__)
 
@@ -279,10 +280,9 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
         print(f"\n{format_table(metrics)}\n")
         if verdict := cv_verdict(metrics):
             (log.info if verdict[1] else log.warning)(verdict[0])
-        print(f"metrics: {out_dir / 'metrics.json'}")
-        figs = out_dir / "figures"
-        if figs.exists():
-            print(f"figures: {figs}  (TensorBoard: tensorboard --logdir {out_dir})")
+        print(f"metrics: {out_dir / 'metrics.json'}", flush=True)
+    if figures := draw_figures(trainer, model):  # after the results: a figure never costs them
+        print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir {out_dir})")
     return metrics, objective
 
 

@@ -4,6 +4,7 @@ clip's trajectories with its interaction segments drawn between the agents (over
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 from typing import Any
 
@@ -15,32 +16,59 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger  # noqa: E402
+from matplotlib.collections import LineCollection  # noqa: E402
 
 from dider.graph import edge_index, num_agents  # noqa: E402
+from dider.io import atomic_write  # noqa: E402
 
 log = logging.getLogger(__name__)
 
 
-def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = "") -> plt.Figure:
-    """One panel per edge, one band per source (ground truth, posterior, prior...), coloured by type.
+def shown_edges(rows: dict[str, torch.Tensor], max_edges: int) -> torch.Tensor:
+    """The edges a timeline draws: all when there are at most ``max_edges``, else the ``max_edges`` with the
+    most interaction steps (a type above 0 in any row), in edge order.
 
-    rows: name -> [E, T] long edge types of one clip.
+    rows: name -> [E, T] long edge types (-1 absent) -> [K] edge indices.
+    """
+    e = next(iter(rows.values())).shape[0]
+    if e <= max_edges:
+        return torch.arange(e)
+    busy = sum((r > 0).sum(-1) for r in rows.values())  # [E]
+    # a stable order: ties (e.g. no interaction at all) keep the lower edge index
+    order = torch.argsort(busy * e + (e - 1 - torch.arange(e)), descending=True)
+    return order[:max_edges].sort().values
+
+
+def timeline_figure(rows: dict[str, torch.Tensor], num_types: int, title: str = "",
+                    max_edges: int = 12) -> plt.Figure:
+    """One band per shown edge (:func:`shown_edges`), one row per source (ground truth, posterior, prior...),
+    coloured by type, absent steps white; drawn as one image, so its cost does not grow with the edges.
+
+    rows: name -> [E, T] long edge types of one clip (-1 where the edge is absent).
     """
     names = list(rows)
     e, t = next(iter(rows.values())).shape
     n = num_agents(e)
     send, recv = edge_index(n)
-    cmap = plt.get_cmap("tab10", max(num_types, 2))
-    fig, axes = plt.subplots(e, 1, figsize=(8, 0.35 * len(names) * e + 1), sharex=True, squeeze=False)
-    for k, ax in enumerate(axes[:, 0]):
-        img = np.stack([rows[name][k].numpy() for name in names])
-        ax.imshow(img, aspect="auto", cmap=cmap, vmin=-0.5, vmax=max(num_types, 2) - 0.5, interpolation="nearest")
-        ax.set_yticks(range(len(names)), names, fontsize=7)
-        ax.set_ylabel(f"{send[k].item()}→{recv[k].item()}", rotation=0, ha="right", va="center", fontsize=8)
-    axes[-1, 0].set_xlabel("transition t → t+1")
+    shown = shown_edges(rows, max_edges)
+    r = len(names)
+    # band k: rows k * (r + 1) ... + r - 1, then a blank separator row
+    stacked = torch.stack([rows[name][shown] for name in names], 1).float()  # [K, R, T]
+    img = torch.cat([stacked, torch.full((len(shown), 1, t), float("nan"))], 1).reshape(-1, t)[:-1].numpy()
+    img[img < 0] = np.nan
+    cmap = plt.get_cmap("tab10", max(num_types, 2)).with_extremes(bad="white")
+    fig, ax = plt.subplots(figsize=(8, 0.16 * len(img) + 1.2))
+    ax.imshow(img, aspect="auto", cmap=cmap, vmin=-0.5, vmax=max(num_types, 2) - 0.5, interpolation="nearest")
+    ticks = [k * (r + 1) + j for k in range(len(shown)) for j in range(r)]
+    labels = [f"{send[i].item()}→{recv[i].item()}  {name}" if j == 0 else name
+              for i in shown.tolist() for j, name in enumerate(names)]
+    ax.set_yticks(ticks, labels, fontsize=6)
+    ax.set_xlabel("transition t → t+1")
     handles = [plt.Rectangle((0, 0), 1, 1, color=cmap(c)) for c in range(num_types)]
-    labels = ["0: none"] + [f"{c}" for c in range(1, num_types)]
-    fig.legend(handles, labels, loc="upper right", ncol=num_types, fontsize=7, title="edge type", title_fontsize=7)
+    legend = ["0: none"] + [f"{c}" for c in range(1, num_types)]
+    fig.legend(handles, legend, loc="upper right", ncol=num_types, fontsize=7, title="edge type", title_fontsize=7)
+    if len(shown) < e:
+        title = f"{title}: {len(shown)} of {e} edges, those with the most interaction steps"
     fig.suptitle(title, fontsize=9, x=0.02, ha="left")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
     return fig
@@ -69,18 +97,22 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
     both = (alive[:, send.numpy()] & alive[:, recv.numpy()]).T  # [E, T-1]
     e_idx, step = np.nonzero((types.numpy() > 0) & both)
     frame = step + 1
-    for c in range(1, num_types):  # one collection per type: few artists however long the clip
+    for c in range(1, num_types):  # one collection per type: one artist however many edges and steps
         keep = types.numpy()[e_idx, step] == c
         if keep.any():
             a, b = pos[frame[keep], send[e_idx[keep]].numpy()], pos[frame[keep], recv[e_idx[keep]].numpy()]
-            ax.plot(np.stack([a[:, 0], b[:, 0]]), np.stack([a[:, 1], b[:, 1]]), color=cmap(c), alpha=0.35,
-                    lw=1.0, zorder=1)
-    for i in range(n):
-        xy = pos[present[:, i], i]
-        if len(xy):
-            ax.plot(xy[:, 0], xy[:, 1], color="k", lw=1.2, zorder=2)
-            ax.scatter(xy[:1, 0], xy[:1, 1], s=12, color="k", zorder=3)
-            ax.annotate(str(i), xy[-1], fontsize=7, zorder=3)
+            ax.add_collection(LineCollection(np.stack([a, b], 1), colors=[cmap(c)], alpha=0.35, lw=1.0, zorder=1))
+    # every agent's path in one collection: a step is drawn where the agent is present at both ends
+    walk = np.stack([pos[:-1], pos[1:]], 2)[present[:-1] & present[1:]]  # [P, 2, 2]
+    ax.add_collection(LineCollection(walk, colors="k", lw=1.2, zorder=2))
+    seen = present.any(0)
+    first, last = present.argmax(0), t - 1 - present[::-1].argmax(0)  # [N] each agent's first and last frame
+    agents = np.flatnonzero(seen)
+    ax.scatter(pos[first[agents], agents, 0], pos[first[agents], agents, 1], s=12, color="k", zorder=3)
+    if len(agents) <= 40:  # beyond that the numbers cover the paths
+        for i in agents:
+            ax.annotate(str(i), pos[last[i], i], fontsize=7, zorder=3)
+    ax.autoscale_view()
     handles = [plt.Line2D([], [], color=cmap(c), lw=2) for c in range(1, num_types)]
     ax.legend(handles, [f"type {c}" for c in range(1, num_types)], fontsize=7, loc="best")
     ax.set_aspect("equal", adjustable="datalim")
@@ -89,9 +121,9 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
     return fig
 
 
-def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> None:
-    """Save ``fig`` as ``path`` and send it to every logger that takes images."""
-    fig.savefig(path, dpi=100)
+def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> Path:
+    """Save ``fig`` as ``path`` and send it to every logger that takes images -> ``path``."""
+    atomic_write(path, lambda f: fig.savefig(f, dpi=100, format="png"))
     for lg in trainer.loggers:
         if isinstance(lg, TensorBoardLogger):
             lg.experiment.add_figure(tag, fig, global_step=trainer.global_step, close=False)
@@ -100,17 +132,22 @@ def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> None:
         elif isinstance(lg, WandbLogger):
             lg.log_image(key=tag, images=[str(path)])
     plt.close(fig)
+    return path
 
 
 class TimelineFigures(L.Callback):
-    """After testing, draws the timelines and the trajectories of the first ``num_clips`` test clips into
-    TensorBoard and ``output_dir`` (the test loader is not shuffled, so these are the test set's first
-    clips), from the per-clip outputs that ``test_step`` returns for the first batch."""
+    """The timelines and the trajectories of the first ``num_clips`` test clips, into TensorBoard and
+    ``output_dir`` (the test loader is not shuffled, so these are the test set's first clips), from the
+    per-clip outputs that ``test_step`` returns for the first batch.
+
+    The test only keeps the clips; :meth:`draw` draws them, which the app calls once the results are on
+    disk, so a figure never delays or costs them. Drawing stops after ``budget_s`` seconds."""
 
     LABELS = {"truth": "truth", "per_step": "per step", "segments": "segments", "prior": "prior (online)"}
 
-    def __init__(self, output_dir: str, num_clips: int = 4) -> None:
+    def __init__(self, output_dir: str, num_clips: int = 4, max_edges: int = 12, budget_s: float = 120.0) -> None:
         self.output_dir, self.num_clips = Path(output_dir), num_clips
+        self.max_edges, self.budget_s = max_edges, budget_s
         self.clips: dict[str, torch.Tensor] = {}
 
     def on_test_epoch_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
@@ -121,34 +158,52 @@ class TimelineFigures(L.Callback):
         if batch_idx != 0 or not isinstance(outputs, dict) or self.num_clips < 1:
             return
         k = self.num_clips
-        self.clips = {key: outputs[key][:k].cpu() for key in ("segments", "prior", "per_step")}
+        absent = outputs["segments"][:k].cpu() < 0  # every row shows an absent edge-step as such
+        self.clips = {key: outputs[key][:k].cpu().masked_fill(absent, -1) for key in ("segments", "prior", "per_step")}
         self.clips |= {"states": batch["states"][:k].cpu(), "mask": batch["mask"][:k].cpu(),
                        # test-set index of each clip: rank r of W holds clips r, r + W, ... under DDP
                        "index": torch.arange(len(self.clips["segments"])) * trainer.world_size + trainer.global_rank}
         if "edges" in batch:
-            self.clips["truth"] = batch["edges"][:k].transpose(1, 2).cpu()
+            self.clips["truth"] = batch["edges"].transpose(1, 2)[:k].cpu().masked_fill(absent, -1)
 
-    def on_test_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def draw(self, trainer: L.Trainer, pl_module: L.LightningModule) -> list[Path]:
+        """Draws the kept clips (rank zero only) -> the PNGs written. A failure is logged, never raised:
+        figures are an extra."""
         if not self.clips or not trainer.is_global_zero:
-            return
+            return []
+        written: list[Path] = []
         try:
-            self._draw(trainer, pl_module)
-        except Exception as e:  # figures are an extra: a failure here must never cost the run its results
+            self._draw(trainer, pl_module, written)
+        except Exception as e:
             log.warning("test figures not drawn (%s: %s); the metrics and exports are unaffected", type(e).__name__, e)
+        finally:
+            self.clips = {}
+        return written
 
-    def _draw(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+    def _draw(self, trainer: L.Trainer, pl_module: L.LightningModule, written: list[Path]) -> None:
         data = self.clips
         self.output_dir.mkdir(parents=True, exist_ok=True)
         num_types = pl_module.model.num_types
         dm = getattr(trainer, "datamodule", None)
         norm = getattr(dm, "normalizer", None)
+        started = time.perf_counter()
         for i in range(data["segments"].shape[0]):
+            if (spent := time.perf_counter() - started) > self.budget_s:
+                log.warning("test figures: stopped after %d of %d clips (%.0f s, budget %g s)", i,
+                            data["segments"].shape[0], spent, self.budget_s)
+                return
             index = int(data["index"][i])
             rows = {label: data[key][i] for key, label in self.LABELS.items() if key in data}
-            fig = timeline_figure(rows, num_types, title=f"test clip {index}")
-            _add(trainer, f"test/timeline/{i:02d}", fig, self.output_dir / f"timeline_{i:02d}.png")
+            fig = timeline_figure(rows, num_types, title=f"test clip {index}", max_edges=self.max_edges)
+            written.append(_add(trainer, f"test/timeline/{i:02d}", fig, self.output_dir / f"timeline_{i:02d}.png"))
             states = norm.denormalize(data["states"][i]) if norm is not None else data["states"][i]
             background = dm.background("test", index) if dm is not None and hasattr(dm, "background") else None
             fig = trajectory_figure(states[..., :2], data["mask"][i], data["segments"][i], num_types,
                                     background, title=f"test clip {index}: interaction segments")
-            _add(trainer, f"test/trajectories/{i:02d}", fig, self.output_dir / f"trajectories_{i:02d}.png")
+            written.append(_add(trainer, f"test/trajectories/{i:02d}", fig,
+                                self.output_dir / f"trajectories_{i:02d}.png"))
+
+
+def draw_figures(trainer: L.Trainer, pl_module: L.LightningModule) -> list[Path]:
+    """Every figure callback's :meth:`TimelineFigures.draw`, after the results are written -> PNGs written."""
+    return [p for cb in trainer.callbacks if isinstance(cb, TimelineFigures) for p in cb.draw(trainer, pl_module)]
