@@ -69,8 +69,10 @@ def test_report_matches_jobs(sweep: Path, tmp_path: Path):
     assert "segments_per_edge" in md.split("\n## Segments")[1].split("\n## ")[0]
     assert (tmp_path / "horizons.png").stat().st_size > 0
     assert sorted(p.parent.name for p in tmp_path.glob("timelines/*/timeline_00.png")) == ["dider", "dnri"]
-    assert md.rstrip().endswith("## Failed or missing jobs\n\n(failed: a job folder without metrics.json, also while "
-                                "it still runs; missing: swept values that no job folder holds)\n\nnone")
+    assert md.rstrip().endswith("## Failed, missing or ignored jobs\n\n(failed: a job folder without metrics.json, "
+                                "also while it still runs; missing: swept values that no job folder holds; ignored: a "
+                                "finished run whose overrides are not a job of this sweep, e.g. copied in, left out "
+                                "of the tables)\n\nnone")
 
 
 def test_runs_csv_has_one_row_per_job(sweep: Path, tmp_path: Path):
@@ -124,6 +126,20 @@ def fake_sweep(root: Path, params: dict[str, str], jobs: list[tuple[str, int, in
                   "config": {"model": {"num_edges": e}}}
         (job / "metrics.json").write_text(json.dumps(record))
     return root
+
+
+def test_a_run_copied_into_a_sweep_is_left_out_and_named(tmp_path: Path):
+    jobs = [("dnri", 2, seed) for seed in (1, 2)]
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "other").mkdir()
+    sweep = fake_sweep(tmp_path / "sweep", {"model": "dnri", "seed": "1,2"}, jobs)
+    other = fake_sweep(tmp_path / "other", {"model": "dnri", "seed": "7"}, [("dnri", 2, 7)])
+    shutil.copytree(other / "model=dnri,e=2,seed=7", sweep / "copied")
+    summary = report.main([str(sweep), "--out", str(tmp_path / "out")])
+    assert [len(g.jobs) for g in summary.groups] == [2] and summary.missing == [] and summary.failed == []
+    assert summary.ignored == ["copied (its overrides are not a job of this sweep)"]
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "- ignored: `copied (its overrides are not a job of this sweep)`" in md
 
 
 def test_edge_ablation_plot(tmp_path: Path):

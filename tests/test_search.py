@@ -37,3 +37,19 @@ def test_two_trials_on_the_validation_objective(tmp_path, cache_dir):
 def test_bad_space_is_named(space, key):
     with pytest.raises(ValueError, match=key):
         check_space(space)
+
+
+def test_a_killed_search_goes_on_from_its_study(tmp_path, cache_dir):
+    """A search stopped after one trial, with a second one cut off (still RUNNING in its study), started again
+    with the same folder: the cut-off trial is marked failed, one new trial completes the two asked for."""
+    out = tmp_path / "search"
+    args = [*SMOKE, f"data.cache_dir={cache_dir}", "hparams_search=dider", f"hydra.run.dir={out}"]
+    search([*args, "hparams_search.n_trials=1"])
+    study = optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}")
+    study.ask()  # trial 1: what a killed search leaves behind
+    search([*args, "hparams_search.n_trials=2"])
+    trials = pd.read_csv(out / "search.csv")
+    assert list(trials["trial"]) == [0, 2] and trials["value"].notna().all()
+    study = optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}")
+    states = [t.state.name for t in study.trials]
+    assert states == ["COMPLETE", "FAIL", "COMPLETE"]

@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.table import TableDataModule
+from dider.data.table import SPLITS, TableDataModule
 
-# The hand fixture. Scene 'south' (first in the file): frames 0..5, agents amy and dan. Scene 'north':
+# The hand fixture. Scene 'east' (first in the file and by name): frames 0..5, agents amy and dan. Scene 'north':
 # frames 10..17, bob at every frame, amy at every frame but 13 (a gap), cat from frame 14 on.
 SPEED = {"amy": 1.0, "bob": 0.5, "cat": -1.0, "dan": 2.0}
 X0 = {"amy": 0.0, "bob": 10.0, "cat": 20.0, "dan": 5.0}
@@ -32,16 +32,16 @@ def position(agent: str, frame: float) -> tuple[float, float]:
 
 
 def hand_table() -> pd.DataFrame:
-    spans = [("south", "amy", range(0, 6)), ("south", "dan", range(0, 6)), ("north", "bob", range(10, 18)),
+    spans = [("east", "amy", range(0, 6)), ("east", "dan", range(0, 6)), ("north", "bob", range(10, 18)),
              ("north", "amy", [f for f in range(10, 18) if f != 13]), ("north", "cat", range(14, 18))]
     rows = [{"place": s, "who": a, "t": f, "px": position(a, f)[0], "py": position(a, f)[1],
              "vx": SPEED[a], "vy": -SPEED[a], "kind": "car" if a == "dan" else "pedestrian", "note": "x"}
             for s, a, frames in spans for f in frames]
     df = pd.DataFrame(rows)
-    # Rows out of order inside each scene (the reader sorts them), south's still first in the file.
+    # Rows out of order inside each scene (the reader sorts them), east's still first in the file.
     order = np.random.default_rng(0).permutation
-    south, north = df[df.place == "south"], df[df.place == "north"]
-    return pd.concat([south.iloc[order(len(south))], north.iloc[order(len(north))]], ignore_index=True)
+    east, north = df[df.place == "east"], df[df.place == "north"]
+    return pd.concat([east.iloc[order(len(east))], north.iloc[order(len(north))]], ignore_index=True)
 
 
 @pytest.fixture
@@ -80,14 +80,14 @@ def expected(agent: str, frames: list[int], vel: str = "diff", span: int = 1) ->
 
 def test_windows_stride_mask_and_velocities(table):
     dm, ds = windows(table)
-    # Differences drop each scene's first frame: south 1..5 (one window), north 11..17 (windows at 11, 13).
+    # Differences drop each scene's first frame: east 1..5 (one window), north 11..17 (windows at 11, 13).
     assert ds.sources["clip"].tolist() == [0, 1, 2]
     assert ds.sources["frame"].tolist() == [1, 11, 13]
-    assert ds.sources["scene"].tolist() == [0, 1, 1] and dm.source_names["scene"] == ["south", "north"]
+    assert ds.sources["scene"].tolist() == [0, 1, 1] and dm.source_names["scene"] == ["east", "north"]
     assert dm.source_names["agent"] == ["amy", "bob", "cat", "dan"]
     # Agents by id; cat (from frame 14, needs 13 for a velocity) is absent from the window at 11.
     assert ds.offsets.tolist() == [0, 2, 4, 7] and ds.agent_ids.tolist() == [0, 3, 0, 1, 0, 1, 2]
-    want_mask = [[1, 1, 1, 1], [1, 1, 1, 1],  # south: amy, dan
+    want_mask = [[1, 1, 1, 1], [1, 1, 1, 1],  # east: amy, dan
                  [1, 1, 0, 0], [1, 1, 1, 1],  # north at 11: amy misses 13 and 14 (14 needs 13), bob
                  [0, 0, 1, 1], [1, 1, 1, 1], [0, 0, 1, 1]]  # north at 13: amy, bob, cat (velocity from 15)
     assert ds.mask.int().tolist() == want_mask
@@ -103,13 +103,13 @@ def test_windows_stride_mask_and_velocities(table):
 
 def test_given_velocities_and_downsample(table):
     columns = {**COLUMNS, "vx": "vx", "vy": "vy"}
-    _, ds = windows(table, columns=columns)  # no step dropped: south 0..5, north 10..17
+    _, ds = windows(table, columns=columns)  # no step dropped: east 0..5, north 10..17
     assert ds.sources["frame"].tolist() == [0, 2, 10, 12, 14]
     lo = rows_of(ds, 2)  # north at 10: amy (absent at 13 only), bob; cat (from 14) is not in it
     assert ds.agent_ids[lo].tolist() == [0, 1] and ds.mask[lo].int().tolist() == [[1, 1, 1, 0], [1, 1, 1, 1]]
     torch.testing.assert_close(ds.states[lo][1], expected("bob", [10, 11, 12, 13], vel="given"))
     # downsample=2: north keeps frames 10, 12, 14, 16 (13 is skipped, amy has no gap); differences span 2
-    # frames at RATE / 2; south (0, 2, 4 -> 2 steps after the drop) is too short for seq_len=3.
+    # frames at RATE / 2; east (0, 2, 4 -> 2 steps after the drop) is too short for seq_len=3.
     dm, ds = windows(table, downsample=2, seq_len=3, horizons=(1,))
     assert ds.sources["frame"].tolist() == [12] and dm.frame_step == 2 and dm.dt == pytest.approx(1.0)
     assert ds.agent_ids.tolist() == [0, 1, 2] and ds.mask.int().tolist() == [[1, 1, 1], [1, 1, 1], [0, 0, 1]]
@@ -177,6 +177,22 @@ def table_of_scenes(path: Path, scenes: int, frames: int = 13, agents: int = 3) 
     pd.DataFrame({"place": 100 + grid[:, 0], "who": grid[:, 1], "t": grid[:, 2], "px": walk[:, 0],
                   "py": walk[:, 1]}).to_csv(path, index=False)
     return path
+
+
+def test_the_split_does_not_depend_on_the_rows_order(tmp_path):
+    """The same table with its rows shuffled across scenes: the same scenes in each split, the same windows."""
+    path = table_of_scenes(tmp_path / "t.csv", scenes=5)
+    shuffled = tmp_path / "shuffled.csv"
+    df = pd.read_csv(path)
+    df.iloc[np.random.default_rng(3).permutation(len(df))].to_csv(shuffled, index=False)
+    splits = []
+    for p in (path, shuffled):
+        dm = make_dm(p, stride=4)
+        dm.setup()
+        splits.append({s: (dm.datasets[s].sources["scene"].tolist(), dm.datasets[s].states) for s in SPLITS})
+    for s in SPLITS:
+        assert splits[0][s][0] == splits[1][s][0]
+        assert torch.equal(splits[0][s][1], splits[1][s][1])
 
 
 @pytest.mark.parametrize("scenes, by", [(5, "scene"), (2, "window")])
@@ -262,7 +278,7 @@ def test_bad_input(tmp_path, table):
     df = hand_table()
     pd.concat([df, df.iloc[[3]]], ignore_index=True).to_csv(p, index=False)
     who, t = df.who[3], df.t[3]
-    with pytest.raises(ValueError, match=rf"duplicate rows for \('place', 'who', 't'\) = \('south', '{who}', "
+    with pytest.raises(ValueError, match=rf"duplicate rows for \('place', 'who', 't'\) = \('east', '{who}', "
                                          rf"{t}\) on line 5 and line {len(df) + 2}"):
         windows(p)
     df.loc[df.who == "bob", "kind"] = ["car", *["pedestrian"] * 7]

@@ -138,12 +138,12 @@ def segment_frame(arrays: Mapping[str, torch.Tensor], frame_step: int = 1,
     send, recv = edge_index(num_agents(types.shape[1]))
     table: dict[str, Any] = {"clip": (arrays["clip"][pos] if "clip" in arrays else pos).numpy()}
     if "scene" in arrays:
-        table["scene"] = _named(arrays["scene"][pos], names.get("scene"))
+        table["scene"] = named(arrays["scene"][pos], names.get("scene"))
     table["sender"], table["receiver"] = send[edge].numpy(), recv[edge].numpy()
     if "agent" in arrays:
         ids = arrays["agent"]
-        table["sender_id"] = _named(ids[pos, send[edge]], names.get("agent"))
-        table["receiver_id"] = _named(ids[pos, recv[edge]], names.get("agent"))
+        table["sender_id"] = named(ids[pos, send[edge]], names.get("agent"))
+        table["receiver_id"] = named(ids[pos, recv[edge]], names.get("agent"))
     frame = pd.DataFrame(table)
     frame["segment"] = frame.groupby([pos.numpy(), edge.numpy()]).cumcount().to_numpy()
     start, end = rows[:, 2].long(), rows[:, 3].long()
@@ -157,7 +157,7 @@ def segment_frame(arrays: Mapping[str, torch.Tensor], frame_step: int = 1,
     return frame
 
 
-def _named(ids: torch.Tensor, names: Sequence[str] | None) -> np.ndarray:
+def named(ids: torch.Tensor, names: Sequence[str] | None) -> np.ndarray:
     """Integer ids, or their names when the input's ids were strings (codes into ``names``)."""
     values = ids.numpy()
     return values if names is None else np.asarray(names, dtype=object)[values]

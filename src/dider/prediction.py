@@ -21,7 +21,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Mapping
+import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,11 +30,13 @@ import lightning as L
 import pandas as pd
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dider.clips import (
     explore_arrays,
     explore_extras,
     gather_in_order,
+    named,
     segment_frame,
     split_clips,
     stack_clips,
@@ -46,25 +49,57 @@ from dider.type_meaning import degenerate_types, profile_rows
 log = logging.getLogger(__name__)
 
 
-def forecast_frame(arrays: Mapping[str, torch.Tensor], burn_in: int, frame_step: int = 1) -> pd.DataFrame:
+def forecast_frame(arrays: Mapping[str, torch.Tensor], burn_in: int, frame_step: int = 1,
+                   names: Mapping[str, Sequence[str]] | None = None) -> pd.DataFrame:
     """The forecast as a long table: one row per (clip, agent, predicted step) of an agent that carries on.
 
-    arrays: ``forecast`` [S, P, N, 2] in input units, ``mask`` [S, T, N], optional ``clip`` [S], ``agent``
-    [S, N], ``frame`` [S]. The first predicted step is the clip's frame ``burn_in``."""
+    arrays: ``forecast`` [S, P, N, 2] in input units, ``mask`` [S, T, N], optional ``clip`` [S], ``scene``
+    [S], ``agent`` [S, N], ``frame`` [S]; names: key -> names of string ids (as in ``segments.csv``). The
+    first predicted step is the clip's frame ``burn_in``."""
+    names = names or {}
     pred = arrays["forecast"]
     s, p, n, _ = pred.shape
     alive = arrays["mask"][:, burn_in - 1]  # [S, N]
     clip_i, step, agent = torch.nonzero(alive[:, None, :].expand(s, p, n), as_tuple=True)
-    table: dict[str, Any] = {"clip": (arrays["clip"][clip_i] if "clip" in arrays else clip_i).numpy(),
-                             "agent": agent.numpy()}
+    table: dict[str, Any] = {"clip": (arrays["clip"][clip_i] if "clip" in arrays else clip_i).numpy()}
+    if "scene" in arrays:
+        table["scene"] = named(arrays["scene"][clip_i], names.get("scene"))
+    table["agent"] = agent.numpy()
     if "agent" in arrays:
-        table["agent_id"] = arrays["agent"][clip_i, agent].numpy()
+        table["agent_id"] = named(arrays["agent"][clip_i, agent], names.get("agent"))
     table["step"] = (burn_in + step).numpy()
     if "frame" in arrays:
         table["frame"] = (arrays["frame"][clip_i] + (burn_in + step) * frame_step).numpy()
     xy = pred[clip_i, step, agent]
     table["x"], table["y"] = xy[:, 0].numpy(), xy[:, 1].numpy()
     return pd.DataFrame(table)
+
+
+class PredictProgress(L.Callback):
+    """A line per ``every_s`` seconds of prediction (clips done, rate, time left) through logging, so it shows
+    in a redirected log too; and a SIGTERM stops the prediction at the next batch (Lightning's prediction loop
+    does not look), raising :class:`SIGTERMException`."""
+
+    def __init__(self, every_s: float = 30.0) -> None:
+        self.every_s = every_s
+        self.started = self.last = 0.0
+
+    def on_predict_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.started = self.last = time.monotonic()
+
+    def on_predict_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                             batch_idx: int, dataloader_idx: int = 0) -> None:
+        if trainer.received_sigterm:
+            raise SIGTERMException
+        now = time.monotonic()
+        if now - self.last < self.every_s or not trainer.is_global_zero:
+            return
+        self.last = now
+        total = trainer.num_predict_batches[dataloader_idx]
+        done, spent = batch_idx + 1, now - self.started
+        left = spent / done * (total - done)
+        log.info("predict: batch %d of %d (%.0f%%), %.0f s, about %.0f s left", done, total, 100 * done / total,
+                 spent, left)
 
 
 class PredictionWriter(BasePredictionWriter):
@@ -100,7 +135,7 @@ class PredictionWriter(BasePredictionWriter):
         write_clips_npz(out / "clips.npz", arrays, explore_extras(pl_module, dm, "predict", arrays, self.scores))
         self.written.append(out / "clips.npz")
         if "forecast" in arrays and self.burn_in is not None:
-            table = forecast_frame(arrays, self.burn_in, frame_step)
+            table = forecast_frame(arrays, self.burn_in, frame_step, names)
             atomic_write_bytes(out / "forecast.csv", table.to_csv(index=False).encode())
             self.written.append(out / "forecast.csv")
         forecast = {k: v for k, v in self.scores.items() if "/type" not in k}

@@ -4,13 +4,17 @@ config, and the settings that are valid but probably not meant (warnings)."""
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, OmegaConf
 
+from dider import __version__
+from dider.data.batch import Normalizer
 from dider.perf import native_bf16, trains_on_cpu
-from dider.protocol import horizons_problem
+from dider.protocol import MIN_STEPS, horizons_problem
 from dider.validation import RULES, ConfigError, problem
 
 log = logging.getLogger(__name__)
@@ -44,18 +48,17 @@ def validate_config(cfg: DictConfig) -> None:
     if mode in ("eval", "predict") and not ckpt:
         problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
     if mode == "predict" and ckpt == "last":
-        problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's checkpoint "
-                        "file (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
-    for key in ("predict.forecast_steps", "predict.burn_in"):
-        value = get(key)
-        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
-            problems.append(f"{key}={value!r}: must be an integer >= 1 (or null)")
-    if ckpt and ckpt != "last" and not Path(str(ckpt)).expanduser().is_file():
-        problems.append(f"ckpt_path={ckpt}: no such checkpoint file")
+        problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's folder or "
+                        "one of its checkpoint files (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
+    folder_ok = mode == "predict" and ckpt and Path(str(ckpt)).expanduser().is_dir()  # a run folder, as dider.load
+    if ckpt and ckpt != "last" and not folder_ok and not Path(str(ckpt)).expanduser().is_file():
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if mode == "predict" else ""))
 
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
-    for section in ("data", "model"):
+    # prediction uses the checkpoint's model and scores no data horizons (predict.burn_in is checked against
+    # the clips once they are read)
+    for section in ("data", "model") if mode != "predict" else ():
         burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
         burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
@@ -77,10 +80,36 @@ def validate_config(cfg: DictConfig) -> None:
         if not (path.is_dir() if kind == "folder" else path.is_file()):
             problems.append(f"{key}={value}: no such {kind}")
 
+    for name, node in (get("logger") or {}).items():  # a store that cannot be written fails late, after retries
+        for field in ("tracking_uri", "artifact_location"):
+            value = get(f"logger.{name}.{field}") if isinstance(node, DictConfig) else None
+            if isinstance(value, str) and (found := _store_problem(value)):
+                problems.append(f"logger.{name}.{field}={value}: {found}")
+
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     for warning in config_warnings(cfg):
         log.warning(warning)
+
+
+def _store_problem(uri: str) -> str | None:
+    """A local tracking store (``sqlite:///PATH``, ``file:PATH`` or a plain path) whose folder cannot be
+    created or written: what is wrong, else None (remote stores are not checked)."""
+    if uri.startswith("sqlite:///"):
+        folder = Path(uri.removeprefix("sqlite:///")).parent
+    elif uri.startswith("file:"):
+        folder = Path(uri.removeprefix("file:").removeprefix("//"))
+    elif "://" in uri:
+        return None
+    else:
+        folder = Path(uri)
+    folder = folder.expanduser()
+    existing = next((p for p in (folder, *folder.parents) if p.exists()), None)
+    if existing is None or not existing.is_dir():
+        return f"{existing} is not a folder"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"{existing} is not writable (choose a store in a folder you can write)"
+    return None
 
 
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
@@ -105,4 +134,49 @@ def config_warnings(cfg: DictConfig) -> list[str]:
                      "emulates it, many times slower than fp32 (trainer.precision=32-true)")
     if unknown := sorted(set(cfg.keys()) - TOP_LEVEL_KEYS):
         found.append(f"{', '.join(unknown)}: top-level key(s) that nothing reads (a typo of {sorted(TOP_LEVEL_KEYS)}?)")
+    return found
+
+
+def version_problem(theirs: str, ours: str = __version__) -> str | None:
+    """A checkpoint written by another major or minor version than this package's: what to say, else None
+    (patch releases keep checkpoints compatible)."""
+    if not theirs:
+        return "the checkpoint records no package version"
+    if theirs.split(".")[:2] == ours.split(".")[:2]:
+        return None
+    return (f"the checkpoint was written by dider {theirs}, this is {ours}: another minor or major version may "
+            f"read its settings differently; check its results, or retrain with {ours}")
+
+
+def clip_problem(steps: int, where: str, burn_in: int | None = None, forecast_steps: int | None = None) -> str | None:
+    """The clips of a prediction set, ``steps`` steps of the model's input each, against what the model needs
+    (``MIN_STEPS``) and the forecast's burn-in: what is wrong, else None."""
+    if steps < MIN_STEPS:
+        return (f"{where}: its clips give {steps} step(s) of the model's input; the model needs >= {MIN_STEPS} (one "
+                f"transition; finite-difference velocities use one more frame)")
+    if forecast_steps and burn_in is not None and burn_in > steps:
+        return (f"predict.burn_in={burn_in}: longer than the {steps} steps of the clips of {where}; the forecast "
+                f"starts after the burn-in, so it must be <= {steps}")
+    return None
+
+
+def input_warnings(states: torch.Tensor, mask: torch.Tensor, normalizer: Normalizer, where: str,
+                   factor: float = 10.0) -> list[str]:
+    """New input against a trained model's normaliser: no agent present at all, or positions / velocities
+    spreading over ``factor`` times the training data's range (a unit mismatch reads as finite nonsense).
+
+    states: [..., 4] normalised (the normaliser's [-1, 1] on the training data); mask: states.shape[:-1] bool.
+    """
+    if not bool(mask.any()):
+        return [f"{where}: no agent is present at any frame; the outputs will be empty"]
+    found = []
+    present = states[mask]  # [P, 4]
+    for cols, what, (lo, hi) in (((0, 1), "positions", normalizer.pos_range), ((2, 3), "velocities",
+                                                                               normalizer.vel_range)):
+        scale = present[:, list(cols)].abs().max().item()
+        if scale > factor:
+            raw = normalizer.denormalize(present)[:, list(cols)]
+            found.append(f"{where}: {what} span [{raw.min().item():.4g}, {raw.max().item():.4g}], about "
+                         f"{scale:.0f}x the training data's [{lo:.4g}, {hi:.4g}]: other units (cm for m?), another "
+                         f"frame rate or coordinate frame? The model's outputs there are extrapolations")
     return found

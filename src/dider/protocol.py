@@ -26,6 +26,7 @@ from collections.abc import Sequence
 import torch
 
 BURN_IN_MODES = ("global", "per_agent")
+MIN_STEPS = 2  # steps a clip needs: one transition t -> t+1 to hold an edge type
 
 
 def burn_in_mask(mask: torch.Tensor, burn_in: int) -> torch.Tensor:

@@ -70,6 +70,7 @@ class Summary:
     failed: list[str]
     missing: list[str]
     expected: int | None
+    ignored: list[str] = field(default_factory=list)  # job folders whose overrides the sweep never launched
 
 
 def _canon(overrides: Sequence[str]) -> frozenset[str]:
@@ -98,8 +99,9 @@ def expected_jobs(sweep: Path) -> list[frozenset[str]] | None:
     return [_canon(job) for job in itertools.product(*choices.values())]
 
 
-def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], int | None]:
-    """(records of finished jobs in sweep order, failed job folders, missing override sets, expected count)."""
+def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], int | None, list[str]]:
+    """(records of finished jobs in sweep order, failed job folders, missing override sets, expected count,
+    ignored job folders: runs whose overrides are not among the sweep's jobs, e.g. copied in)."""
     dirs = {p.parent for p in sweep.rglob(".hydra") if p.is_dir()} | {p.parent for p in sweep.rglob("metrics.json")}
     records, failed, found = [], [], set()
     for d in sorted(dirs):
@@ -118,14 +120,18 @@ def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], in
         found.add(record["_key"])
     expected = expected_jobs(sweep)
     if expected is None:
-        return records, failed, [], None
+        return records, failed, [], None, []
+    jobs = set(expected)
+    ignored = [f"{r['dir'].relative_to(sweep)} (its overrides are not a job of this sweep)" for r in records
+               if r["_key"] not in jobs]
+    records = [r for r in records if r["_key"] in jobs]
     swept = set.union(set(), *(e - expected[0] for e in expected))  # the key=value pairs that vary
     swept_keys = {kv.split("=", 1)[0] for kv in swept}
     missing = [",".join(sorted(kv for kv in e if kv.split("=", 1)[0] in swept_keys or not swept_keys))
                for e in expected if e not in found]
     order = {e: i for i, e in enumerate(expected)}  # the sweep's order (models as listed, num_edges ascending)
     records.sort(key=lambda r: order.get(r["_key"], len(order)))
-    return records, failed, missing, len(expected)
+    return records, failed, missing, len(expected), ignored
 
 
 def group_jobs(records: list[dict[str, Any]], sweep: Path) -> list[Group]:
@@ -159,10 +165,10 @@ def _order(metric: str) -> tuple:
 
 
 def summarise(sweep: Path) -> Summary:
-    records, failed, missing, expected = collect(sweep)
+    records, failed, missing, expected, ignored = collect(sweep)
     metrics = sorted({k for r in records for k, v in r["metrics"].items()
                       if k.startswith("test/") and isinstance(v, (int, float))}, key=_order)
-    return Summary(group_jobs(records, sweep), metrics, failed, missing, expected)
+    return Summary(group_jobs(records, sweep), metrics, failed, missing, expected, ignored)
 
 
 def _fmt(mean: float, std: float) -> str:
@@ -313,9 +319,11 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         lines += ["## Interaction timelines (one job per row)", ""]
         for label, job, paths in timelines:
             lines += [f"**{label}** (`{job}`)", "", *(f"![{label}]({p})" for p in paths), ""]
-    lines += ["## Failed or missing jobs", "", "(failed: a job folder without metrics.json, also while it still runs; "
-              "missing: swept values that no job folder holds)", ""]
-    lines += [f"- failed: `{f}`" for f in s.failed] + [f"- missing: `{m}`" for m in s.missing] or ["none"]
+    lines += ["## Failed, missing or ignored jobs", "", "(failed: a job folder without metrics.json, also while it "
+              "still runs; missing: swept values that no job folder holds; ignored: a finished run whose overrides "
+              "are not a job of this sweep, e.g. copied in, left out of the tables)", ""]
+    lines += ([f"- failed: `{f}`" for f in s.failed] + [f"- missing: `{m}`" for m in s.missing]
+              + [f"- ignored: `{i}`" for i in s.ignored]) or ["none"]
     return "\n".join(lines) + "\n"
 
 
@@ -339,8 +347,9 @@ def main(argv: Sequence[str] | None = None) -> Summary:
     write_runs_csv(s, sweep, out / "runs.csv")
     print(text)
     print(f"report: {out / 'report.md'}  table: {out / 'report.csv'}  per job: {out / 'runs.csv'}")
-    if s.failed or s.missing:
-        print(f"warning: {len(s.failed)} failed and {len(s.missing)} missing jobs (listed in the report)")
+    if s.failed or s.missing or s.ignored:
+        print(f"warning: {len(s.failed)} failed, {len(s.missing)} missing and {len(s.ignored)} ignored job folders "
+              f"(listed in the report)")
     return s
 
 

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import platform
+import shutil
 import subprocess
 import sys
 import time
@@ -32,10 +33,20 @@ from dider.evaluation import cv_verdict, leading_first
 from dider.io import atomic_write_text
 from dider.models.module import RelationalVAEModule
 from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocator
-from dider.prediction import PredictionWriter
-from dider.preflight import validate_config
-from dider.runfolder import RunLock, check_checkpoint, check_fresh, is_rank_zero, mark_failed, resolve_ckpt
-from dider.trained import load, training_settings
+from dider.prediction import PredictionWriter, PredictProgress
+from dider.preflight import clip_problem, input_warnings, validate_config
+from dider.runfolder import (
+    RunLock,
+    RunRefused,
+    check_checkpoint,
+    check_fresh,
+    close_run_log,
+    is_rank_zero,
+    mark_failed,
+    open_run_folder,
+    resolve_ckpt,
+)
+from dider.trained import find_checkpoint, load, training_settings
 from dider.validation import ConfigError
 from dider.viz import draw_figures
 
@@ -154,10 +165,20 @@ def format_table(metrics: dict[str, float]) -> str:
 
 def predict(cfg: DictConfig) -> list[Path]:
     """mode=predict: the checkpoint's model (its own config and normaliser, whatever ``model=`` says) on every
-    clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.prediction`). Returns them."""
+    clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.prediction`). Returns them.
+
+    The folder gets a training run's guarantees: ``predictions/`` must not exist yet (a refusal names it), a
+    lock keeps a second live run out, and the files are written into a staging folder that becomes
+    ``predictions/`` (with ``complete.json`` listing them) only once all are written: a killed prediction
+    leaves no mix of two predictions' files."""
     validate_config(cfg)
+    started = time.time()
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    ckpt = Path(str(cfg.ckpt_path)).expanduser()
+    out_dir = Path(cfg.output_dir)
+    final, staging = out_dir / "predictions", out_dir / ".predictions.partial"
+    if final.exists() and is_rank_zero():
+        raise RunRefused(f"{final} already holds a prediction; predict into another folder (hydra.run.dir=...)")
+    ckpt = find_checkpoint(str(cfg.ckpt_path))  # a checkpoint file or a run folder, as dider.load takes
     trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
     set_by_user = {o.split("=", 1)[0].lstrip("+~") for o in _overrides()}
     try:
@@ -169,7 +190,8 @@ def predict(cfg: DictConfig) -> list[Path]:
                  key, value, key, cfg.data[key])
     with open_dict(cfg):
         cfg.data.update(take)
-    out_dir = Path(cfg.output_dir)
+        if "horizons" in cfg.data:  # the data's test horizons score nothing here: no clip length to fit them in
+            cfg.data.horizons = [1]
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
         raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
@@ -178,17 +200,44 @@ def predict(cfg: DictConfig) -> list[Path]:
     module = RelationalVAEModule.from_config(trained.config)
     module.model.load_state_dict(trained.network.state_dict())
     burn_in = cfg.predict.burn_in or module.hparams.burn_in
+    datamodule.prepare_data()  # the clips are read and checked before the trainer starts
+    datamodule.setup("predict")
+    clips = datamodule.datasets["predict"]
+    where = " ".join(f"data.{k}={cfg.data[k]}" for k in ("path", "root", "provider") if cfg.data.get(k)) or "data"
+    if problem := clip_problem(clips.states.shape[1], where, burn_in, cfg.predict.forecast_steps):
+        raise ConfigError(problem)
+    for warning in input_warnings(clips.states, clips.mask, trained.normalizer, where):
+        log.warning(warning)
     module.predict_forecast = (burn_in, cfg.predict.forecast_steps) if cfg.predict.forecast_steps else None
-    writer = PredictionWriter(out_dir / "predictions", burn_in)
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[writer], logger=False, plugins=trainer_plugins(cfg))
-    log.info("predicting with %s (model %s, trained with dider %s)", ckpt, module.model.name, trained.version)
-    trainer.predict(module, datamodule=datamodule, return_predictions=False)
-    if trainer.is_global_zero:
-        for path in writer.written:
-            print(f"predictions: {path}")
-        if verdict := cv_verdict(writer.scores):
-            (log.info if verdict[1] else log.warning)(verdict[0])
-    return writer.written
+    with RunLock(out_dir):
+        open_run_folder(out_dir, cfg)
+        shutil.rmtree(staging, ignore_errors=True)  # a killed prediction's files: never part of this one
+        writer = PredictionWriter(staging, burn_in)
+        progress = PredictProgress(cfg.predict.progress_s)
+        trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[writer, progress], logger=False,
+                                         plugins=trainer_plugins(cfg))
+        log.info("predicting %d clips with %s (model %s, trained with dider %s)", len(clips), ckpt,
+                 module.model.name, trained.version)
+        try:
+            trainer.predict(module, datamodule=datamodule, return_predictions=False)
+        except SIGTERMException:
+            shutil.rmtree(staging, ignore_errors=True)
+            print(f"terminated (SIGTERM) before the predictions were complete: nothing written to {final}",
+                  file=sys.stderr)
+            raise SystemExit(TERMINATED) from None
+        if not trainer.is_global_zero:
+            return []
+        names = [p.name for p in writer.written]
+        atomic_write_text(staging / "complete.json", json.dumps({
+            "files": names, "clips": len(clips), "checkpoint": str(ckpt), "checkpoint_version": trained.version,
+            "provenance": provenance(started, str(trainer.strategy.root_device))}, indent=2))
+        os.replace(staging, final)  # the complete set appears at once
+    written = [final / name for name in names]
+    for path in written:
+        print(f"predictions: {path}")
+    if verdict := cv_verdict(writer.scores):
+        (log.info if verdict[1] else log.warning)(verdict[0])
+    return written
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -209,12 +258,14 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
     ckpt = resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given())
     if cfg.mode == "eval" and ckpt is None:
         raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
+    version = None
     if ckpt is not None:  # before any work: a checkpoint of another model fails naming both sides
-        check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
+        version = check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
     elif cfg.mode == "train" and is_rank_zero():
         check_fresh(out_dir)
     with RunLock(out_dir):
-        return _fit_and_test(cfg, ckpt, out_dir, started)
+        open_run_folder(out_dir, cfg)
+        return _fit_and_test(cfg, ckpt, out_dir, started, version)
 
 
 def _run_dir_given() -> bool:
@@ -228,8 +279,8 @@ def _run_dir_given() -> bool:
         o.startswith(("hydra.run.dir=", "hydra.sweep.dir=")) for o in hydra_cfg.overrides.hydra)
 
 
-def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
-                  started: float) -> tuple[dict[str, float], float | None]:
+def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: float,
+                  ckpt_version: str | None = None) -> tuple[dict[str, float], float | None]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
     model = RelationalVAEModule.from_config(cfg.model)
@@ -247,18 +298,18 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
         if not isinstance(lg, TensorBoardLogger):  # TensorBoard's HParams entry waits for the results (below)
             lg.log_hyperparams(_hparams(cfg))
 
-    if cfg.mode == "train":
-        try:
+    best = ""
+    try:
+        if cfg.mode == "train":
             trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
-        except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
-            again = [o for o in _overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
-            print(f"terminated (SIGTERM); resume with: python -m dider.run {' '.join(again)} "
-                  f"hydra.run.dir={out_dir} ckpt_path=last", file=sys.stderr)
-            raise SystemExit(TERMINATED) from None
-        best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
-        trainer.test(model, datamodule=datamodule, ckpt_path=best or None)
-    else:
-        trainer.test(model, datamodule=datamodule, ckpt_path=ckpt)
+            best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
+        trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt)
+    except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
+        again = [o for o in _overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
+        resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
+        print(f"terminated (SIGTERM); resume with: python -m dider.run {' '.join(again)} "
+              f"hydra.run.dir={out_dir} {resume}", file=sys.stderr)
+        raise SystemExit(TERMINATED) from None
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
     for lg in loggers if trainer.is_global_zero else []:
@@ -272,6 +323,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path,
             "seed": int(cfg.seed),
             "model": cfg.model.get("name", "model"),
             "checkpoint": ckpt if cfg.mode == "eval" else (best or None),
+            "checkpoint_version": ckpt_version,  # the package version that wrote ckpt_path (eval, resume)
             "objective": objective,
             "provenance": provenance(started, str(trainer.strategy.root_device)),
             "config": OmegaConf.to_container(cfg, resolve=True),
@@ -309,11 +361,13 @@ def main(cfg: DictConfig) -> float | None:
             predict(cfg)
             return None
         objective = fit_and_score(cfg)[1]
-    except Exception as e:  # into the run's own log and a failed.json beside it, then out as ever
+    except Exception as e:  # into the run's own log and a failed.json beside it (a folder it took), then out
         log.exception("run failed: %s", e)
-        if Path(cfg.output_dir).is_dir() and is_rank_zero():
+        if is_rank_zero():
             mark_failed(Path(cfg.output_dir), e)
         raise
+    finally:
+        close_run_log()
     return objective if cfg.mode == "train" else None
 
 

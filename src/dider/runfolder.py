@@ -18,8 +18,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
+from dider.preflight import version_problem
 from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
@@ -45,7 +48,7 @@ def check_fresh(folder: Path) -> None:
     """A fresh training run must not mix its files with an earlier run's (a later ``ckpt_path=last`` would
     resume the wrong one)."""
     if found := holds_run(folder):
-        raise ConfigError(f"{folder} already holds a run ({', '.join(found[:3])}): resume it with ckpt_path=last, "
+        raise RunRefused(f"{folder} already holds a run ({', '.join(found[:3])}): resume it with ckpt_path=last, "
                           f"or train into another folder (hydra.run.dir=...)")
 
 
@@ -87,9 +90,10 @@ def shape_settings(model: Mapping[str, Any]) -> dict[str, Any]:
             or (isinstance(v, int) and not isinstance(v, bool))}
 
 
-def check_checkpoint(path: str, model: Mapping[str, Any]) -> None:
+def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     """Fail before any work when ``path`` is not a training checkpoint, or one of another model than the
-    config's: the error names each differing setting with both values."""
+    config's: the error names each differing setting with both values. Warns when another minor or major
+    version wrote it. -> the package version it records ("" for none)."""
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception as e:  # torch raises many types for a foreign or damaged file
@@ -104,6 +108,52 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> None:
     if differ:
         raise ConfigError(f"ckpt_path={path} holds another model than the config's (pass the model it was trained "
                           f"with, e.g. model={theirs.get('name')}):\n  - " + "\n  - ".join(differ))
+    version = str((ckpt.get("dider") or {}).get("version", ""))
+    if warning := version_problem(version):
+        log.warning("ckpt_path=%s: %s", path, warning)
+    return version
+
+
+class RunRefused(ConfigError):
+    """The run folder belongs to another run (finished, live, or a complete prediction): nothing is written
+    into it, not even a failure record."""
+
+
+def open_run_folder(folder: Path, cfg: Mapping[str, Any] | None = None) -> None:
+    """Once the folder checks have passed (never before: a refused run leaves another run's folder as it
+    was): Hydra's record of the run (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``, as
+    ``dider.report`` reads them) and the run's log file ``run.log``, on rank zero."""
+    if not is_rank_zero():
+        return
+    OPENED.add(folder.resolve())
+    try:
+        hydra = HydraConfig.get()
+    except ValueError:  # composed outside a Hydra app (tests, the Python API): no record to write
+        hydra = None
+    if hydra is not None and cfg is not None:
+        record = folder / ".hydra"
+        task = OmegaConf.masked_copy(cfg, [k for k in cfg if k != "hydra"]) if isinstance(cfg, DictConfig) else cfg
+        atomic_write_text(record / "config.yaml", OmegaConf.to_yaml(task))
+        atomic_write_text(record / "hydra.yaml", OmegaConf.to_yaml({"hydra": hydra}))
+        atomic_write_text(record / "overrides.yaml", OmegaConf.to_yaml(list(hydra.overrides.task)))
+    close_run_log()  # one run's log at a time (a process may run several: tests, the Python API)
+    handler = logging.FileHandler(folder / "run.log", delay=True)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    logging.getLogger().addHandler(handler)
+    _LOG.append(handler)
+
+
+def close_run_log() -> None:
+    """Detach and close the run log :func:`open_run_folder` attached, if any."""
+    while _LOG:
+        handler = _LOG.pop()
+        logging.getLogger().removeHandler(handler)
+        handler.close()
+
+
+_LOG: list[logging.Handler] = []
+OPENED: set[Path] = set()  # the folders this process has taken (open_run_folder): only those get a failed.json
+LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's console format
 
 
 class RunLock:
@@ -124,7 +174,7 @@ class RunLock:
             except FileExistsError:
                 owner = self._owner()
                 if owner is not None and _alive(owner):
-                    raise ConfigError(f"{self.path.parent} is being written by another run (pid {owner['pid']} on "
+                    raise RunRefused(f"{self.path.parent} is being written by another run (pid {owner['pid']} on "
                                       f"{owner['host']}); wait for it, or use another hydra.run.dir") from None
                 log.warning("%s: taking over the lock of a run that is gone (%s)", self.path, owner)
                 self.path.unlink(missing_ok=True)
@@ -160,7 +210,10 @@ def _alive(owner: Mapping[str, Any]) -> bool:
 
 
 def mark_failed(folder: Path, error: BaseException) -> None:
-    """``folder/failed.json``: the error and its traceback, so a failed run's folder explains itself."""
+    """``folder/failed.json``: the error and its traceback, so a failed run's folder explains itself; only in a
+    folder this process has taken (:func:`open_run_folder`), never in one it refused."""
+    if folder.resolve() not in OPENED:
+        return
     text = "".join(traceback.format_exception(error))
     atomic_write_text(folder / "failed.json", json.dumps({"status": "failed", "error": repr(error),
                                                           "traceback": text}, indent=2))

@@ -3,8 +3,10 @@
 Each trial composes the app's config with the given overrides and the values Optuna suggests from the
 space in ``hparams_search`` (conf/hparams_search), trains in ``<out>/trial_<k>`` and reports the run's
 ``optimized_metric`` (a validation metric by default, so the search never tunes on the test set). The
-trials go to ``<out>/search.csv`` after each one (atomic), the best to ``<out>/best.json``. ``<out>`` is
-``hydra.run.dir`` if given, else ``multirun/search/<date>_<time>``. Needs ``pip install optuna``.
+trials go to ``<out>/search.csv`` after each one (atomic), the best to ``<out>/best.json``, the study to
+``<out>/study.db`` (SQLite): a killed search started again with ``hydra.run.dir=<out>`` goes on where it
+stopped (``hparams_search.n_trials`` counts the completed trials). ``<out>`` is ``hydra.run.dir`` if given,
+else ``multirun/search/<date>_<time>``. Needs ``pip install optuna``.
 """
 
 from __future__ import annotations
@@ -89,21 +91,41 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
     given_dir = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra.run.dir=")), None)
     out = out or (Path(given_dir) if given_dir else Path("multirun/search") / time.strftime("%Y-%m-%d_%H-%M-%S"))
     given = [o for o in overrides if not o.startswith("hydra.run.dir=")]
-    study = optuna.create_study(direction=spec.get("direction", "minimize"),
+    out.mkdir(parents=True, exist_ok=True)
+    # the study lives in the search folder: a killed search started again with the same folder goes on
+    study = optuna.create_study(study_name="dider", storage=f"sqlite:///{out.resolve() / 'study.db'}",
+                                load_if_exists=True, direction=spec.get("direction", "minimize"),
                                 sampler=optuna.samplers.TPESampler(seed=int(spec.get("seed", 1))))
-    rows: list[dict[str, Any]] = []
+    for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
+        # a trial the killed search was running: failed; its folder keeps what it wrote, the next trial gets a new one
+        log.warning("trial %d (%s) was cut off by the killed search: marked failed", trial.number,
+                    out / f"trial_{trial.number:03d}")
+        study.tell(trial.number, state=optuna.trial.TrialState.FAIL)
+    done = len(study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)))
+    if done:
+        log.info("%s: going on with the search: %d trial(s) complete", out, done)
 
     def objective(trial: Any) -> float:
         values = suggest(trial, space)
         run_dir = out / f"trial_{trial.number:03d}"
         cfg = compose_run([*given, *(f"{k}={v}" for k, v in values.items())], run_dir)
-        value = fit_and_score(cfg)[1]
+        try:
+            value = fit_and_score(cfg)[1]
+        except SystemExit as e:  # SIGTERM in the trial: the search stops, to go on from its study later
+            again = " ".join([*given, f"hydra.run.dir={out}"])
+            print(f"search terminated in trial {trial.number}; go on with: python -m dider.search {again}",
+                  file=sys.stderr)
+            raise SystemExit(e.code) from None
         value = math.inf if value is None or not math.isfinite(value) else float(value)
-        rows.append({"trial": trial.number, "value": value, **values, "dir": str(run_dir)})
-        atomic_write_text(out / "search.csv", pd.DataFrame(rows).to_csv(index=False))
+        trial.set_user_attr("dir", str(run_dir))
         return value
 
-    study.optimize(objective, n_trials=int(spec.get("n_trials", 20)))
+    def write_trials(study: Any, _: Any) -> None:  # every finished trial of the study, resumed ones included
+        rows = [{"trial": t.number, "value": t.value, **t.params, "dir": t.user_attrs.get("dir")}
+                for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))]
+        atomic_write_text(out / "search.csv", pd.DataFrame(rows).to_csv(index=False))
+
+    study.optimize(objective, n_trials=max(int(spec.get("n_trials", 20)) - done, 0), callbacks=[write_trials])
     best = {"number": study.best_trial.number, "value": study.best_value, "params": study.best_params,
             "dir": str(out / f"trial_{study.best_trial.number:03d}"),
             "objective": base.get("optimized_metric"), "direction": spec.get("direction", "minimize")}

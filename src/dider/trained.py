@@ -14,6 +14,7 @@ Nothing here needs Lightning. Shapes: S clips, T frames, N agents, E = N(N-1) ed
 from __future__ import annotations
 
 import json
+import logging
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,9 +28,12 @@ from dider.clips import segment_frame
 from dider.data.batch import Normalizer
 from dider.data.trajectories import trajectory_states
 from dider.models.vae import TRAINING_KEYS, RelationalVAE
-from dider.protocol import fill_absent
+from dider.preflight import input_warnings, version_problem
+from dider.protocol import MIN_STEPS, fill_absent
+from dider.validation import above, check_arguments, integer, optional
 
 ArrayLike = np.ndarray | torch.Tensor
+log = logging.getLogger(__name__)
 
 
 def find_checkpoint(path: str | Path) -> Path:
@@ -101,6 +105,7 @@ class TrainedModel:
         NaN); velocities like positions, else (pos[t] - pos[t-1]) * frame_rate, the rate of the given frames
         (default: the training data's steps per second, its ``frame_rate`` / ``downsample``: give positions
         at the model's step rate)."""
+        check_arguments("TrainedModel", {"frame_rate": (frame_rate, optional(above(0)))})
         arrays = {"positions": _numpy(positions)}
         single = arrays["positions"].ndim == 3
         for key, value in (("mask", mask), ("velocities", velocities)):
@@ -116,7 +121,14 @@ class TrainedModel:
                 raise ValueError("frame_rate: needed for finite-difference velocities (the training data did not "
                                  "record one); pass frame_rate=... or velocities=...")
         data = trajectory_states(arrays, "input", float(frame_rate or 1.0))
+        if (steps := data["states"].shape[1]) < MIN_STEPS:
+            how = "" if velocities is not None else " with finite-difference velocities"
+            raise ValueError(f"positions: {arrays['positions'].shape[1]} frame(s) a clip give {steps} step(s) of "
+                             f"the model's input; it needs >= {MIN_STEPS} (one transition), i.e. >= "
+                             f"{MIN_STEPS + data['first_frame']} frames{how}")
         states = fill_absent(self.normalizer.normalize(data["states"]), data["mask"])
+        for warning in input_warnings(states, data["mask"], self.normalizer, "positions"):
+            log.warning(warning)
         return states.to(self.device), data["mask"].to(self.device), int(data["first_frame"])
 
     @torch.no_grad()
@@ -153,11 +165,12 @@ class TrainedModel:
         last frame carry on, others are NaN. A model that samples its roll-out edges (DNRI's default)
         draws them from ``seed`` (default: the model's ``eval_seed``, as evaluation and ``mode=predict``
         do), leaving the global random state alone."""
+        check_arguments("TrainedModel.forecast", {"burn_in": (burn_in, integer(1)), "steps": (steps, integer(1)),
+                                                  "seed": (seed, optional(integer(0)))})
         states, m, _ = self.states(positions, mask, velocities, frame_rate)
-        if not 1 <= burn_in <= states.shape[1]:
-            raise ValueError(f"burn_in={burn_in}: must be between 1 and the {states.shape[1]} frames given")
-        if steps < 1:
-            raise ValueError(f"steps={steps}: must be >= 1")
+        if burn_in > states.shape[1]:
+            raise ValueError(f"TrainedModel.forecast: burn_in={burn_in}: more than the {states.shape[1]} steps of the "
+                             f"model's input the clips give")
         self.network.eval()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.config.get("eval_seed", 0) if seed is None else seed)
@@ -205,6 +218,8 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
     network.load_state_dict(state)
     data = ckpt["dider"]["data"]
+    if warning := version_problem(ckpt["dider"].get("version", "")):
+        log.warning("%s: %s", ckpt_path, warning)
     normalizer = Normalizer(**data["state"]["normalizer"])
     return TrainedModel(network.to(device).eval(), normalizer, config, dict(data.get("args", {})),
                         ckpt["dider"].get("version", ""), ckpt_path)

@@ -90,6 +90,9 @@ WIDTH_KEYS = ("model.encoder.hidden", "model.encoder.rnn_hidden", "model.encoder
 RULES: dict[str, Rule] = {
     "compile": boolean,
     "predict.force": boolean,
+    "predict.burn_in": optional(integer(1, " frame")),
+    "predict.forecast_steps": optional(integer(1, " step")),
+    "predict.progress_s": above(0),
     "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
     "threads": optional(integer(1, " (null: torch's default)")),
@@ -139,6 +142,14 @@ RULES: dict[str, Rule] = {
     "data.burn_in": at_least(1),
     "data.burn_in_mode": one_of(*BURN_IN_MODES),
 }
+
+
+def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
+    """A function's arguments by name (name -> (value, rule)); raises ValueError naming ``where`` and every
+    argument that fails, e.g. ``TrainedModel.forecast: burn_in=5.0: must be an integer``."""
+    found = [f"{name}={value!r}: {why}" for name, (value, rule) in checks.items() if (why := rule(value)) is not None]
+    if found:
+        raise ValueError(f"{where}: " + "; ".join(found))
 
 
 def problem(key: str, value: Any) -> str | None:

@@ -111,12 +111,9 @@ def _numbers(path: Path, s: pd.Series) -> np.ndarray:
     return a
 
 
-def _ids(path: Path, s: pd.Series, sort: bool, integers: bool = True) -> tuple[np.ndarray, list[str] | None]:
+def _ids(path: Path, s: pd.Series, integers: bool = True) -> tuple[np.ndarray, list[str] | None]:
     """An id column -> ([R] int64 ids, None) when every id is an integer (and ``integers``), else ([R]
-    codes, names).
-
-    sort: codes in sorted name order (agents: a window lists its agents by id) or in order of appearance
-    (scenes: reading order)."""
+    codes into the sorted names, names)."""
     empty = s.isna().to_numpy()
     if empty.any():
         i = int(np.argmax(empty))
@@ -125,14 +122,14 @@ def _ids(path: Path, s: pd.Series, sort: bool, integers: bool = True) -> tuple[n
         num = pd.to_numeric(s, errors="coerce").to_numpy(dtype=np.float64, na_value=np.nan)
         if np.isfinite(num).all() and (num == np.round(num)).all() and np.abs(num).max() < 2**53:
             return num.astype(np.int64), None
-    codes, names = pd.factorize(s.astype(str), sort=sort)
+    codes, names = pd.factorize(s.astype(str), sort=True)
     return codes.astype(np.int64), [str(n) for n in names]
 
 
 def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
-    """Read and validate the table; rows sorted by (scene in reading order, agent, frame).
+    """Read and validate the table; rows sorted by (scene id, agent, frame).
 
-    Returns: scene [R] int64 (reading-order index), scene_ids [Z] int64 (each scene's source id), agent
+    Returns: scene [R] int64 (index into scene_ids), scene_ids [Z] int64 (each scene's source id, sorted), agent
     [R] int64 (ids or codes), frame [R] int64, xy [R, 2] float64, vel [R, 2] float64 or None,
     agent_class [R] int64 or None, line [R] int64 (each row's index in the file) and names (key -> names
     of string ids: scene, agent, agent_class), has_scene (whether a scene column was read).
@@ -152,35 +149,28 @@ def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
         raise ValueError(f"{path}: column {named['frame']!r} has non-integer frames (first on {_row(path, i)}: "
                          f"{float(frame[i])!r})")
     names: dict[str, list[str]] = {}
-    agent, agent_names = _ids(path, df[named["agent"]], sort=True)
+    agent, agent_names = _ids(path, df[named["agent"]])
     if agent_names is not None:
         names["agent"] = agent_names
     if "scene" in named:
-        scene_ids, scene_names = _ids(path, df[named["scene"]], sort=False)
-        scene, first = _appearance(scene_ids)
+        # scenes in id order (names sorted), so the split and the windows do not depend on the rows' order
+        scene_ids, scene_names = _ids(path, df[named["scene"]])
+        ids, scene = np.unique(scene_ids, return_inverse=True)
         if scene_names is not None:
             names["scene"] = scene_names
     else:
-        scene, first = np.zeros(len(df), np.int64), np.zeros(1, np.int64)
-        scene_ids = scene
+        scene, ids = np.zeros(len(df), np.int64), np.zeros(1, np.int64)
     klass = None
     if "agent_class" in named:
-        klass, names["agent_class"] = _ids(path, df[named["agent_class"]], sort=True, integers=False)
+        klass, names["agent_class"] = _ids(path, df[named["agent_class"]], integers=False)
     order = np.lexsort((frame, agent, scene))
-    out = {"scene": scene[order], "scene_ids": scene_ids[first], "agent": agent[order],
+    out = {"scene": scene[order], "scene_ids": ids, "agent": agent[order],
            "frame": frame[order].astype(np.int64), "line": order,
            "xy": np.stack([nums["x"], nums["y"]], 1)[order],
            "vel": np.stack([nums["vx"], nums["vy"]], 1)[order] if "vx" in nums else None,
            "agent_class": None if klass is None else klass[order], "names": names, "has_scene": "scene" in named}
     _check_rows(path, out, named)
     return out
-
-
-def _appearance(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ids [R] -> (index of each row's id in order of first appearance [R], first row of each id [Z])."""
-    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
-    rank = np.argsort(np.argsort(first, kind="stable"), kind="stable")
-    return rank[inverse], np.sort(first)
 
 
 def _check_rows(path: Path, t: dict[str, Any], named: Mapping[str, str]) -> None:
