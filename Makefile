@@ -34,7 +34,7 @@ bench: $(STAMP)  ## training throughput benchmarks -> bench/results.json
 	$(BIN)/python -m dider.bench --out bench/results.json
 
 tb: $(STAMP)  ## TensorBoard over single runs and sweeps
-	$(BIN)/tensorboard --logdir . --port 6006
+	$(BIN)/tensorboard --logdir_spec runs:runs,multirun:multirun --port 6006
 
 lint: $(STAMP)  ## ruff
 	$(BIN)/ruff check src tests

@@ -1,5 +1,6 @@
 """Every config option composes and instantiates."""
 
+import re
 from pathlib import Path
 
 import dider.conf
@@ -81,3 +82,42 @@ def test_console_scripts_and_one_version():
     assert set(scripts) == {"dider-run", "dider-report", "dider-explore", "dider-bench"}
     assert all(callable(e.load()) for e in scripts.values())
     assert version("dider") == dider.__version__
+
+
+def test_every_config_folder_ships_as_a_package():
+    """pyproject lists each conf/ folder as a package (else setuptools warns at every install and a wheel may
+    leave its YAML out)."""
+    import tomllib
+
+    project = tomllib.loads((CONF.parent / "pyproject.toml").read_text())
+    listed = set(project["tool"]["setuptools"]["packages"])
+    folders = {"dider.conf" + "".join(f".{part}" for part in p.relative_to(CONF).parts)
+               for p in [CONF, *CONF.rglob("*")] if p.is_dir() and list(p.glob("*.yaml"))}
+    assert folders <= listed, sorted(folders - listed)
+
+
+@pytest.mark.parametrize("debug", options("debug"))
+def test_debug_configs_compose(make_cfg, debug):
+    cfg = make_cfg([f"debug={debug}"], tiny=False)
+    assert cfg.logger is None and cfg.trainer.accelerator == "cpu"
+
+
+def test_a_debug_run_and_its_output(tmp_path):
+    """`debug=fdr` runs the whole loop on one batch; with output redirected to a file, training prints one line
+    per epoch and the final table once, without the libraries' tips and deprecation notes."""
+    import subprocess
+    import sys
+
+    common = [sys.executable, "-m", "dider.run", "experiment=smoke", "trainer.enable_progress_bar=false"]
+    proc = subprocess.run([*common, "debug=fdr", f"hydra.run.dir={tmp_path / 'fdr'}"], capture_output=True,
+                          text=True, timeout=300, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    log = tmp_path / "out.log"
+    with log.open("w") as f:
+        proc = subprocess.run([*common, "logger=none", "trainer.max_epochs=2", f"hydra.run.dir={tmp_path / 'run'}"],
+                              stdout=f, stderr=subprocess.STDOUT, timeout=300, cwd=tmp_path)
+    text = log.read_text()
+    assert proc.returncode == 0, text[-3000:]
+    assert len(re.findall(r"epoch \d/2  train/loss_epoch \S+  val/nll \S+ .*\(\d+s, about \S+ left\)", text)) == 2
+    assert text.count("test/ade_vs_cv/h01") == 1 and "Test metric" not in text
+    assert "Tip" not in text and "LeafSpec" not in text and "configure_callbacks" not in text

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from typing import Any
 
 import lightning as L
@@ -137,3 +138,47 @@ class SaveOnTerminate(L.Callback):
         trainer.save_checkpoint(path)
         log.error("terminated by SIGTERM at epoch %d, step %d: saved %s", trainer.current_epoch,
                   trainer.global_step, path)
+
+
+class EpochLine(L.Callback):
+    """One log line per epoch, at its end (after its validation): the epoch, the training loss, the validation metrics
+    named in ``metrics`` (those logged), the time spent and an estimate of the time left (from the epochs
+    still to run, or ``trainer.max_time`` when that comes first). Through logging, so it shows in a log file
+    and in output redirected to one, where a progress bar does not."""
+
+    def __init__(self, metrics: tuple[str, ...] = ("train/loss_epoch", "val/nll", "val/select", "val/mse/h01")) -> None:
+        self.metrics = tuple(metrics)
+        self.started = 0.0
+
+    def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.started, self.first_epoch = time.monotonic(), trainer.current_epoch
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if not trainer.is_global_zero:
+            return
+        spent = time.monotonic() - self.started
+        done = trainer.current_epoch + 1 - self.first_epoch
+        values = "  ".join(f"{k} {float(v):.4g}" for k in self.metrics if (v := trainer.callback_metrics.get(k))
+                           is not None)
+        left = ""
+        if trainer.max_epochs and trainer.max_epochs > 0:
+            rest = spent / done * (trainer.max_epochs - trainer.current_epoch - 1)
+            limit = _max_time(trainer)
+            rest = min(rest, max(limit - spent, 0.0)) if limit else rest
+            left = f", about {_clock(rest)} left"
+        total = f"/{trainer.max_epochs}" if trainer.max_epochs and trainer.max_epochs > 0 else ""
+        log.info("epoch %d%s  %s  (%s%s)", trainer.current_epoch + 1, total, values, _clock(spent), left)
+
+
+def _max_time(trainer: L.Trainer) -> float | None:
+    """``trainer.max_time`` in seconds, from the Timer callback Lightning adds for it (None without one)."""
+    from lightning.pytorch.callbacks import Timer
+
+    timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
+    duration = getattr(timer, "_duration", None)
+    return float(duration) if duration else None
+
+
+def _clock(seconds: float) -> str:
+    minutes, s = divmod(int(round(seconds)), 60)
+    return f"{minutes}m{s:02d}s" if minutes else f"{s}s"

@@ -35,6 +35,7 @@ from dider.models.module import RelationalVAEModule
 from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocator
 from dider.prediction import PredictionWriter, PredictProgress
 from dider.preflight import clip_problem, input_warnings, validate_config
+from dider.quiet import silence_library_chatter
 from dider.runfolder import (
     RunLock,
     RunRefused,
@@ -303,7 +304,9 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         if cfg.mode == "train":
             trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
             best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
-        trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt)
+        # verbose=False: the app prints the one final table itself (leading with the forecast in data units)
+        trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt,
+                     verbose=False)
     except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
         again = [o for o in _overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
         resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
@@ -355,6 +358,7 @@ def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metric
 def main(cfg: DictConfig) -> float | None:
     """The app. Returns ``optimized_metric`` (a validation metric by default), which Hydra sweepers
     (e.g. the Optuna sweeper) minimise; never a test metric, so a search cannot tune on the test set."""
+    silence_library_chatter()
     try:
         tune_allocator(cfg.get("allocator"))
         if cfg.mode == "predict":
