@@ -64,6 +64,13 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     plugin = acc.PluginTagToContent("hparams")
     blob = b"".join(plugin.values())
     assert b"model/num_edges" in blob and b"seed" in blob and b"test/mse/h01" in blob
+    # the text tab: the results card, with the forecast against constant velocity in the run's own numbers
+    (event,) = acc.Tensors("results/text_summary")
+    card = event.tensor_proto.string_val[0].decode()
+    assert card.startswith("### dider, seed 7") and "| horizon | ADE | constant velocity ADE | ratio |" in card
+    ratio = record["metrics"]["test/ade_vs_cv/h25"]
+    assert f"| h25 | {record['metrics']['test/ade/h25']:.4g} |" in card and f"{ratio:.4g}" in card
+    assert "**Edge recall**" in card and "**What each type means**" in card
 
 
 def test_training_lowers_the_loss(make_cfg, tmp_path):
@@ -182,3 +189,12 @@ def test_metrics_json_records_objective_and_provenance(make_cfg, tmp_path):
     prov = record["provenance"]
     assert prov["dider"] == dider.__version__ and prov["torch"] == torch.__version__ and prov["device"] == "cpu"
     assert prov["wall_s"] > 0 and len(prov.get("git_commit", "x" * 40).removesuffix("-dirty")) == 40
+
+
+def test_results_card_marks_what_is_missing():
+    from dider.results_card import results_markdown
+
+    card = results_markdown({"test/ade/h01": 1.0, "test/cv/ade/h01": 2.0, "test/ade_vs_cv/h01": 0.5,
+                             "test/fde/h01": float("nan")}, "nri, seed 2")
+    assert card.startswith("### nri, seed 2\n") and "| h01 | 1 | 2 | 0.5 | – | – |" in card
+    assert "beats constant velocity" in card and "Edge recall" not in card and "What each type" not in card

@@ -36,6 +36,7 @@ from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocat
 from dider.prediction import PredictionWriter, PredictProgress
 from dider.preflight import clip_problem, input_warnings, validate_config
 from dider.quiet import silence_library_chatter
+from dider.results_card import results_markdown
 from dider.runfolder import (
     RunLock,
     RunRefused,
@@ -318,6 +319,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     for lg in loggers if trainer.is_global_zero else []:
         if isinstance(lg, TensorBoardLogger):  # only a finished run enters the HParams tab: no NaN rows of failed ones
             lg.log_hyperparams(_hparams(cfg), metrics={k: metrics.get(k, math.nan) for k in hparam_metrics(cfg)})
+            card = results_markdown(metrics, f"{cfg.model.get('name', 'model')}, seed {cfg.seed}")
+            lg.experiment.add_text("results", card, global_step=trainer.global_step)
     objective = _objective(cfg, trainer, callbacks, metrics)
     if trainer.is_global_zero:
         record = {
