@@ -4,9 +4,9 @@ fails to train is caught here, not after an hour of a sweep."""
 
 from pathlib import Path
 
+import dider.conf
 import pytest
 
-import dider.conf
 from dider.run import train
 from fixtures import write_ind_root, write_zhan
 
