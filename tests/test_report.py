@@ -151,7 +151,16 @@ def test_edge_ablation_plot(tmp_path: Path):
     assert summary.groups[1].stats("test/mse/h20") == pytest.approx((4.5e-3, np.std([3e-3, 6e-3], ddof=1), 2))
     assert (tmp_path / "out" / "edge_ablation.png").stat().st_size > 0
     md = (tmp_path / "out" / "report.md").read_text()
-    assert "mse/h01: lowest mean MSE at num_edges=2" in md and "mse/h20: lowest mean MSE at num_edges=4" in md
+    # h01: 3e-5, 4e-5 against 5e-5, 6e-5 on seeds 1, 2: lower on each seed by the same 2e-5, so the paired
+    # interval is a point below 0; h20: 5e-3, 1e-2 against 3e-3, 6e-3: differences -2e-3, -4e-3 over 2 seeds,
+    # mean -3e-3 +- 12.706 * 1e-3 reaches 0
+    assert "mse/h01: lowest mean MSE at num_edges=2 (paired over 2 seeds, 95%)" in md
+    tex = (tmp_path / "out" / "report.tex").read_text()
+    assert r"model & num\_edges & $n$ & mse/h01 & mse/h20 \\" in tex and r"\toprule" in tex
+    assert r"dider & 2 & 2 & \textbf{3.5e-05} $\pm$ 7.1e-06 & 0.0075 $\pm$ 0.0035 \\" in tex
+    assert r"dider & 4 & 2 & 5.5e-05 $\pm$ 7.1e-06 & \textbf{0.0045} $\pm$ 0.0021 \\" in tex
+    assert ("mse/h20: lowest mean MSE at num_edges=4, not established: paired over 2 seed(s), the 95% interval of "
+            "its difference to num_edges=2 reaches 0") in md
 
 
 def test_num_edges_per_model_no_ablation(tmp_path: Path):

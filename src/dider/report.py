@@ -31,6 +31,7 @@ from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa:
 from omegaconf import OmegaConf  # noqa: E402
 
 from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
+from dider.report_latex import latex_table
 
 SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
             ("Displacement error of the forecast positions (data units)", r"(cv/)?(ade|fde)/h\d+$"),
@@ -239,13 +240,34 @@ def ablation_figure(s: Summary, path: Path) -> list[str]:
             e = [g.key["num_edges"] for g in gs]
             mean, std = np.array([g.stats(m)[:2] for g in gs]).T
             ax.errorbar(e, mean, yerr=np.nan_to_num(std), marker="o", capsize=3, label=name)
-            best.append(f"{name}, {m.removeprefix('test/')}: lowest mean MSE at num_edges={e[int(np.nanargmin(mean))]}")
+            i = int(np.nanargmin(mean))
+            best.append(f"{name}, {m.removeprefix('test/')}: lowest mean MSE at num_edges={e[i]}"
+                        + paired_caveat(gs, i, m))
         ax.set(xlabel="num_edges", ylabel="MSE (normalised)", title=m.removeprefix("test/"), yscale="log")
         ax.set_xticks(sorted({g.key["num_edges"] for gs in rows.values() for g in gs}))
         ax.legend(fontsize=7)
     fig.tight_layout()
     _save(fig, path)
     return best
+
+
+def paired_caveat(groups: list[Group], best: int, metric: str) -> str:
+    """Whether group ``best``'s lower ``metric`` holds against every other group, paired by seed: the 95%
+    Student-t interval of the per-seed differences lies below 0. -> a note for the claim's line."""
+    by_seed = [{j.get("seed"): j["metrics"].get(metric, math.nan) for j in g.jobs} for g in groups]
+    smallest = None
+    for k, other in enumerate(by_seed):
+        if k == best:
+            continue
+        seeds = sorted(set(other) & set(by_seed[best]), key=str)
+        diff = np.array([by_seed[best][sd] - other[sd] for sd in seeds], dtype=float)
+        diff = diff[np.isfinite(diff)]
+        n = len(diff)
+        smallest = n if smallest is None else min(smallest, n)
+        if n < 2 or diff.mean() + t975(n - 1) * diff.std(ddof=1) / math.sqrt(n) >= 0:
+            return (f", not established: paired over {n} seed(s), the 95% interval of its difference to "
+                    f"num_edges={groups[k].key['num_edges']} reaches 0")
+    return f" (paired over {smallest} seeds, 95%)"
 
 
 def copy_timelines(s: Summary, out: Path) -> list[tuple[str, str, list[str]]]:
@@ -344,9 +366,11 @@ def main(argv: Sequence[str] | None = None) -> Summary:
     text = markdown(s, sweep, figures, best, copy_timelines(s, out))
     atomic_write_text(out / "report.md", text)
     write_csv(s, out / "report.csv")
+    atomic_write_text(out / "report.tex", latex_table(s))
     write_runs_csv(s, sweep, out / "runs.csv")
     print(text)
-    print(f"report: {out / 'report.md'}  table: {out / 'report.csv'}  per job: {out / 'runs.csv'}")
+    print(f"report: {out / 'report.md'}  table: {out / 'report.csv'} (LaTeX: {out / 'report.tex'})  per job: "
+          f"{out / 'runs.csv'}")
     if s.failed or s.missing or s.ignored:
         print(f"warning: {len(s.failed)} failed, {len(s.missing)} missing and {len(s.ignored)} ignored job folders "
               f"(listed in the report)")
