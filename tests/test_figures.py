@@ -77,5 +77,23 @@ def test_a_crowded_run_writes_results_before_figures(make_cfg, tmp_path, monkeyp
     assert seen == {"metrics.json": True, "segments.json": True, "clips.npz": True}
     assert "test figures not drawn (RuntimeError: a figure failed)" in caplog.text
     assert sorted(p.name for p in (out / "figures").glob("*.png")) == [
-        "timeline_00.png", "timeline_01.png", "trajectories_00.png", "trajectories_01.png"]
+        "forecast_00.png", "forecast_01.png", "timeline_00.png", "timeline_01.png", "trajectories_00.png",
+        "trajectories_01.png"]
     assert json.loads((out / "metrics.json").read_text())["metrics"]["test/ade/h04"] > 0
+
+
+def test_forecast_figure_draws_every_carried_agent():
+    """One true path (observed and future), one model and one constant-velocity line per agent present at the
+    burn-in's last frame; an agent gone by then is left out."""
+    from dider.viz import forecast_figure
+
+    t, n, burn_in = 10, 3, 4
+    positions = torch.arange(t * n * 2, dtype=torch.float).reshape(t, n, 2)
+    mask = torch.ones(t, n, dtype=torch.bool)
+    mask[2:, 2] = False  # agent 2 leaves before the burn-in ends
+    forecast = positions[burn_in:] + 1.0
+    fig = forecast_figure(positions, mask, forecast, positions[burn_in:], burn_in)
+    assert len(fig.axes[0].lines) == 2 * 4  # agents 0 and 1: observed, future, model, constant velocity
+    model_line = fig.axes[0].lines[2].get_xydata()
+    assert np.allclose(model_line[0], positions[burn_in - 1, 0]) and np.allclose(model_line[1:], forecast[:, 0])
+    plt.close(fig)

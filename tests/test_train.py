@@ -60,6 +60,7 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
         assert tag in tags["scalars"], tag
     assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
     assert any(t.startswith("test/timeline/") for t in tags["images"])
+    assert any(t.startswith("test/forecast/") for t in tags["images"])
     # HParams tab: the session start info names the hyper-parameters and the metric tags
     plugin = acc.PluginTagToContent("hparams")
     blob = b"".join(plugin.values())

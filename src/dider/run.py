@@ -341,6 +341,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         print(f"metrics: {out_dir / 'metrics.json'}", flush=True)
     if figures := draw_figures(trainer, model):  # after the results: a figure never costs them
         print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir {out_dir})")
+    if trainer.is_global_zero and (out_dir / "clips.npz").exists():
+        print(f"explorer: python -m dider.explore {out_dir}  (writes {out_dir / 'explorer.html'})")
     return metrics, objective
 
 

@@ -121,6 +121,34 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
     return fig
 
 
+def forecast_figure(positions: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor, cv: torch.Tensor,
+                    burn_in: int, title: str = "") -> plt.Figure:
+    """The true paths (observed part thin, future thick) against the model's forecast and constant velocity's
+    from the burn-in's last frame, in data units, for the agents present there.
+
+    positions: [T, N, 2]; mask: [T, N] bool; forecast, cv: [P, N, 2] for frames burn_in .. burn_in + P - 1."""
+    pos, present = positions.numpy(), mask.numpy()
+    carry = np.flatnonzero(present[burn_in - 1])
+    fig, ax = plt.subplots(figsize=(6, 6))
+    lines = {"true": ("k", "-"), "model": ("tab:red", "--"), "constant velocity": ("tab:gray", ":")}
+    for i in carry:
+        seen = present[:burn_in, i]
+        ax.plot(pos[:burn_in, i, 0][seen], pos[:burn_in, i, 1][seen], color="k", lw=0.8, alpha=0.5)
+        future = present[burn_in - 1:, i]
+        ax.plot(pos[burn_in - 1:, i, 0][future], pos[burn_in - 1:, i, 1][future], color="k", lw=1.6)
+        start = pos[burn_in - 1, i][None]
+        for name, path in (("model", forecast), ("constant velocity", cv)):
+            xy = np.concatenate([start, path[:, i].numpy()])
+            ax.plot(xy[:, 0], xy[:, 1], color=lines[name][0], ls=lines[name][1], lw=1.4)
+        ax.scatter(*pos[burn_in - 1, i], s=10, color="k", zorder=3)
+    handles = [plt.Line2D([], [], color=c, ls=ls, lw=1.5) for c, ls in lines.values()]
+    ax.legend(handles, list(lines), fontsize=7, loc="best")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def _add(trainer: L.Trainer, tag: str, fig: plt.Figure, path: Path) -> Path:
     """Save ``fig`` as ``path`` and send it to every logger that takes images -> ``path``."""
     atomic_write(path, lambda f: fig.savefig(f, dpi=100, format="png"))
@@ -202,6 +230,32 @@ class TimelineFigures(L.Callback):
                                     background, title=f"test clip {index}: interaction segments")
             written.append(_add(trainer, f"test/trajectories/{i:02d}", fig,
                                 self.output_dir / f"trajectories_{i:02d}.png"))
+            if (forecast := self._forecast(pl_module, data["states"][i], data["mask"][i], norm)) is not None:
+                fig = forecast_figure(states[..., :2], data["mask"][i], *forecast, pl_module.hparams.burn_in,
+                                      title=f"test clip {index}: forecast from frame {pl_module.hparams.burn_in}")
+                written.append(_add(trainer, f"test/forecast/{i:02d}", fig, self.output_dir / f"forecast_{i:02d}.png"))
+
+    @staticmethod
+    @torch.no_grad()
+    def _forecast(pl_module: L.LightningModule, states: torch.Tensor, mask: torch.Tensor,
+                  norm: Any) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """The model's and constant velocity's forecast of one clip [T, N, 4] after the model's burn-in, in data
+        units: ([P, N, 2], [P, N, 2]), drawn from ``eval_seed`` as evaluation draws; None if nothing follows it."""
+        model, burn_in = pl_module.model, int(pl_module.hparams.burn_in)
+        steps = states.shape[0] - burn_in
+        if steps < 1 or not hasattr(pl_module, "constant_velocity"):
+            return None
+        x, m = states[None].to(pl_module.device), mask[None].to(pl_module.device)
+        was_training = model.training
+        model.eval()
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)))
+            pred = model.forecast_after(x, m, burn_in, steps)[0].float().cpu()
+        cv = model.forecast_after(x, m, burn_in, steps, pl_module.constant_velocity)[0].float().cpu()
+        model.train(was_training)
+        if norm is not None:
+            pred, cv = norm.denormalize(pred), norm.denormalize(cv)
+        return pred[..., :2], cv[..., :2]
 
 
 def draw_figures(trainer: L.Trainer, pl_module: L.LightningModule) -> list[Path]:
