@@ -8,7 +8,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from dider import bench
+from dider.bench import cases as bench_cases
+from dider.bench import cli as bench  # the command line's namespace: main, run_case, cases, ...
+from dider.bench import reference as bench_reference
+from dider.bench import steps as bench_steps
 
 # A checkout of cgraber/cvpr_dNRI, named by $DIDER_DNRI_REFERENCE (the comparison is skipped without one).
 REFERENCE_CHECKOUT = Path(os.environ.get("DIDER_DNRI_REFERENCE", "/nonexistent/cvpr_dNRI"))
@@ -17,18 +20,18 @@ REFERENCE_CHECKOUT = Path(os.environ.get("DIDER_DNRI_REFERENCE", "/nonexistent/c
 def test_gemm_case_reports_its_arithmetic():
     case = bench.Case("gemm/fp32", [], 1, 0, 0, iters=2, warmup=1, kind="gemm", settings={"dtype": "fp32"})
     record = bench.run_case(case, "cpu")
-    m, k, n = bench.GEMM_SHAPE
+    m, k, n = bench_cases.GEMM_SHAPE
     assert record["settings"]["gflop_per_step"] == 2 * m * k * n / 1e9
     assert record["gflops"] == record["settings"]["gflop_per_step"] / record["step_s"] > 0
 
 
 def test_step_gflop_counts_without_training_the_model():
     torch.manual_seed(0)
-    model = bench.build_model(["model=dnri", "model.encoder.hidden=16", "model.decoder.hidden=16"])[0].train()
+    model = bench_steps.build_model(["model=dnri", "model.encoder.hidden=16", "model.decoder.hidden=16"])[0].train()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     states = torch.rand(2, 6, 3, 4)
     batch = {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool)}
-    gflop = bench.step_gflop(model, batch)
+    gflop = bench_steps.step_gflop(model, batch)
     # forward + backward of the encoder's first edge layer alone: [B*T*N, 16] x [16, 32], three products
     assert gflop > 3 * 2 * (2 * 6 * 3) * 16 * 32 / 1e9
     assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())  # weights, batch-norm stats
@@ -67,10 +70,10 @@ def test_interleaved_rounds_alternate_and_pair_the_speedups():
         current_round[0] = (len(calls) - 2) // 4  # 2 warm-up calls, then 4 calls (2 x 2 iterations) a round
         return now[0]
 
-    per_round = bench.interleaved_timing(steps, rounds=3, iters=2, warmup=1, clock=clock)
+    per_round = bench_reference.interleaved_timing(steps, rounds=3, iters=2, warmup=1, clock=clock)
     assert calls == ["A", "B"] + ["A", "A", "B", "B"] + ["B", "B", "A", "A"] + ["A", "A", "B", "B"]
     assert per_round == {"A": [3.0, 3.0, 6.0], "B": [1.0, 1.0, 2.0]}
-    out = bench.speedups(per_round, "A")
+    out = bench_reference.speedups(per_round, "A")
     assert out["step_s"] == {"A": 3.0, "B": 1.0}  # medians
     assert out["speedup_per_round"] == {"B": [3.0, 3.0, 3.0]}  # paired within the round: the slow spell cancels
     assert out["speedup"] == {"B": 3.0}
@@ -135,7 +138,7 @@ def test_reference_comparison_at_tiny_sizes(tmp_path, bf16):
 
 def test_largest_agents_finds_the_exact_bound_of_a_quadratic_peak():
     """A fake step whose peak is 500 + 2 N (N - 1) MB: the largest N within 3000 MB is 35 (2880; 36: 3020)."""
-    from dider.bench_memory import largest_agents
+    from dider.bench.memory import largest_agents
 
     probed = []
 
@@ -151,7 +154,7 @@ def test_largest_agents_finds_the_exact_bound_of_a_quadratic_peak():
 
 def test_largest_agents_never_runs_a_probe_predicted_over_the_machine():
     """With the machine's ceiling at 2000 MB, N = 36 (predicted 3020 MB) must not run: the bound is predicted."""
-    from dider.bench_memory import largest_agents
+    from dider.bench.memory import largest_agents
 
     def probe(n):
         assert 500.0 + 2.0 * n * (n - 1) <= 2000.0, f"N = {n} was run"
@@ -167,7 +170,7 @@ def test_largest_agents_never_runs_a_probe_predicted_over_the_machine():
 def test_time_to_result_runs_the_documented_job_and_reads_its_metrics(tmp_path, capsys):
     """``--only result/demo --quick``: the demo's job at toy sizes, as its own process; the record has the wall
     time and the model's edge recall and forecast error read back from the run's metrics.json."""
-    from dider.bench_result import RESULT_METRICS
+    from dider.bench.result import RESULT_METRICS
 
     out = tmp_path / "bench.json"
     bench.main(["--only", "result/demo", "--quick", "--out", str(out)])

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 import torch
 
-from dider.bench_outputs import fake_outputs, time_outputs
+from dider.bench.outputs import fake_outputs, time_outputs
 from dider.run import train
 from dider.viz import TimelineFigures, shown_edges, timeline_figure, trajectory_figure
 

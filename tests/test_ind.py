@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from dider.bench import benchmark_preprocess
+from dider.bench.data import benchmark_preprocess
 from dider.data import ind as ind_mod
 from dider.data.fakes import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data.ind import InDDataModule

@@ -1,7 +1,7 @@
 """Library messages that say nothing about a run, silenced where they come from, so a run's output is its
-own: Lightning's tips about its cloud products and notes on its own bookkeeping, a deprecation inside Lightning's own pytree helper, the model
-summary's note that it counts bf16 parameters as fp32, and the hint to add data-loader workers (the data
-sets here are in memory: workers would only copy them)."""
+own: Lightning's tips about its cloud products and notes on its own bookkeeping, a deprecation inside
+Lightning's own pytree helper, the model summary's note that it counts bf16 parameters as fp32, and the hint
+to add data-loader workers (the data sets here are in memory: workers would only copy them)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,233 @@
+"""Running the cases, each in a fresh process, and the command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import multiprocessing as mp
+import os
+import platform
+import resource
+import time
+from collections.abc import Callable
+from pathlib import Path
+from queue import Empty
+from typing import Any
+
+import torch
+
+from dider.bench.cases import CHECKPOINTING, Case, cases, memory_case
+from dider.bench.data import data_case
+from dider.bench.memory import largest_agents
+from dider.bench.reference import REFERENCE_CASES, REFERENCE_SIZES, compare_with_reference
+from dider.bench.result import JOBS, time_to_result
+from dider.bench.steps import gemm_case, model_case, profile_case
+from dider.bench.summary import plot, summary
+from dider.io import atomic_write_text
+from dider.perf import ALLOCATORS, allocator_mode, native_bf16, tune_allocator
+
+log = logging.getLogger(__name__)
+
+
+def _machine_memory_mb(device: str) -> float:
+    if device == "cuda":
+        return torch.cuda.get_device_properties(0).total_memory / 2**20
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**20
+
+
+def largest_case(case: Case, records: list[dict[str, Any]], device: str, limit_gb: float) -> dict[str, Any]:
+    """The largest N whose training step peaks within ``limit_gb`` (:func:`dider.bench.memory.largest_agents`),
+    starting from this run's fixed-N memory records of the same setting."""
+    checkpoint = bool(case.settings["checkpoint"])
+    saver = "on" if checkpoint else "off"
+    start = {r["settings"]["agents"]: r["peak_memory_mb"] for r in records
+             if r["name"].startswith("memory/dnri/N") and r["name"].endswith(saver) and "error" not in r}
+
+    def probe(n: int) -> float:
+        record = _run_isolated(memory_case(n, checkpoint), device)
+        print(f"    N = {n}: " + (f"peak {record['peak_memory_mb']:.0f} MiB" if "error" not in record
+                                  else f"FAILED: {record['error']}"), flush=True)
+        return float("inf") if "error" in record else record["peak_memory_mb"]  # killed: did not fit
+
+    t0 = time.perf_counter()
+    found = largest_agents(probe, limit_gb * 1024, 0.85 * _machine_memory_mb(device), start)
+    return {"name": case.name, "kind": case.kind, "device": device, "torch": torch.__version__,
+            "limit_gb": limit_gb, "search_s": time.perf_counter() - t0, **found,
+            "settings": {"batch": case.batch, "steps": case.steps, "overrides": ["model=dnri"]
+                         + (CHECKPOINTING if checkpoint else []), "checkpoint": checkpoint}}
+
+
+def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, Any]:
+    if case.kind in ("train", "rollout"):
+        step_s, extra = model_case(case, device)
+    elif case.kind == "gemm":
+        step_s, extra = gemm_case(case, device)
+    else:
+        step_s, extra = data_case(case, device, tmpdir)
+    peak = (torch.cuda.max_memory_allocated() if device == "cuda" and case.kind in ("train", "rollout")
+            else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+    rate = {"gflops": extra["gflop_per_step"] / step_s} if "gflop_per_step" in extra else {}
+    return {
+        "name": case.name, "kind": case.kind, "samples_per_s": case.batch / step_s, "step_s": step_s, **rate,
+        "peak_memory_mb": peak / 2**20, "device": device, "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "settings": {"batch": case.batch, "agents": case.agents, "steps": case.steps, "iters": case.iters,
+                     "overrides": case.overrides, **case.settings, **extra},
+    }  # fmt: skip
+
+
+def _worker(fn: Callable[..., dict[str, Any]], args: tuple[Any, ...], failed: dict[str, Any], queue: mp.Queue) -> None:
+    tune_allocator()
+    try:
+        queue.put(fn(*args))
+    except Exception as e:  # noqa: BLE001 - a failed case is reported as such and the others still run
+        queue.put({**failed, "error": f"{type(e).__name__}: {e}"})
+
+
+def _isolated(fn: Callable[..., dict[str, Any]], args: tuple[Any, ...], failed: dict[str, Any]) -> dict[str, Any]:
+    """``fn(*args)`` in a fresh subprocess; on failure ``failed`` with an ``error``."""
+    ctx = mp.get_context("spawn")
+    queue = ctx.Queue()
+    proc = ctx.Process(target=_worker, args=(fn, args, failed, queue))
+    proc.start()
+    while True:
+        try:
+            record = queue.get(timeout=5)
+            break
+        except Empty:
+            if not proc.is_alive():  # killed (e.g. out of memory) before it could report
+                record = {**failed, "error": f"worker exited with code {proc.exitcode}"}
+                break
+    proc.join()
+    return record
+
+
+def _run_isolated(case: Case, device: str, quick: bool = False) -> dict[str, Any]:
+    if case.kind == "result":  # the job is its own process already
+        try:
+            record = time_to_result(JOBS[case.name], quick=quick)
+        except RuntimeError as e:
+            return {"name": case.name, "kind": case.kind, "error": str(e)}
+        return {"name": case.name, "kind": case.kind, "device": device, "torch": torch.__version__, **record}
+    return _isolated(run_case, (case, device), {"name": case.name, "kind": case.kind})
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
+    parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
+    parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these; the "
+                        "time-to-result cases (result/demo, result/synth_cpu_table: whole jobs, minutes) run only "
+                        "when named here")
+    parser.add_argument("--memory-limit-gb", type=float, default=16.0,
+                        help="memory/dnri/largest_N/*: the budget a training step's peak must fit")
+    parser.add_argument("--quick", action="store_true",
+                        help="result/* cases at toy sizes: a check that the measurement runs, not a measurement")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--reference", type=Path, default=None,
+                        help="a checkout of cgraber/cvpr_dNRI: also time its training step against ours (the "
+                        "comparisons are named reference/<case>, so --only reference runs them alone)")
+    parser.add_argument("--reference-size", choices=sorted(REFERENCE_SIZES), default="full",
+                        help="full: the benchmark's sizes; tiny: toy sizes, a quick check that the comparison runs")
+    parser.add_argument("--reference-rounds", type=int, default=4, help="alternating rounds of the comparison")
+    parser.add_argument("--reference-iters", type=int, default=2, help="timed steps of each per round")
+    parser.add_argument("--reference-threads", type=int, default=None,
+                        help="torch threads of the comparison (default: torch's, as the other cases)")
+    parser.add_argument("--allocator", choices=ALLOCATORS, default=None,
+                        help="glibc's allocator settings in every case's process (default: $DIDER_ALLOCATOR, else "
+                        "heap, as training runs; dider.perf.tune_allocator)")
+    parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
+                        help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
+                        "AVX-512 emulates it, about 20x slower than fp32)")
+    parser.add_argument("--profile", metavar="CASE", default=None,
+                        help="instead of timing: profile one step of the training case CASE (e.g. "
+                        "train/dnri/recurrent) with torch.profiler, print its op table and write it next to --out")
+    parser.add_argument("--profile-rows", type=int, default=25, help="--profile: ops in the table")
+    args = parser.parse_args(argv)
+    if args.allocator:  # the spawned case processes read it at start (_worker)
+        os.environ["DIDER_ALLOCATOR"] = args.allocator
+    if args.profile is not None:
+        trainable = {c.name: c for c in cases() if c.kind == "train"}
+        if args.profile not in trainable:
+            parser.error(f"--profile {args.profile!r}: not a training case; one of {', '.join(trainable)}")
+        tune_allocator()  # in this process, as every case's worker does
+        table = profile_case(trainable[args.profile], args.device, args.profile_rows)
+        path = args.out.with_name(f"profile_{args.profile.replace('/', '_')}.txt")
+        atomic_write_text(path, table)
+        print(table)
+        print(f"wrote {path}")
+        return []
+    native = native_bf16(args.device)
+    bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
+    meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+            "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
+            "bf16": bf16, "native_bf16": native, "allocator": allocator_mode()}
+    if not bf16:
+        print(f"bf16 cases left out (--bf16 {args.bf16}; native bf16 on {args.device}: {native})", flush=True)
+
+    def selected(name: str) -> bool:
+        return (not args.only or any(s in name for s in args.only)) and (bf16 or "bf16" not in name)
+
+    reference: dict[str, Any] | None = None
+    names = tuple(n for n in REFERENCE_CASES if selected(f"reference/{n}"))
+    if args.reference is not None and names:
+        reference = _isolated(compare_with_reference, (args.reference, names, args.reference_size,
+                                                       args.reference_rounds, args.reference_iters, 1, args.device,
+                                                       args.reference_threads, bf16),
+                              {"checkout": str(args.reference)})
+        if "error" in reference:
+            print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
+        for name, r in reference.get("cases", {}).items():
+            ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f}, matmul-only "
+                             f"ceiling {r['ceiling']['speedup'][k]:.2f})" for k in r["speedup"])
+            print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours {ours}",
+                  flush=True)
+
+    def write(records: list[dict[str, Any]]) -> None:
+        document = {"meta": meta, "summary": summary(records, reference), "records": records}
+        if reference is not None:
+            document["reference"] = reference
+        atomic_write_text(args.out, json.dumps(document, indent=2))
+
+    records: list[dict[str, Any]] = []
+    if reference is not None:
+        write(records)
+    for case in cases():
+        if not selected(case.name) or (case.kind == "result" and not args.only):
+            continue
+        if case.kind == "largest":
+            print(f"{case.name:<32} searching (budget {args.memory_limit_gb:g} GB)", flush=True)
+            record = largest_case(case, records, args.device, args.memory_limit_gb)
+        else:
+            record = _run_isolated(case, args.device, args.quick)
+        records.append(record)
+        if "error" in record:
+            print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
+        elif case.kind == "largest":
+            print(f"{record['name']:<32} largest N {record['largest_agents']} (next N: {record['bound']})", flush=True)
+        elif case.kind == "result":
+            print(f"{record['name']:<32} {record['wall_s']:9.1f} s for {record['runs']} run(s)", flush=True)
+            for model, values in record["models"].items():
+                print(f"    {model:<28} " + "  ".join(f"{k.removeprefix('test/')} {v:.3g}" for k, v in values.items()
+                                                   if k != "runs"), flush=True)
+        else:
+            print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
+                  f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
+        write(records)  # after every case: an interrupted benchmark keeps what it measured
+    derived = summary(records, reference)
+    for key, value in derived.items():
+        print(f"{key:<44} {value:.2f}")
+    if any(r["name"].startswith("scale/") for r in records):
+        plot(records, args.plot or args.out.with_suffix(".png"))
+    print(f"wrote {args.out}")
+    return records
+
+
+def cli() -> None:
+    """The console script (``dider-bench``): ``main`` without its return value (an exit status of 0)."""
+    main()
+
+
+if __name__ == "__main__":
+    main()
