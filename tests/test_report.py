@@ -189,3 +189,17 @@ def test_experiment_sweeps_compose(experiment: str):
             assert edges == {"dnri": 4, "dider_skid": 6, "dider": 6}
             assert cfg.model.decoder._target_.endswith("RecurrentDecoder") and cfg.model.sparsity_mix == 0
     GlobalHydra.instance().clear()
+
+
+def test_horizon_bands_stop_a_decade_below_the_mean(tmp_path: Path, monkeypatch):
+    """Two seeds far apart give 95% bands reaching below 0; on the log axis each band's lower edge stops at a
+    tenth of the mean instead of spanning decades. h01: 3e-5, 7e-5 (mean 5e-5); h20: 5e-3, 2.5e-2 (mean 1.5e-2);
+    half-widths 12.706 * std / sqrt(2) exceed both means."""
+    (tmp_path / "sweep").mkdir()
+    sweep = fake_sweep(tmp_path / "sweep", {"model": "dnri", "seed": "1,5"}, [("dnri", 2, 1), ("dnri", 2, 5)])
+    figures = []
+    monkeypatch.setattr(report, "_save", lambda fig, path: figures.append(fig))
+    assert report.horizons_figure(report.summarise(sweep), tmp_path / "h.png")
+    (band,) = figures[0].axes[0].collections
+    ys = band.get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(5e-6) and np.isclose(ys, 1.5e-3).any()

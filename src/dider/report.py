@@ -214,9 +214,10 @@ def horizons_figure(s: Summary, path: Path) -> bool:
         half = np.array([t975(int(k) - 1) for k in n]) * std / np.sqrt(np.maximum(n, 1))
         half = np.nan_to_num(half)  # one job: no band
         ax.plot(hs, mean, marker="o", label=f"{g.label} (n={int(n.max())})")
-        ax.fill_between(hs, np.maximum(mean - half, mean * 1e-3), mean + half, alpha=0.2)  # log axis: clip > 0
+        # on the log axis a band reaching 0 would span decades: its lower edge stops at a tenth of the mean
+        ax.fill_between(hs, np.maximum(mean - half, mean / 10), mean + half, alpha=0.2)
     ax.set(xlabel="forecast horizon (steps after burn-in)", ylabel="MSE (normalised)", yscale="log",
-           title="Forecast error by horizon, 95% confidence bands")
+           title="Forecast error by horizon, 95% confidence bands (lower edge at most 10x below the mean)")
     ax.legend(fontsize=7)
     _save(fig, path)
     return True
