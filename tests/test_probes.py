@@ -109,12 +109,21 @@ def names_in_forecast(tmp: Path) -> None:
 @dataclass
 class Row:
     """make(tmp, trained run) -> command-line arguments; ok: the exit status is 0; said: a pattern of what it
-    prints (stdout and stderr); then(tmp): what it must leave behind."""
+    prints (stdout and stderr); then(tmp): asserts what it must leave behind."""
 
     make: Callable[[Path, Path], list[str]]
     ok: bool
     said: str
     then: Callable[[Path], None] | None = None
+
+
+def timelines_drawn(tmp: Path) -> None:
+    """The figures come from the first test batch: data.eval_batch_size=2 clips of 40 agents."""
+    assert len(list((tmp / "out" / "figures").glob("timeline_*.png"))) == 2
+
+
+def other_forecast_kept(tmp: Path) -> None:
+    assert (tmp / "out" / "predictions" / "forecast.csv").read_text() == "another model's forecast\n"
 
 
 def _unchanged(tmp: Path) -> None:
@@ -125,11 +134,9 @@ CLI = {
     "many-agents": Row(lambda tmp, run: ["experiment=smoke", "model=dnri", "logger=none",
                                          "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp / 'out'}",
                                          *crowd_table(tmp)],
-                       True, r"metrics: .*metrics\.json[\s\S]*figures: ",
-                       lambda tmp: len(list((tmp / "out" / "figures").glob("timeline_*.png"))) == 4 or None),
+                       True, r"metrics: .*metrics\.json[\s\S]*figures: ", timelines_drawn),
     "predict-into-a-prediction": Row(prediction_there, False, r"out/predictions already holds a prediction",
-                                     lambda tmp: (tmp / "out" / "predictions" / "forecast.csv").read_text()
-                                     == "another model's forecast\n" or None),
+                                     other_forecast_kept),
     "predict-burn-in-longer-than-clips": Row(
         lambda tmp, run: _predict(tmp, run, _npz(tmp), "predict.forecast_steps=2", "predict.burn_in=50"), False,
         r"predict\.burn_in=50: longer than the 11 steps of the clips of data\.path=.*new\.npz"),

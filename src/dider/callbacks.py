@@ -163,20 +163,19 @@ class EpochLine(L.Callback):
         left = ""
         if trainer.max_epochs and trainer.max_epochs > 0:
             rest = spent / done * (trainer.max_epochs - trainer.current_epoch - 1)
-            limit = _max_time(trainer)
-            rest = min(rest, max(limit - spent, 0.0)) if limit else rest
+            if (limit := _time_remaining(trainer)) is not None:
+                rest = min(rest, max(limit, 0.0))
             left = f", about {_clock(rest)} left"
         total = f"/{trainer.max_epochs}" if trainer.max_epochs and trainer.max_epochs > 0 else ""
         log.info("epoch %d%s  %s  (%s%s)", trainer.current_epoch + 1, total, values, _clock(spent), left)
 
 
-def _max_time(trainer: L.Trainer) -> float | None:
-    """``trainer.max_time`` in seconds, from the Timer callback Lightning adds for it (None without one)."""
+def _time_remaining(trainer: L.Trainer) -> float | None:
+    """Seconds left before ``trainer.max_time``, from the Timer callback Lightning adds for it (None without)."""
     from lightning.pytorch.callbacks import Timer
 
     timer = next((c for c in trainer.callbacks if isinstance(c, Timer)), None)
-    duration = getattr(timer, "_duration", None)
-    return float(duration) if duration else None
+    return None if timer is None else timer.time_remaining()
 
 
 def _clock(seconds: float) -> str:

@@ -50,21 +50,9 @@ def job_folders(paths: Sequence[Path]) -> list[Path]:
     return found
 
 
-def last_logged(folder: Path, names: Sequence[str]) -> dict[str, float]:
-    """The last non-empty value of each of ``names`` in the job's CSV log (``csv/metrics.csv``); {} without one."""
-    path = folder / "csv" / "metrics.csv"
-    if not names or not path.is_file():
-        return {}
-    found: dict[str, float] = {}
-    with path.open(newline="") as f:
-        for row in csv.DictReader(f):
-            found |= {k: float(row[k]) for k in names if row.get(k) not in (None, "")}
-    return found
-
-
 def logged_curves(folder: Path, names: Sequence[str]) -> dict[str, list[list[float]]]:
     """Each of ``names`` over training from the job's CSV log: [[epoch, step, value], ...] of the rows that hold
-    it; {} without a log."""
+    it (epoch, step None where the log has no such column); {} without a log."""
     path = folder / "csv" / "metrics.csv"
     if not names or not path.is_file():
         return {}
@@ -73,8 +61,17 @@ def logged_curves(folder: Path, names: Sequence[str]) -> dict[str, list[list[flo
         for row in csv.DictReader(f):
             for k in names:
                 if row.get(k) not in (None, ""):
-                    curves[k].append([int(row["epoch"]), int(row["step"]), float(row[k])])
+                    curves[k].append([_count(row.get("epoch")), _count(row.get("step")), float(row[k])])
     return {k: v for k, v in curves.items() if v}
+
+
+def _count(value: str | None) -> int | None:
+    return None if value in (None, "") else int(value)
+
+
+def last_logged(folder: Path, names: Sequence[str]) -> dict[str, float]:
+    """The last non-empty value of each of ``names`` in the job's CSV log (``csv/metrics.csv``); {} without one."""
+    return {k: points[-1][2] for k, points in logged_curves(folder, names).items()}
 
 
 def summary(values: list[float]) -> dict[str, float]:

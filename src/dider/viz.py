@@ -102,9 +102,7 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
         if keep.any():
             a, b = pos[frame[keep], send[e_idx[keep]].numpy()], pos[frame[keep], recv[e_idx[keep]].numpy()]
             ax.add_collection(LineCollection(np.stack([a, b], 1), colors=[cmap(c)], alpha=0.35, lw=1.0, zorder=1))
-    # every agent's path in one collection: a step is drawn where the agent is present at both ends
-    walk = np.stack([pos[:-1], pos[1:]], 2)[present[:-1] & present[1:]]  # [P, 2, 2]
-    ax.add_collection(LineCollection(walk, colors="k", lw=1.2, zorder=2))
+    ax.add_collection(LineCollection(path_steps(pos, present), colors="k", lw=1.2, zorder=2))
     seen = present.any(0)
     first, last = present.argmax(0), t - 1 - present[::-1].argmax(0)  # [N] each agent's first and last frame
     agents = np.flatnonzero(seen)
@@ -121,28 +119,36 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
     return fig
 
 
+def path_steps(pos: np.ndarray, present: np.ndarray) -> np.ndarray:
+    """Every agent's path as line segments for one ``LineCollection``: a step is drawn where the agent is present
+    at both ends. pos [T, N, 2], present [T, N] bool -> [P, 2, 2]."""
+    return np.stack([pos[:-1], pos[1:]], 2)[present[:-1] & present[1:]]
+
+
 def forecast_figure(positions: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor, cv: torch.Tensor,
                     burn_in: int, title: str = "") -> plt.Figure:
     """The true paths (observed part thin, future thick) against the model's forecast and constant velocity's
-    from the burn-in's last frame, in data units, for the agents present there.
+    from the burn-in's last frame, in data units, for the agents present there; one collection per kind of line.
 
     positions: [T, N, 2]; mask: [T, N] bool; forecast, cv: [P, N, 2] for frames burn_in .. burn_in + P - 1."""
     pos, present = positions.numpy(), mask.numpy()
-    carry = np.flatnonzero(present[burn_in - 1])
+    carry = present[burn_in - 1]  # [N]
     fig, ax = plt.subplots(figsize=(6, 6))
-    lines = {"true": ("k", "-"), "model": ("tab:red", "--"), "constant velocity": ("tab:gray", ":")}
-    for i in carry:
-        seen = present[:burn_in, i]
-        ax.plot(pos[:burn_in, i, 0][seen], pos[:burn_in, i, 1][seen], color="k", lw=0.8, alpha=0.5)
-        future = present[burn_in - 1:, i]
-        ax.plot(pos[burn_in - 1:, i, 0][future], pos[burn_in - 1:, i, 1][future], color="k", lw=1.6)
-        start = pos[burn_in - 1, i][None]
-        for name, path in (("model", forecast), ("constant velocity", cv)):
-            xy = np.concatenate([start, path[:, i].numpy()])
-            ax.plot(xy[:, 0], xy[:, 1], color=lines[name][0], ls=lines[name][1], lw=1.4)
-        ax.scatter(*pos[burn_in - 1, i], s=10, color="k", zorder=3)
-    handles = [plt.Line2D([], [], color=c, ls=ls, lw=1.5) for c, ls in lines.values()]
-    ax.legend(handles, list(lines), fontsize=7, loc="best")
+    styles = {"true": {"colors": "k", "linestyles": "-"}, "model": {"colors": "tab:red", "linestyles": "--"},
+              "constant velocity": {"colors": "tab:gray", "linestyles": ":"}}
+    ax.add_collection(LineCollection(path_steps(pos[:burn_in], present[:burn_in] & carry), colors="k", lw=0.8,
+                                     alpha=0.5))
+    ax.add_collection(LineCollection(path_steps(pos[burn_in - 1:], present[burn_in - 1:] & carry), lw=1.6,
+                                     **styles["true"]))
+    start = pos[burn_in - 1 : burn_in]  # [1, N, 2]: each forecast starts at the last observed position
+    ahead = np.broadcast_to(carry, (len(forecast) + 1, len(carry)))
+    for name, path in (("model", forecast), ("constant velocity", cv)):
+        xy = np.concatenate([start, path.numpy()])
+        ax.add_collection(LineCollection(path_steps(xy, ahead), lw=1.4, **styles[name]))
+    ax.scatter(pos[burn_in - 1, carry, 0], pos[burn_in - 1, carry, 1], s=10, color="k", zorder=3)
+    handles = [plt.Line2D([], [], color=st["colors"], ls=st["linestyles"], lw=1.5) for st in styles.values()]
+    ax.legend(handles, list(styles), fontsize=7, loc="best")
+    ax.autoscale_view()
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
