@@ -6,7 +6,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 TORCH   := torch==2.13.0
 
-.PHONY: help install demo test test-all bench tb lint clean
+.PHONY: help install demo test test-all bench tb docs lint clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  %-10s %s\n", $$1, $$2}'
@@ -35,6 +35,9 @@ bench: $(STAMP)  ## training throughput benchmarks -> bench/results.json
 
 tb: $(STAMP)  ## TensorBoard over single runs and sweeps
 	$(BIN)/tensorboard --logdir_spec runs:runs,multirun:multirun --port 6006
+
+docs: $(STAMP)  ## build the documentation site into site/ (broken links fail); serve: .venv/bin/mkdocs serve
+	$(BIN)/mkdocs build --strict
 
 lint: $(STAMP)  ## ruff
 	$(BIN)/ruff check src tests

@@ -21,7 +21,6 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-sys.path.insert(0, str(Path(__file__).parent))  # the test module, which holds our side of the comparison
 from dider.graph import edge_index  # noqa: E402
 from test_dnri_golden import GOLDEN, TOLERANCE, VARIANTS, build_model, max_differences, our_outputs  # noqa: E402
 

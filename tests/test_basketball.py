@@ -1,6 +1,5 @@
 """Basketball reader: Zhan et al. npz and DNRI npy formats, DNRI's 5-offence / 49-step setting, errors."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,9 +8,7 @@ import torch
 from hydra.utils import instantiate
 
 from dider.data.basketball import BasketballDataModule, detect_format
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_dnri_bball, write_zhan  # noqa: E402
+from helpers.fixtures import write_dnri_bball, write_zhan
 
 
 def make_dm(root: Path, **kw) -> BasketballDataModule:

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 
 from dider.run import predict, train
-from fixtures import write_trajectories
+from helpers.fixtures import write_trajectories
 
 # Deterministic evaluation: argmax edges in the roll-out; posterior types are argmaxes, so segments.json is
 # deterministic too. 15 test clips: 8 on rank 0, 7 on rank 1, none counted twice.

@@ -8,7 +8,7 @@ import dider.conf
 import pytest
 
 from dider.run import train
-from fixtures import write_ind_root, write_zhan
+from helpers.fixtures import write_ind_root, write_zhan
 
 EXPERIMENTS = sorted(p.stem for p in (Path(dider.conf.__file__).parent / "experiment").glob("*.yaml"))
 SMALL_SYNTH = ["data.num_train=32", "data.num_val=8", "data.num_test=8", "data.batch_size=8"]
@@ -23,6 +23,9 @@ def fake_data(data: str, tmp: Path) -> list[str]:
     if data == "basketball":
         write_zhan(tmp / "bball")
         return [f"data.root={tmp / 'bball'}"]
+    if data == "soccer":  # kloppy's own sample files, which the experiment names: the first 3000 frames
+        pytest.importorskip("kloppy")
+        return ["+data.options={limit:3000}", "data.batch_size=4", "data.eval_batch_size=4"]
     return SMALL_SYNTH
 
 

@@ -27,10 +27,9 @@ from dider.explore import (
     unrle,
     write_explorer,
 )
-
-sys.path.insert(0, str(Path(__file__).parent))
-from explore_fixture import (  # noqa: E402
+from helpers.explore import (
     CLIP0_ARROWS,
+    FORECAST_START,
     SWITCHES,
     T,
     chromium,
@@ -116,6 +115,25 @@ def test_agent_entering_late(run: Path) -> None:
     assert unrle(pairs["1-3"]["p"])[:3] == [-1] * 3
     assert unrle(pairs["0-3"]["segments"])[3:5] == [0, 1]
     assert clip["bg"] is None
+
+
+def test_forecast_names_and_units_embedded(tmp_path: Path) -> None:
+    """The forecast of each agent present at the frame before it starts, decoded to the array's values; the
+    agents' string names and the positions' units."""
+    path = tmp_path / "clips.npz"
+    data = write_clips(path, forecast=True)
+    payload = page_payload(load_clips(path), path, [0, 1])
+    assert payload["units"] == "m" and payload["agent_names"][17] == "provider-id-00017"
+    for s, clip in enumerate(payload["clips"]):
+        fc = clip["fc"]
+        assert fc["start"] == FORECAST_START
+        assert [a["k"] for a in fc["agents"]] == ([0, 1, 2] if s == 0 else [0, 1, 2, 3])  # slot 3 absent in clip 0
+        for agent in fc["agents"]:
+            path_xy = np.array(decode_path(agent["xy"], clip["d"]))
+            assert np.allclose(path_xy, data["forecast"][s, :, agent["k"]], atol=10 ** -clip["d"])
+    write_clips(tmp_path / "plain.npz")
+    plain = page_payload(load_clips(tmp_path / "plain.npz"), tmp_path / "plain.npz", [0])
+    assert plain["clips"][0]["fc"] is None and plain["units"] == "" and plain["agent_names"] == []
 
 
 def test_optional_keys_absent(tmp_path: Path) -> None:
@@ -292,7 +310,7 @@ def test_browser_draws_types_of_each_frame(run: Path) -> None:
     seen = json.loads(html.unescape(re.search(r'<pre id="result">(.*?)</pre>', dom, re.S).group(1)))
 
     assert seen["hash"]["state"] == {"clip": 0, "frame": 2, "transition": 2, "source": "segments", "zero": "hidden",
-                                     "playing": False}  # fmt: skip
+                                     "forecast": True, "playing": False}  # fmt: skip
     assert seen["hash"]["arrows"] == CLIP0_ARROWS[2]
     arrow_tip = seen["arrow_tip"].splitlines()  # every source at step 2 of edge 0 -> 1 (agent ids 17, 4)
     assert arrow_tip[0].startswith("agent 17 \u2192 agent 4") and "input frames 102\u2192103" in arrow_tip[1]
@@ -317,10 +335,30 @@ def test_browser_draws_types_of_each_frame(run: Path) -> None:
     assert final.arrows == clip1["arrows"]
 
 
+def test_browser_draws_forecast_scale_bar_and_short_names(tmp_path: Path) -> None:
+    """The page in headless Chromium draws one dashed forecast per agent that carries on, from its position
+    at the frame before the forecast, a scale bar of a round length in metres, and the long names shortened
+    with the full one on hover."""
+    binary = browser()
+    data = write_clips(tmp_path / "run" / "clips.npz", forecast=True)
+    page = write_explorer(tmp_path / "run")
+    dom = run_chromium(binary, page.resolve().as_uri() + "#clip=0&frame=2", "--dump-dom")
+    forecast = re.search(r'<g id="forecast">(.*?)</g>', dom, re.S).group(1)
+    paths = re.findall(r'<path class="fc" data-agent="(\d+)" d="([^"]+)"', forecast)
+    assert [int(a) for a, _ in paths] == [17, 4, 23]  # clip 0's present agents, by slot
+    assert all(len(re.findall("[ML]", d)) == 1 + T - FORECAST_START for _, d in paths)  # start point + forecast
+    bar = re.search(r'<g id="scalebar" data-length="([\d.]+)">.*?<text[^>]*>([^<]+)</text>', dom, re.S)
+    assert float(bar.group(1)) in {1, 2, 5, 10, 20, 50} and bar.group(2) == f"{float(bar.group(1)):g} m"
+    labels = re.findall(r'<g class="agent" data-agent="(\d+)"><title>agent ([^<]+)</title>.*?<text[^>]*>([^<]+)</text>',
+                        dom, re.S)
+    assert labels[0] == ("17", "provider-id-00017", "prov\u20260017")
+    assert {full for _, full, _ in labels} == {str(data["agent_names"][k]) for k in (17, 4, 23)}
+
+
 @pytest.mark.slow
 def test_browser_screenshot(tmp_path: Path) -> None:
     """A realistic run renders: the scene image, and arrows in the types' colours (the docs figure is made
-    the same way: ``python tests/explore_fixture.py``)."""
+    the same way: ``PYTHONPATH=tests python -m helpers.explore``)."""
     from PIL import Image
 
     binary = browser()

@@ -10,7 +10,7 @@ from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
 from dider.models.segments import entries
 from dider.models.vae import RelationalVAE
 from dider.validation import ConfigError
-from fixtures import comings_and_goings
+from helpers.fixtures import comings_and_goings
 
 
 def build(make_cfg, *overrides):

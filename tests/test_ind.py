@@ -1,7 +1,6 @@
 """inD / levelXdata reader: files in the exact format, DNRI protocol, masks, normalisation, cache, errors."""
 
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +15,7 @@ from dider.data.fakes import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META
 from dider.data.ind import InDDataModule
 from dider.data.levelx.recordings import discover_recordings, split_counts
 from dider.protocol import burn_in_mask
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import edit_csv, write_background, write_ind_root  # noqa: E402
+from helpers.fixtures import edit_csv, write_background, write_ind_root
 
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
 SMALL = dict(split=(2, 1, 1), seq_len=20, burn_in=5, horizons=(1, 5, 15), batch_size=4, eval_batch_size=4)

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from dider.models.decoders import MarkovDecoder, RecurrentDecoder
+from dider.models.decoders import KinematicStep, MarkovDecoder, RecurrentDecoder
 from dider.models.vae import RelationalVAE
 
 
@@ -27,6 +27,46 @@ def test_decoder_teacher_forced_equals_steps(cls):
     for t in range(6):
         out, state = dec.step(x[:, t], z[:, t], state)
         torch.testing.assert_close(out, full[:, t])
+
+
+@pytest.mark.parametrize("cls", [MarkovDecoder, RecurrentDecoder])
+def test_kinematic_step_moves_positions_by_the_new_velocity(cls):
+    """x_{t+1} = x_t + delta, then p += slope * v_{t+1} + offset; both start at 0 (the plain residual
+    update, with no new weights in a default decoder's checkpoint), and teacher forcing equals the steps."""
+    torch.manual_seed(0)
+    plain, kin = cls(num_types=2, hidden=16).eval(), cls(num_types=2, hidden=16, kinematic=True).eval()
+    assert set(kin.state_dict()) - set(plain.state_dict()) == {"kinematic.slope", "kinematic.offset"}
+    kin.load_state_dict(plain.state_dict(), strict=False)
+    x, z = torch.randn(2, 5, 3, 4), torch.softmax(torch.randn(2, 5, 6, 2), -1)
+    base = plain(x, z)
+    torch.testing.assert_close(kin(x, z), base)
+    with torch.no_grad():
+        kin.kinematic.slope.fill_(0.25)
+        kin.kinematic.offset.fill_(-0.5)
+    out = kin(x, z)
+    torch.testing.assert_close(out[..., 2:], base[..., 2:])
+    torch.testing.assert_close(out[..., :2], base[..., :2] + 0.25 * base[..., 2:] - 0.5)
+    state = kin.init_state(2, 3, x)
+    for t in range(5):
+        step, state = kin.step(x[:, t], z[:, t], state)
+        torch.testing.assert_close(step, out[:, t])
+    with pytest.raises(ValueError, match="model.decoder.kinematic"):
+        cls(num_types=2, hidden=16, kinematic="yes")
+
+
+def test_kinematic_step_fits_the_kinematics_of_the_clips():
+    """Positions that move by 0.04 * v_{t+1} - 0.01 a step (absent agents carry junk): the least-squares fit
+    recovers both; constant velocities leave it unset."""
+    g = torch.Generator().manual_seed(0)
+    v = torch.rand(3, 12, 4, 2, generator=g) * 2 - 1
+    p = torch.cumsum(0.04 * v - 0.01, dim=1)
+    mask = torch.rand(3, 12, 4, generator=g) > 0.2
+    x = torch.cat([p, v], dim=-1).masked_fill(~mask[..., None], 7.0)
+    step = KinematicStep()
+    assert step.fit(x, mask)
+    assert float(step.slope) == pytest.approx(0.04, abs=1e-5) and float(step.offset) == pytest.approx(-0.01, abs=1e-5)
+    flat = KinematicStep()
+    assert not flat.fit(torch.cat([p, torch.ones_like(v)], dim=-1)) and float(flat.slope) == 0.0
 
 
 @pytest.mark.parametrize("cls", [MarkovDecoder, RecurrentDecoder])

@@ -1,7 +1,5 @@
 """The inD consistency check: which pairs are parked / opposite-direction, their edges, and the metric."""
 
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -10,9 +8,7 @@ from dider.data.ind import InDDataModule
 from dider.data.pairs import OPPOSITE, PARKED, PairRules, find_pairs, pair_kind_matrix
 from dider.graph import edge_index
 from dider.metrics import PairConsistency
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_ind_root  # noqa: E402
+from helpers.fixtures import write_ind_root
 
 T = 10
 

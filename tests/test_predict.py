@@ -1,4 +1,4 @@
-"""Using a trained model on new data: self-describing checkpoints, dider.load, mode=predict, the README example."""
+"""Using a trained model on new data: self-describing checkpoints, dider.load, mode=predict, the API page's example."""
 
 from __future__ import annotations
 
@@ -22,9 +22,10 @@ from dider.data.trajectories import TrajectoryDataModule
 from dider.run import predict, train, validate_config
 from dider.trained import training_settings
 from dider.validation import ConfigError
-from fixtures import write_trajectories
+from helpers.fixtures import write_trajectories
 
 README = Path(__file__).resolve().parents[1] / "README.md"
+API_PAGE = Path(__file__).resolve().parents[1] / "docs" / "api.md"
 TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "data.horizons=[1,5]", "data.frame_rate=10",
         "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0"]
 
@@ -186,6 +187,8 @@ def test_training_settings_take_the_checkpoints_unless_set():
     assert training_settings(trained, given | {"downsample": 3}, {"data.downsample"}, force=True) == {
         "frame_rate": 10.0}
     assert training_settings(SimpleNamespace(data={}, path="m.ckpt"), given, set()) == {}  # nothing recorded
+    jumps = SimpleNamespace(data={"max_speed": 12.0}, path="m.ckpt")  # which steps count as tracking jumps
+    assert training_settings(jumps, {"max_speed": None}, set()) == {"max_speed": 12.0}
 
 
 def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
@@ -219,13 +222,13 @@ def test_predict_config_errors_name_the_key(tmp_path, overrides, key):
         validate_config(cfg)
 
 
-def test_readme_example_runs(run, new_data):
-    block = re.search(r"```python\n(import numpy as np\nimport dider\n.*?)```", README.read_text(), re.S)
-    assert block, "README: the 'use a trained model' example is missing"
+def test_api_page_example_runs(run, new_data):
+    block = re.search(r"```python\n(import numpy as np\nimport dider\n.*?)```", API_PAGE.read_text(), re.S)
+    assert block, "docs/api.md: the 'use a trained model' example is missing"
     code = block.group(1).replace('"runs/RUN"', repr(str(run))).replace('"new.npz"',
                                                                                        repr(str(new_data[0])))
     scope: dict[str, object] = {}
-    exec(compile(code, "README.md", "exec"), scope)
+    exec(compile(code, "docs/api.md", "exec"), scope)
     assert isinstance(scope["segs"], pd.DataFrame) and len(scope["segs"]) > 0
     assert scope["future"].shape[1:3] == (10, 4)
 

@@ -9,7 +9,7 @@ from dider.models.durations import LearnedDuration, StaticDuration
 from dider.models.segments import Segmentation, entries
 from dider.models.vae import RelationalVAE
 from dider.protocol import fill_absent
-from fixtures import comings_and_goings
+from helpers.fixtures import comings_and_goings
 
 
 def whole_clip(b: int, e: int, t: int) -> Segmentation:

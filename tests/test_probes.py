@@ -21,7 +21,7 @@ import pytest
 import torch
 
 import dider
-from fixtures import write_ind_root, write_trajectories
+from helpers.fixtures import write_ind_root, write_trajectories
 
 TINY_RUN = ["experiment=smoke", "data=trajectories", "data.num_val=4", "data.horizons=[1,5]", "data.frame_rate=10",
             "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0", "seed=1"]

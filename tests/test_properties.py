@@ -8,7 +8,6 @@ and no half-written cache file is ever left behind.
 from __future__ import annotations
 
 import re
-import sys
 import tempfile
 from pathlib import Path
 from unittest import mock
@@ -28,9 +27,7 @@ from dider.data.synth import SynthDataModule
 from dider.data.trajectories import TrajectoryDataModule, load_trajectories
 from dider.graph import num_edges
 from dider.validation import ConfigError
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_ind_root  # noqa: E402
+from helpers.fixtures import write_ind_root
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None,
                 derandomize=True)  # the same examples on every run: a failure in CI reproduces locally

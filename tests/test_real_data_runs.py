@@ -11,9 +11,7 @@ import pandas as pd
 import pytest
 
 from dider.run import predict, train
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_background, write_ind_root, write_trajectories, write_zhan  # noqa: E402
+from helpers.fixtures import write_background, write_ind_root, write_trajectories, write_zhan
 
 SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", "model.sparsity_mix=0",
          "model/decoder=recurrent", "data.batch_size=4", "data.eval_batch_size=4"]

@@ -382,8 +382,7 @@ def test_a_corrupt_cache_is_named_moved_aside_and_rebuilt(make_cfg, tmp_path, ca
 
 
 def test_a_corrupt_background_image_costs_no_results(make_cfg, tmp_path, caplog):
-    sys.path.insert(0, str(Path(__file__).parent))
-    from fixtures import write_ind_root
+    from helpers.fixtures import write_ind_root
 
     root = write_ind_root(tmp_path / "inD", num_recordings=3, num_frames=600, num_tracks=5)
     (root / "02_background.png").write_bytes(b"garbage, not a PNG")
@@ -416,7 +415,7 @@ def _bad_npz(tmp: Path) -> list[str]:
 
 
 def _bad_csv(tmp: Path) -> list[str]:
-    from fixtures import edit_csv, write_ind_root
+    from helpers.fixtures import edit_csv, write_ind_root
 
     root = write_ind_root(tmp / "inD", num_recordings=3, num_frames=300, num_tracks=4)
 
@@ -440,7 +439,6 @@ PROBES = [  # (what the command line gets, what the error must name)
 def test_bad_input_fails_named_with_nothing_left_behind(tmp_path, make, named):
     """The command line a user runs: a non-zero exit, the error naming the key or file (and cell), and no
     checkpoint or metrics in the run folder."""
-    sys.path.insert(0, str(Path(__file__).parent))
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "dider.run", "experiment=smoke", "logger=none", *make(tmp_path),
                            f"hydra.run.dir={out}", f"data.cache_dir={tmp_path / 'cache'}"], capture_output=True,

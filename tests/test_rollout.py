@@ -192,14 +192,10 @@ def test_model_takes_the_mode_from_the_datamodule(make_cfg, tmp_path):
 
 def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
     """A tiny fit + test on inD-format files: the per-agent protocol is used and every horizon is scored."""
-    import sys
-    from pathlib import Path
 
     from dider.metrics import HorizonMSE as Metric
     from dider.run import train
-
-    sys.path.insert(0, str(Path(__file__).parent))
-    from fixtures import write_ind_root
+    from helpers.fixtures import write_ind_root
 
     root = write_ind_root(tmp_path / "inD")
     seen = []

@@ -116,6 +116,27 @@ def test_given_velocities_and_downsample(table):
     torch.testing.assert_close(ds.states[0], expected("amy", [12, 14, 16], span=2), atol=1e-4, rtol=0)
 
 
+def test_steps_faster_than_max_speed_are_absent(tmp_path, caplog):
+    """A jump of the tracking (bob teleports 30 m between frames 4 and 5) is one absent step, counted in a
+    warning; the speeds around it and the other agents are kept."""
+    rows = [{"agent": a, "frame": f, "x": 1.0 * f + (30.0 if a == "bob" and f >= 5 else 0.0), "y": float(a == "bob")}
+            for a in ("amy", "bob") for f in range(9)]
+    path = tmp_path / "jump.csv"
+    pd.DataFrame(rows).to_csv(path, index=False)
+    kw = dict(columns={"agent": "agent"}, seq_len=8, stride=8, burn_in=2, horizons=(1,), frame_rate=2.0)
+    _, kept = windows(path, **kw)
+    assert kept.mask.all() and kept.states[..., 2].max() == pytest.approx(62.0)  # (30 + 1) m in half a second
+    with caplog.at_level(logging.WARNING, logger="dider.data.table"):
+        _, ds = windows(path, max_speed=10.0, **kw)
+    assert ds.agent_ids.tolist() == [0, 1]
+    # steps are frames 1..8 (differences drop frame 0): bob's step at frame 5 moved 31 m in 0.5 s
+    assert ds.mask.int().tolist() == [[1] * 8, [1, 1, 1, 1, 0, 1, 1, 1]]
+    assert ds.states[1, 4].abs().sum() == 0 and ds.states[ds.mask][:, 2].tolist() == pytest.approx([2.0] * 15)
+    assert "1 of 16 agent-steps (6.25%) move faster than data.max_speed=10.0" in caplog.text
+    with pytest.raises(ValueError, match="data.max_speed=0"):
+        make_dm(path, columns={"agent": "agent"}, max_speed=0)
+
+
 def test_min_agent_steps_and_min_agents(table):
     _, ds = windows(table, min_agent_steps=3)  # amy and cat have 2 steps at 13, amy 2 at 11: bob alone
     assert ds.sources["frame"].tolist() == [1]

@@ -1,9 +1,9 @@
 """End-to-end runs through dider.run.train: outputs, TensorBoard, learning."""
 
 import json
+import logging
 import math
 import re
-import sys
 from pathlib import Path
 
 import pytest
@@ -12,9 +12,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 import dider
 from dider.run import train
-
-sys.path.insert(0, str(Path(__file__).parent))
-from baselines import constant_velocity  # noqa: E402
+from helpers.baselines import constant_velocity
 
 
 def events(folder: Path) -> EventAccumulator:
@@ -53,18 +51,25 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
 
     acc = events(out / "tb")
     tags = acc.Tags()
-    assert "test/mse/h01" in tags["scalars"] and "val/nll" in tags["scalars"] and "train/loss_epoch" in tags["scalars"]
+    assert "val/nll" in tags["scalars"] and "train/loss_epoch" in tags["scalars"] and "epoch" not in tags["scalars"]
     for tag in ("val/nelbo", "val/edge_acc/posterior/interaction", "train/schedule/kl_weight",
                 "train/segments/segments_per_edge", "val/segments/steps_per_segment", "val/segments/boundary_f1",
-                "test/segments/boundary_f1"):
+                "val/ade_vs_cv/h25"):
         assert tag in tags["scalars"], tag
+    # the test's results: the HParams metrics once, at the last step (the rest is in the results card)
+    tests = {t for t in tags["scalars"] if t.startswith("test/")}
+    assert tests == {"test/ade_vs_cv/h01", "test/ade_vs_cv/h15", "test/ade_vs_cv/h25", "test/ade/h01", "test/ade/h15",
+                     "test/ade/h25", "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction"}
+    (point,) = acc.Scalars("test/ade_vs_cv/h25")
+    assert point.value == pytest.approx(record["metrics"]["test/ade_vs_cv/h25"]) and point.step > 0  # not step 0
     assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
     assert any(t.startswith("test/timeline/") for t in tags["images"])
     assert any(t.startswith("test/forecast/") for t in tags["images"])
     # HParams tab: the session start info names the hyper-parameters and the metric tags
     plugin = acc.PluginTagToContent("hparams")
     blob = b"".join(plugin.values())
-    assert b"model/num_edges" in blob and b"seed" in blob and b"test/mse/h01" in blob
+    assert b"model/num_edges" in blob and b"seed" in blob and b"test/ade_vs_cv/h25" in blob and b"test/ade/h01" in blob
+    assert b"test/mse/h01" not in blob  # three decimals would show it as 0.000
     # the text tab: the results card, with the forecast against constant velocity in the run's own numbers
     (event,) = acc.Tensors("results/text_summary")
     card = event.tensor_proto.string_val[0].decode()
@@ -82,6 +87,12 @@ def test_training_lowers_the_loss(make_cfg, tmp_path):
     rows = list(csv.DictReader((tmp_path / "run" / "csv" / "metrics.csv").open()))
     nll = [float(r["train/nll_epoch"]) for r in rows if r.get("train/nll_epoch")]
     assert len(nll) == 4 and nll[-1] < nll[0] - 1.0
+    # validation scores the forecast in data units beside constant velocity's, each epoch
+    val = [r for r in rows if r.get("val/ade_vs_cv/h01")]
+    assert len(val) == 4
+    for r in val:
+        ratio = float(r["val/ade/h01"]) / float(r["val/cv/ade/h01"])
+        assert float(r["val/ade_vs_cv/h01"]) == pytest.approx(ratio, rel=1e-5) and float(r["val/cv/ade/h01"]) > 0
 
 
 def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
@@ -199,3 +210,14 @@ def test_results_card_marks_what_is_missing():
                              "test/fde/h01": float("nan")}, "nri, seed 2")
     assert card.startswith("### nri, seed 2\n") and "| h01 | 1 | 2 | 0.5 | – | – |" in card
     assert "beats constant velocity" in card and "Edge recall" not in card and "What each type" not in card
+
+
+def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplog):
+    """model.decoder.kinematic=true: the step is fitted on a training batch before the first optimiser step
+    (positions move with the velocity on the synthetic set: a positive slope), then trained on."""
+    with caplog.at_level(logging.INFO, logger="dider.models.module"):
+        train(make_cfg(["model.decoder.kinematic=true", "logger=none"], out=tmp_path / "run"))
+    fitted = re.search(r"kinematic step fitted on a training batch: slope (\S+), offset (\S+)", caplog.text)
+    assert fitted and float(fitted.group(1)) > 0
+    state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert float(state["state_dict"]["model.decoder.kinematic.slope"]) > 0

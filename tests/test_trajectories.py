@@ -1,6 +1,5 @@
 """Bring-your-own trajectories npz: velocities, masks, edge alignment, seeded splits, errors."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -9,9 +8,7 @@ import torch
 from hydra.utils import instantiate
 
 from dider.data.trajectories import TrajectoryDataModule, split_indices
-
-sys.path.insert(0, str(Path(__file__).parent))
-from fixtures import write_trajectories  # noqa: E402
+from helpers.fixtures import write_trajectories
 
 
 def make_dm(path: Path | None, **kw) -> TrajectoryDataModule:

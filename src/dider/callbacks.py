@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import lightning as L
@@ -142,13 +143,24 @@ class SaveOnTerminate(L.Callback):
 
 class EpochLine(L.Callback):
     """One log line per epoch, at its end (after its validation): the epoch, the training loss, the validation metrics
-    named in ``metrics`` (those logged), the time spent and an estimate of the time left (from the epochs
-    still to run, or ``trainer.max_time`` when that comes first). Through logging, so it shows in a log file
-    and in output redirected to one, where a progress bar does not."""
+    named in ``metrics`` (those logged; a name ending in ``/*`` shows the last logged key under it, e.g. the
+    longest horizon), the time spent and an estimate of the time left (from the epochs still to run, or
+    ``trainer.max_time`` when that comes first). Through logging, so it shows in a log file and in output
+    redirected to one, where a progress bar does not."""
 
-    def __init__(self, metrics: tuple[str, ...] = ("train/loss_epoch", "val/nll", "val/select", "val/mse/h01")) -> None:
+    def __init__(self, metrics: tuple[str, ...] = ("train/loss_epoch", "val/nll", "val/select", "val/mse/h01",
+                                                   "val/ade_vs_cv/*")) -> None:
         self.metrics = tuple(metrics)
         self.started = 0.0
+
+    def _keys(self, logged: Sequence[str]) -> list[str]:
+        keys = []
+        for name in self.metrics:
+            if name.endswith("/*"):
+                keys += sorted((k for k in logged if k.startswith(name[:-1])), key=lambda k: (len(k), k))[-1:]
+            elif name in logged:
+                keys.append(name)
+        return keys
 
     def on_fit_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.started, self.first_epoch = time.monotonic(), trainer.current_epoch
@@ -158,8 +170,8 @@ class EpochLine(L.Callback):
             return
         spent = time.monotonic() - self.started
         done = trainer.current_epoch + 1 - self.first_epoch
-        values = "  ".join(f"{k} {float(v):.4g}" for k in self.metrics if (v := trainer.callback_metrics.get(k))
-                           is not None)
+        logged = trainer.callback_metrics
+        values = "  ".join(f"{k} {float(logged[k]):.4g}" for k in self._keys(list(logged)))
         left = ""
         if trainer.max_epochs and trainer.max_epochs > 0:
             rest = spent / done * (trainer.max_epochs - trainer.current_epoch - 1)

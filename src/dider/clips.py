@@ -202,8 +202,9 @@ def explore_arrays(arrays: Mapping[str, torch.Tensor], dm: Any) -> dict[str, tor
         norm = getattr(dm, "normalizer", None)
         states = norm.denormalize(arrays["states"]) if norm is not None else arrays["states"]
         out["positions"] = states[..., :2] * arrays["mask"][..., None]
-    if "forecast" in arrays and getattr(dm, "normalizer", None) is not None:
-        out["forecast"] = dm.normalizer.denormalize(arrays["forecast"])[..., :2]
+    if "forecast" in arrays:
+        norm = getattr(dm, "normalizer", None)
+        out["forecast"] = (norm.denormalize(arrays["forecast"]) if norm is not None else arrays["forecast"])[..., :2]
     return out
 
 
@@ -215,6 +216,10 @@ def explore_extras(pl_module: Any, dm: Any, split: str, arrays: Mapping[str, tor
     ``background_K_extent``)."""
     model = pl_module.model if hasattr(pl_module, "model") else pl_module
     extra: dict[str, np.ndarray] = {"num_types": np.array(model.num_types), "model": np.array(str(model.name))}
+    if (units := getattr(dm, "units", None)) is not None:
+        extra["units"] = np.array(units)
+    if names := getattr(dm, "source_names", {}).get("agent"):  # string ids: ``agent`` holds their codes
+        extra["agent_names"] = np.array([str(n) for n in names])
     if (profile := profile_array(scores or {}, split)) is not None:
         extra["type_profile"] = profile
     background = getattr(dm, "background", None)

@@ -10,6 +10,7 @@ import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -151,6 +152,24 @@ class TestMetrics(nn.Module):
             else:
                 log.warning("consistency check: no %s pairs in the test split (data.pairs sets the rules)", name)
         return out
+
+
+@torch.no_grad()
+def seeded_forecast(pl_module: Any, states: torch.Tensor, mask: torch.Tensor, burn_in: int, steps: int,
+                    chunk: int = 16) -> torch.Tensor:
+    """The model's forecast after the first ``burn_in`` frames (agents present at its last frame carry on) as
+    evaluation draws it: in eval mode, from ``eval_seed``, leaving the global random state alone, ``chunk``
+    clips at a time. states [S, T, N, D], mask [S, T, N] (any device) -> [S, steps, N, D] on the CPU."""
+    model = pl_module.model
+    was_training = model.training
+    model.eval()
+    device = torch.device(pl_module.device)
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)))
+        parts = [model.forecast_after(x.to(pl_module.device), m.to(pl_module.device), burn_in, steps).float().cpu()
+                 for x, m in zip(states.split(chunk), mask.split(chunk), strict=True)]
+    model.train(was_training)
+    return torch.cat(parts)
 
 
 def data_units(normalizer: Normalizer | None) -> Callable[[torch.Tensor], torch.Tensor]:

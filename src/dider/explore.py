@@ -2,9 +2,11 @@
 
 ``python -m dider.explore RUN_DIR [--out FILE.html] [--max-clips K] [--clips 0,3,5]`` reads the run's
 ``clips.npz`` (``RUN_DIR/predictions/clips.npz`` of a prediction run, else ``RUN_DIR/clips.npz`` of a
-training run's test split) and writes ``RUN_DIR/explorer.html``: the agents' paths over the scene image,
-arrows sender -> receiver coloured by interaction type at a chosen frame, and per-edge timelines of every
-source (truth, per-step posterior, segments, prior). The page needs no network: data, images (base64 PNG),
+training run's test split) and writes ``RUN_DIR/explorer.html``: the agents' paths over the scene image
+with a scale bar in the data's units, the model's forecast after the burn-in (dashed; ``forecast`` and
+``forecast_start`` in clips.npz), arrows sender -> receiver coloured by interaction type at a chosen frame,
+and per-edge timelines of every source (truth, per-step posterior, segments, prior). String agent ids
+(``agent_names``) are shown shortened, in full on hover. The page needs no network: data, images (base64 PNG),
 JavaScript and styles are inline.
 
 Clips are addressed by their row in ``clips.npz`` everywhere (``--clips``, the page's selector, the URL hash
@@ -169,6 +171,19 @@ def agent_payload(xy: np.ndarray, present: np.ndarray, slot: int, ident: int, de
     return {"k": slot, "id": ident, "f0": f0, "xy": coded}
 
 
+def forecast_payload(data: dict[str, np.ndarray], s: int, decimals: int) -> dict[str, Any] | None:
+    """The model's forecast of clip ``s`` (``forecast`` [S, P, N, 2] for frames ``forecast_start``..): the
+    start frame and, per agent present at the frame before it, the predicted path delta-coded as in
+    :func:`agent_payload`; None without a forecast."""
+    if "forecast" not in data or "forecast_start" not in data:
+        return None
+    start, pred = int(data["forecast_start"]), data["forecast"][s]
+    alive = data["mask"][s][start - 1].astype(bool) & np.isfinite(pred).all(axis=(0, 2))
+    every = np.ones(len(pred), bool)
+    agents = [agent_payload(pred[:, k], every, int(k), int(k), decimals) for k in np.flatnonzero(alive)]
+    return {"start": start, "agents": [{"k": a["k"], "xy": a["xy"]} for a in agents]}
+
+
 def sources_of(data: dict[str, np.ndarray]) -> list[str]:
     return [key for key in EDGE_SOURCES if key in data]
 
@@ -214,7 +229,8 @@ def clip_payload(data: dict[str, np.ndarray], s: int) -> dict[str, Any]:
     return {"row": s, "clip": int(data["clip"][s]), "scene": optional_int(data, "scene", s),
             "frame": optional_int(data, "frame", s), "T": num_frames, "d": decimals,
             "bg": background if background is not None and background >= 0 else None,
-            "agents": agents, "edges": [e for e in edges if e is not None]}  # fmt: skip
+            "agents": agents, "edges": [e for e in edges if e is not None],
+            "fc": forecast_payload(data, s, decimals)}  # fmt: skip
 
 
 def background_payload(image: np.ndarray, extent: np.ndarray) -> dict[str, Any]:
@@ -260,6 +276,8 @@ def page_payload(data: dict[str, np.ndarray], path: Path, rows: list[int], note:
     return {"model": str(data["model"]), "path": str(path), "total": int(data["positions"].shape[0]),
             "note": note, "num_types": num_types, "type_names": type_names(data), "colors": type_colors(num_types),
             "type_notes": profile_notes(data["type_profile"]) if "type_profile" in data else [],
+            "units": str(data["units"]) if "units" in data else "",
+            "agent_names": [str(n) for n in data["agent_names"]] if "agent_names" in data else [],
             "sources": sources_of(data), "edge_fields": edge_fields(data),
             "backgrounds": {str(k): background_payload(data[f"background_{k}"], data[f"background_{k}_extent"])
                             for k in used},

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import torch
 
 from dider.clips import (
@@ -20,6 +21,7 @@ from dider.clips import (
     stack_clips,
     write_clips_npz,
 )
+from dider.evaluation import seeded_forecast
 from dider.io import atomic_write_text
 
 
@@ -118,5 +120,11 @@ class SegmentExport(L.Callback):
         if self.explore_clips > 0:
             first = {k: v[: self.explore_clips] for k, v in arrays.items()}
             scores = {k: float(v) for k, v in trainer.callback_metrics.items()}  # the test's, logged by now
-            write_clips_npz(self.path.parent / "clips.npz", explore_arrays(first, dm),
-                            explore_extras(pl_module, dm, "test", first, scores))
+            extra = explore_extras(pl_module, dm, "test", first, scores)
+            burn_in = int(getattr(pl_module, "hparams", {}).get("burn_in", 0))
+            if hasattr(pl_module, "model") and 0 < burn_in < first["states"].shape[1]:
+                # the explorer draws the forecast from the burn-in against the true paths
+                steps = first["states"].shape[1] - burn_in
+                first["forecast"] = seeded_forecast(pl_module, first["states"], first["mask"], burn_in, steps)
+                extra["forecast_start"] = np.array(burn_in)
+            write_clips_npz(self.path.parent / "clips.npz", explore_arrays(first, dm), extra)

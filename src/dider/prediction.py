@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import lightning as L
+import numpy as np
 import pandas as pd
 import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
@@ -132,7 +133,10 @@ class PredictionWriter(BasePredictionWriter):
         arrays = explore_arrays(stack_clips(self.clips), dm)
         out = self.output_dir
         self.written = write_table(segment_frame(arrays, frame_step, names), out / "segments.csv")
-        write_clips_npz(out / "clips.npz", arrays, explore_extras(pl_module, dm, "predict", arrays, self.scores))
+        extra = explore_extras(pl_module, dm, "predict", arrays, self.scores)
+        if "forecast" in arrays and self.burn_in is not None:
+            extra["forecast_start"] = np.array(self.burn_in)  # the explorer draws it from there
+        write_clips_npz(out / "clips.npz", arrays, extra)
         self.written.append(out / "clips.npz")
         if "forecast" in arrays and self.burn_in is not None:
             table = forecast_frame(arrays, self.burn_in, frame_step, names)

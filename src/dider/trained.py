@@ -180,8 +180,8 @@ class TrainedModel:
 
 
 # The data settings that shape the features a model reads (velocities are finite differences x frame_rate /
-# downsample): new data must be read with the training data's values.
-FEATURE_SETTINGS = ("frame_rate", "downsample")
+# downsample; steps faster than max_speed are absent): new data must be read with the training data's values.
+FEATURE_SETTINGS = ("frame_rate", "downsample", "max_speed")
 
 
 def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_user: Collection[str],

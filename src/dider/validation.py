@@ -122,6 +122,7 @@ RULES: dict[str, Rule] = {
     "model.decoder_edges": boolean,
     "model.encoder.checkpoint": boolean,
     "model.decoder.checkpoint": boolean,
+    "model.decoder.kinematic": boolean,
     "model.duration.source": one_of("past", "future"),
     "model.duration.min_duration": at_least(1, " step"),
     "model.duration.rho_min": within(0.0, 1.0),

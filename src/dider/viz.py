@@ -18,6 +18,7 @@ import torch  # noqa: E402
 from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
+from dider.evaluation import seeded_forecast  # noqa: E402
 from dider.graph import edge_index, num_agents  # noqa: E402
 from dider.io import atomic_write  # noqa: E402
 
@@ -251,14 +252,9 @@ class TimelineFigures(L.Callback):
         steps = states.shape[0] - burn_in
         if steps < 1 or not hasattr(pl_module, "constant_velocity"):
             return None
+        pred = seeded_forecast(pl_module, states[None], mask[None], burn_in, steps)[0]
         x, m = states[None].to(pl_module.device), mask[None].to(pl_module.device)
-        was_training = model.training
-        model.eval()
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)))
-            pred = model.forecast_after(x, m, burn_in, steps)[0].float().cpu()
         cv = model.forecast_after(x, m, burn_in, steps, pl_module.constant_velocity)[0].float().cpu()
-        model.train(was_training)
         if norm is not None:
             pred, cv = norm.denormalize(pred), norm.denormalize(cv)
         return pred[..., :2], cv[..., :2]

@@ -128,6 +128,8 @@ class BasketballDataModule(ClipDataModule):
     ``cache_dir`` is accepted for a uniform interface; loading the arrays is fast, so nothing is cached.
     """
 
+    units = "ft"
+
     def __init__(
         self,
         root: str | None = None,

@@ -201,6 +201,7 @@ class ClipDataModule(L.LightningDataModule):
     """
 
     collate_fn = None  # None: torch's default collate (fixed agent count)
+    units: str | None = None  # the positions' unit ("m", "ft"), for scale bars; None: unknown
     predicts = False  # True: setup("predict") builds every clip of the input (mode=predict, dider.load)
 
     def __init__(self) -> None:

@@ -64,6 +64,7 @@ class InDDataModule(ClipDataModule):
     """
 
     predicts = True
+    units = "m"
 
     collate_fn = staticmethod(pad_collate)
 

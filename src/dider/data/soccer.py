@@ -116,6 +116,8 @@ class SoccerDataModule(TableDataModule):
     attributes as :class:`~dider.data.table.TableDataModule`'s; ``agent_class`` is each agent's team (or the
     ball); after reading, ``hparams.frame_rate`` is the provider's rate, which the features were computed at."""
 
+    units = "m"  # kloppy's metric pitch coordinates
+
     def __init__(
         self,
         provider: str = "hawkeye",
@@ -141,6 +143,7 @@ class SoccerDataModule(TableDataModule):
         pin_memory: bool = False,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
+        max_speed: float | None = 12.0,
     ) -> None:
         """options: further keyword arguments of the kloppy loader (e.g. ``sample_rate``, ``limit``,
         ``only_alive``). frame_rate: null takes the provider's (a value given must match it)."""
@@ -150,7 +153,7 @@ class SoccerDataModule(TableDataModule):
             raise ValueError(f"data.frame_rate={frame_rate!r}: must be null (the provider's) or a number > 0")
         super().__init__(None, None, frame_rate or 1.0, downsample, seq_len, stride, min_agent_steps, min_agents,
                          split, seed, num_train, num_val, num_test, burn_in, horizons, batch_size, eval_batch_size,
-                         num_workers, pin_memory, cache_dir, burn_in_mode)
+                         num_workers, pin_memory, cache_dir, burn_in_mode, max_speed)
         self._rows: dict[str, Any] | None = None
 
     def _source(self) -> str:
@@ -180,6 +183,6 @@ class SoccerDataModule(TableDataModule):
         rows = self._read()  # first: it fixes data.frame_rate, which the windows' velocities use
         h = self.hparams
         data = table_windows(rows, self._source(), h.frame_rate, h.downsample, h.seq_len, h.stride or h.seq_len,
-                             h.min_agent_steps, h.min_agents)
+                             h.min_agent_steps, h.min_agents, h.max_speed)
         self.source_names = {"agent": rows["names"]["agent"]}
         return data

@@ -9,7 +9,10 @@ may be integers (kept as they are) or strings (coded; the names are in ``source_
 Each scene is downsampled to every ``downsample``-th frame counted from the scene's first frame, and laid
 on a grid of steps x agents: a frame missing inside an agent's span is an absent step (mask False).
 Without velocity columns, v[t] = (pos[t] - pos[t-1]) * frame_rate / downsample needs the agent at both
-steps, and the scene's first step is dropped (as the npz reader does). Windows of ``seq_len`` steps start
+steps, and the scene's first step is dropped (as the npz reader does). A step whose speed exceeds
+``max_speed`` (data units per second) is a jump of the tracking (an id switch, a track re-acquired), not
+motion: the agent is absent there, so the track breaks instead of feeding an impossible velocity to the model
+and to the normalisation's range. Windows of ``seq_len`` steps start
 every ``stride`` steps of a scene; a window keeps the agents present in >= ``min_agent_steps`` of its steps
 (ordered by id) and is dropped with fewer than ``min_agents``. Windows have different agent counts, so
 they are stored packed and padded per batch (:class:`~dider.data.common.PackedClipDataset`).
@@ -45,7 +48,7 @@ from dider.data.levelx.windows import MAX_GRID_CELLS
 from dider.data.table_reading import check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.protocol import fill_absent
-from dider.validation import above, require
+from dider.validation import above, optional, require
 
 log = logging.getLogger(__name__)
 
@@ -86,17 +89,29 @@ def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: 
     present[step, agent] = True
     if vel is not None:
         grid[step, agent, 2:] = vel
-        return grid, present
-    # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
-    grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
-    both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
-    return grid[1:] * both[..., None], both
+    else:
+        # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
+        grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
+        both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
+        return grid[1:] * both[..., None], both
+    return grid, present
+
+
+def drop_jumps(grid: np.ndarray, present: np.ndarray, max_speed: float | None) -> tuple[np.ndarray, np.ndarray, int]:
+    """Mark the steps faster than ``max_speed`` absent: grid [S, K, 4], present [S, K] -> the same and the
+    number of steps dropped."""
+    if max_speed is None:
+        return grid, present, 0
+    fast = present & (np.hypot(grid[..., 2], grid[..., 3]) > max_speed)
+    return grid * ~fast[..., None], present & ~fast, int(fast.sum())
 
 
 def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsample: int, seq_len: int,
-                  stride: int, min_agent_steps: int, min_agents: int) -> dict[str, Any]:
+                  stride: int, min_agent_steps: int, min_agents: int, max_speed: float | None = None
+                  ) -> dict[str, Any]:
     """Cut every scene of a read table (:func:`~dider.data.table_reading.read_table`'s dict; ``path`` names
-    it in messages) into packed windows (raw units), in reading order.
+    it in messages) into packed windows (raw units), in reading order; steps faster than ``max_speed`` are
+    absent (a warning counts them).
 
     Returns states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w
     owns rows offsets[w]:offsets[w+1]), agent [P] long (ids or codes), agent_class [P] long or None, clip,
@@ -115,7 +130,7 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
         log.warning("%s: %d of every %d steps are absent%s", path, gap - 1, gap, hint)
     drop = 1 if t["vel"] is None else 0
     parts: list[dict[str, np.ndarray]] = []
-    longest = 0
+    longest = steps_kept = steps_fast = 0
     for z, (lo, hi) in enumerate(lo_hi):  # scenes: dense grids of different sizes
         rows = lo + np.flatnonzero(keep[lo:hi])
         ids, first, local = np.unique(t["agent"][rows], return_index=True, return_inverse=True)
@@ -125,6 +140,8 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
                              f"data.downsample={downsample} right?)")
         grid, present = scene_grid(t["xy"][rows], None if drop else t["vel"][rows], step[rows], local,
                                    frame_rate / downsample)
+        grid, present, fast = drop_jumps(grid, present, max_speed)
+        steps_kept, steps_fast = steps_kept + int(present.sum()), steps_fast + fast
         longest = max(longest, present.shape[0])
         starts, window, agent = cut_windows(present, seq_len, stride, min_agent_steps, min_agents)
         steps = starts[window][:, None] + np.arange(seq_len)  # [p, T]
@@ -134,6 +151,10 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
             "agent_class": None if t["agent_class"] is None else t["agent_class"][rows][first][agent],
             "scene_index": np.full(len(starts), z), "frame": first_frame[z] + (starts + drop) * downsample,
         })
+    if steps_fast:
+        log.warning("%s: %d of %d agent-steps (%.2f%%) move faster than data.max_speed=%s per second: tracking "
+                    "jumps, marked absent", path, steps_fast, steps_kept + steps_fast,
+                    100 * steps_fast / (steps_kept + steps_fast), max_speed)
     if longest < seq_len:
         need = (seq_len + drop - 1) * downsample + 1
         raise ValueError(
@@ -194,8 +215,9 @@ class TableDataModule(ClipDataModule):
         pin_memory: bool = False,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
+        max_speed: float | None = None,
     ) -> None:
-        """stride: null means seq_len (windows do not overlap)."""
+        """stride: null means seq_len (windows do not overlap); max_speed: null keeps every step."""
         super().__init__()
         self.columns = check_columns(columns)
         counts = {"downsample": (downsample, 1), "seq_len": (seq_len, 2), "stride": (stride, 1),
@@ -205,7 +227,7 @@ class TableDataModule(ClipDataModule):
             if value is not None and (isinstance(value, bool) or not isinstance(value, int | np.integer)):
                 raise ValueError(f"data.{key}={value!r}: must be an integer")
         check_counts(**counts)
-        require({}, {"data.frame_rate": (frame_rate, above(0))})
+        require({}, {"data.frame_rate": (frame_rate, above(0)), "data.max_speed": (max_speed, optional(above(0)))})
         if not np.isfinite(frame_rate):
             raise ValueError(f"data.frame_rate={frame_rate}: must be finite")
         if min_agent_steps > seq_len:
@@ -233,7 +255,7 @@ class TableDataModule(ClipDataModule):
     def _windows(self) -> dict[str, Any]:
         h = self.hparams
         data = table_windows(self._read(), self._source(), h.frame_rate, h.downsample, h.seq_len,
-                             h.stride or h.seq_len, h.min_agent_steps, h.min_agents)
+                             h.stride or h.seq_len, h.min_agent_steps, h.min_agents, h.max_speed)
         self.source_names = {k: v for k, v in data["names"].items() if k in ("scene", "agent")}
         return data
 

@@ -64,6 +64,8 @@ class RelationalVAEModule(L.LightningModule):
         self.save_hyperparameters(logger=False)
         self.model = RelationalVAE.from_config(model)
         self.val_mse = HorizonMSE(horizons)
+        # the forecast in data units beside constant velocity's, so that a recipe is chosen on validation
+        self.val_ade = torch.nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
         self.val_acc = EdgeAccuracy()
         self.val_cut = OwnCut(tolerance=2)
         self.test_metrics = TestMetrics(horizons, self.model.num_types)
@@ -105,6 +107,25 @@ class RelationalVAEModule(L.LightningModule):
     def forward(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int) -> torch.Tensor:
         """The forecast [B, P, N, D] of the plain model under this module's burn-in mode."""
         return self.model(x, mask, burn_in, num_pred, self.burn_in_mode)
+
+    def on_fit_start(self) -> None:
+        """A kinematic decoder's step (:class:`~dider.models.decoders.KinematicStep`) is fitted to a training
+        batch before the first optimiser step; a resumed run keeps its trained values."""
+        step = getattr(self.model.decoder, "kinematic", None)
+        dm = getattr(self.trainer, "datamodule", None)
+        if step is None or self.global_step > 0 or dm is None:
+            return
+        with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
+            batch = next(iter(dm.train_dataloader()))
+        step.fit(batch["states"].to(self.device), batch["mask"].to(self.device))
+        # every rank fitted its own batch; DDP needs one set of weights
+        slope, offset = self.trainer.strategy.broadcast(torch.stack([step.slope.detach(), step.offset.detach()]))
+        with torch.no_grad():
+            step.slope.fill_(slope)
+            step.offset.fill_(offset)
+        if self.trainer.is_global_zero:
+            log.info("kinematic step fitted on a training batch: slope %.4g, offset %.3g", float(slope),
+                     float(offset))
 
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []
@@ -162,6 +183,10 @@ class RelationalVAEModule(L.LightningModule):
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=batch["states"].shape[0], sync_dist=True)
         f = self._forecast(batch)
         self.val_mse.update(f.pred, f.target, f.mask, f.horizon)
+        cv = self._forecast(batch, torch.zeros_like(out.posterior_types()), self.constant_velocity)
+        units = self._data_units()
+        for name, pred in {"model": f.pred, "cv": cv.pred}.items():
+            self.val_ade[name].update(units(pred), units(f.target), f.mask, f.horizon)
         self._log_segments("val", out, batch)
         if (cut := self.own_cut(out, batch)) is not None:
             self.val_cut.update(**cut)
@@ -171,7 +196,10 @@ class RelationalVAEModule(L.LightningModule):
 
     def on_validation_epoch_end(self) -> None:
         self.log_dict(horizon_values("val/mse", self.val_mse))
+        self.log_dict(displacement_values("val", self.val_ade["model"], self.val_ade["cv"]))
         self.val_mse.reset()
+        for metric in self.val_ade.values():
+            metric.reset()
         if self.val_acc.update_count:
             self.log_dict(edge_acc_values("val/edge_acc/posterior", self.val_acc))
             self.val_acc.reset()

@@ -3,7 +3,7 @@
 - :func:`write_clips`: 2 clips of 4 agent slots with types that switch at known transitions (``SWITCHES``):
   clip 0 has agent slot 3 absent throughout, clip 1 has slot 1 absent for frames 0-2.
 - :func:`write_realistic`: a crossroads scene with a few vehicles following, yielding and passing, for the
-  screenshot in docs/figures/explorer.png (``python tests/explore_fixture.py`` remakes it).
+  screenshot in docs/figures/explorer.png (``PYTHONPATH=tests python -m helpers.explore`` remakes it).
 """
 
 from __future__ import annotations
@@ -59,8 +59,14 @@ def _segments(mask: np.ndarray) -> np.ndarray:
     return np.where(edge_present.transpose(0, 2, 1), seg, -1).astype(np.int8)
 
 
-def write_clips(path: Path, truth: bool = True, background: bool = True, names: bool = True) -> dict[str, np.ndarray]:
-    """The small fixture; returns what it wrote."""
+FORECAST_START = 6  # the fixture's forecast (``forecast=True``) starts at this frame
+AGENT_NAMES = np.array([f"provider-id-{i:05d}" for i in range(24)])  # long string ids, coded in ``agent``
+
+
+def write_clips(path: Path, truth: bool = True, background: bool = True, names: bool = True,
+                forecast: bool = False) -> dict[str, np.ndarray]:
+    """The small fixture; returns what it wrote. ``forecast``: also a forecast from FORECAST_START (the true
+    positions shifted by 0.3 in x), AGENT_NAMES for the agent codes and units "m"."""
     mask = _mask()
     frames = np.arange(T, dtype=np.float32)[None, :, None]
     slots = np.arange(N, dtype=np.float32)[None, None, :]
@@ -84,6 +90,10 @@ def write_clips(path: Path, truth: bool = True, background: bool = True, names: 
         data["truth"] = true
     if names:
         data["type_names"] = NAMES
+    if forecast:
+        data["forecast"] = (pos[:, FORECAST_START:] + np.array([0.3, 0.0], np.float32)).astype(np.float32)
+        data["forecast_start"] = np.array(FORECAST_START)
+        data["agent_names"], data["units"] = AGENT_NAMES, np.array("m")
     if background:
         ramp = np.linspace(0, 255, 30, dtype=np.uint8)
         data["background_of"] = np.array([0, -1])
