@@ -136,7 +136,7 @@ def _hparams(cfg: DictConfig) -> dict[str, Any]:
 
 def _hparams_tab(cfg: DictConfig) -> dict[str, Any]:
     """What TensorBoard's HParams table shows as columns: the model, the data, the seed, the number of edge types
-    and every model and data setting given on the command line, so that the metrics are in view (all 80
+    and every model and data setting given on the command line, so that the metrics are in view (all 63-71
     settings pushed them off the screen; the other loggers get them all)."""
     every = _hparams(cfg)
     given = {o.split("=", 1)[0].lstrip("+~").replace(".", "/") for o in _overrides()}

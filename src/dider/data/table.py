@@ -89,12 +89,11 @@ def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: 
     present[step, agent] = True
     if vel is not None:
         grid[step, agent, 2:] = vel
-    else:
-        # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
-        grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
-        both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
-        return grid[1:] * both[..., None], both
-    return grid, present
+        return grid, present
+    # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
+    grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
+    both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
+    return grid[1:] * both[..., None], both
 
 
 def drop_jumps(grid: np.ndarray, present: np.ndarray, max_speed: float | None) -> tuple[np.ndarray, np.ndarray, int]:
