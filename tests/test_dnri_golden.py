@@ -103,7 +103,8 @@ def our_outputs(
     # argmax instead of Gumbel samples, so that the NLL is deterministic.
     z_post = F.one_hot(posterior_logits.argmax(-1), posterior_logits.shape[-1]).to(x.dtype)
     pred = model.decoder(x[:, :-1], z_post)
-    out["nll"] = gaussian_nll(pred, x[:, 1:], mask[:, 1:], model.nll_variance) - nll_offset(d, model.nll_variance)
+    variance = model.likelihood.value
+    out["nll"] = gaussian_nll(pred, x[:, 1:], mask[:, 1:], variance) - nll_offset(d, variance)
 
     preds, types = model.rollout(x, mask, burn_in, num_pred, "global")
     out["rollout_pred"], out["rollout_types"] = preds, types.transpose(1, 2)

@@ -10,7 +10,8 @@ import math
 import pytest
 import torch
 
-from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_kl, gaussian_nll
+from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_kl, gaussian_nll, residual_variance
+from dider.models.likelihood import GaussianLikelihood
 
 F64 = torch.float64
 
@@ -134,3 +135,35 @@ def test_capacity_without_ramp_is_c_max_from_the_start(ramp_steps: int) -> None:
     """ramp_steps <= 0: no ramp (and no division by zero)."""
     assert capacity(0, c_max=2.5, ramp_steps=ramp_steps) == 2.5
     assert capacity(7, c_max=2.5, ramp_steps=ramp_steps) == 2.5
+
+
+def test_gaussian_nll_per_feature_variance_hand_example() -> None:
+    """Errors (1, 2) with variances (1, 4): 1/2 + 4/8 = 1, plus 0.5 (log 2 pi + log 8 pi)."""
+    pred, target = torch.tensor([[[[1.0, 2.0]]]]), torch.zeros(1, 1, 1, 2)
+    nll = gaussian_nll(pred, target, torch.ones(1, 1, 1, dtype=torch.bool), torch.tensor([1.0, 4.0]))
+    assert nll.item() == pytest.approx(1.0 + 0.5 * (math.log(2 * math.pi) + math.log(8 * math.pi)))
+
+
+def test_residual_variance_hand_example() -> None:
+    """Three agents move by 0.1 x their velocity (1, 2, 3): the fitted step explains the positions (variance at
+    the floor), the velocities change by 0.5, -1, 0.5 (sample variance 0.75); a fourth agent, absent at the
+    second step, is left out whatever its values; y stays 0."""
+    now = torch.tensor([[0.0, 0, 1, 0], [0, 0, 2, 0], [0, 0, 3, 0], [5, 5, 9, 9]])
+    nxt = torch.tensor([[0.1, 0, 1.5, 0], [0.2, 0, 1.0, 0], [0.3, 0, 3.5, 0], [-7, 2, -9, 40]])
+    x = torch.stack([now, nxt])[None]  # [1, 2, 4, 4]
+    mask = torch.tensor([[[True, True, True, True], [True, True, True, False]]])
+    var = residual_variance(x, mask, floor=1e-8)
+    assert var.tolist() == pytest.approx([1e-8, 1e-8, 0.75, 1e-8], abs=1e-7)
+
+
+def test_likelihood_fit_is_saved_and_old_weights_load() -> None:
+    x = torch.randn(2, 6, 3, 4)
+    fitted = GaussianLikelihood("fit")
+    variance = fitted.fit(x, None)
+    assert variance.shape == (4,) and bool((variance > 0).all())
+    fresh = GaussianLikelihood("fit")  # before fitting: one variance of 1
+    fresh.load_state_dict(fitted.state_dict())
+    assert torch.equal(fresh.variance, variance)
+    fixed = GaussianLikelihood(5e-5)
+    fixed.load_state_dict({})  # weights saved before the variance was kept with them: the configured value
+    assert fixed.variance.item() == pytest.approx(5e-5)

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import torch
 
-import dider.models.vae as vae_mod
+import dider.models.likelihood as likelihood_mod
 from dider.callbacks import NonFiniteError
 from dider.checkpoint import AtomicCheckpointIO
 from dider.models.plugins import Progress
@@ -193,14 +193,14 @@ def test_eval_mode_recomputes_the_test_metrics(make_cfg, tmp_path):
 
 def test_non_finite_loss_stops_naming_step_batch_and_term(make_cfg, tmp_path, monkeypatch):
     calls = []
-    real = vae_mod.gaussian_nll
+    real = likelihood_mod.gaussian_nll
 
     def nan_on_third_call(*args, **kwargs):
         calls.append(1)
         out = real(*args, **kwargs)
         return out * float("nan") if len(calls) == 3 else out
 
-    monkeypatch.setattr(vae_mod, "gaussian_nll", nan_on_third_call)
+    monkeypatch.setattr(likelihood_mod, "gaussian_nll", nan_on_third_call)
     cfg = make_cfg(["logger=none", "model=dnri"], out=tmp_path / "run")  # 4 batches per epoch
     with pytest.raises(NonFiniteError, match=r"non-finite loss at step 2, batch 2 of epoch 0: term nll \(nll=nan"):
         train(cfg)

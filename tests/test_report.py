@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -12,13 +13,14 @@ from pathlib import Path
 
 import dider.conf
 import numpy as np
+import pandas as pd
 import pytest
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
 from omegaconf import OmegaConf
 
-from dider import report
+from dider import report, report_table
 
 EXPERIMENTS = ["synth_table", "synth_cpu_table", "bball_table", "ind50_table", "ind200_table", "edge_ablation"]
 
@@ -62,7 +64,13 @@ def test_report_matches_jobs(sweep: Path, tmp_path: Path):
     md = (tmp_path / "report.md").read_text()
     h01 = np.array([json.loads((job_dirs(sweep)["dnri", s] / "metrics.json").read_text())["metrics"]["test/mse/h01"]
                     for s in (1, 2)])
-    assert f"| dnri | 2 | {h01.mean():.3g} ± {h01.std(ddof=1):.2g} |" in md
+    table = md.split("## Forecast MSE (normalised units)")[1].split("\n## ")[0].splitlines()
+    header, row = table[2].split(" | "), next(r for r in table if r.startswith("| dnri |")).split(" | ")
+    power = re.fullmatch(r"h01(?: \(×1e(-?\d+)\))?", header[2]).group(1)  # the column's power of ten
+    mean, std = (float(v.strip("*†")) * 10.0 ** int(power or 0) for v in row[2].split(" ± "))
+    decimals = len(row[2].split(" ± ")[1].split(".")[1])  # the same decimals for mean and std
+    unit = 10.0 ** (int(power or 0) - decimals)
+    assert abs(mean - h01.mean()) <= unit / 2 + 1e-15 and abs(std - h01.std(ddof=1)) <= unit / 2 + 1e-15
     # the model's own slots and the held types' switches are separate tables
     slots = md.split("## Duration slots: the model's own cut")[1].split("\n## ")[0]
     assert "segments/steps_per_segment" in slots and "switches_per_100" not in slots
@@ -90,8 +98,8 @@ def test_runs_csv_has_one_row_per_job(sweep: Path, tmp_path: Path):
                                           (1000, 1.9623)])
 def test_t_quantile(df: int, expected: float):
     """The 95% band uses Student's t (3.18 for 4 seeds, not 1.96); values from statistical tables."""
-    assert report.t975(df) == pytest.approx(expected, abs=6e-4)
-    assert np.isnan(report.t975(0))
+    assert report_table.t975(df) == pytest.approx(expected, abs=6e-4)
+    assert np.isnan(report_table.t975(0))
 
 
 def test_failed_and_missing_jobs_listed(sweep: Path, tmp_path: Path):
@@ -156,9 +164,14 @@ def test_edge_ablation_plot(tmp_path: Path):
     # mean -3e-3 +- 12.706 * 1e-3 reaches 0
     assert "mse/h01: lowest mean MSE at num_edges=2 (paired over 2 seeds, 95%)" in md
     tex = (tmp_path / "out" / "report.tex").read_text()
-    assert r"model & num\_edges & $n$ & mse/h01 & mse/h20 \\" in tex and r"\toprule" in tex
-    assert r"dider & 2 & 2 & \textbf{3.5e-05} $\pm$ 7.1e-06 & 0.0075 $\pm$ 0.0035 \\" in tex
-    assert r"dider & 4 & 2 & 5.5e-05 $\pm$ 7.1e-06 & \textbf{0.0045} $\pm$ 0.0021 \\" in tex
+    # one power of ten and one number of decimals per column (3 significant digits of its largest mean); the
+    # best mean in bold, with a dagger only where the paired comparison supports it (h01, not h20)
+    assert (r"model & num\_edges & $n$ & mse/h01 ($\times 10^{-5}$) & mse/h20 ($\times 10^{-3}$) \\" in tex
+            and r"\toprule" in tex)
+    assert r"dider & 2 & 2 & \textbf{3.50}$^\dagger$ $\pm$ 0.71 & 7.50 $\pm$ 3.54 \\" in tex
+    assert r"dider & 4 & 2 & 5.50 $\pm$ 0.71 & \textbf{4.50} $\pm$ 2.12 \\" in tex
+    assert "| dider | 2 | 2 | **3.50**† ± 0.71 | 7.50 ± 3.54 |" in md
+    assert "| model | num_edges | n | h01 (×1e-5) | h20 (×1e-3) |" in md
     assert ("mse/h20: lowest mean MSE at num_edges=4, not established: paired over 2 seed(s), the 95% interval of "
             "its difference to num_edges=2 reaches 0") in md
 
@@ -203,3 +216,46 @@ def test_horizon_bands_stop_a_decade_below_the_mean(tmp_path: Path, monkeypatch)
     (band,) = figures[0].axes[0].collections
     ys = band.get_paths()[0].vertices[:, 1]
     assert ys.min() == pytest.approx(5e-6) and np.isclose(ys, 1.5e-3).any()
+
+
+@pytest.mark.parametrize("means, exponent, decimals, cells", [
+    ([0.912, 1.23], 0, 2, ["0.91", "1.23"]),  # 3 significant digits of the largest: 2 decimals for all
+    ([5.1, 12.345], 0, 1, ["5.1", "12.3"]),
+    ([3.5e-5, 5.5e-5], -5, 2, ["3.50", "5.50"]),  # below 0.01: a power of ten in the header
+    ([123456.0, 20000.0], 5, 2, ["1.23", "0.20"]),
+    ([float("nan"), 0.5], 0, 3, ["–", "0.500"])])
+def test_column_format(means: list[float], exponent: int, decimals: int, cells: list[str]):
+    fmt = report_table.ColumnFormat.of(means)
+    assert (fmt.exponent, fmt.decimals) == (exponent, decimals)
+    assert [fmt.cell(m)[0] for m in means] == cells
+    assert fmt.cell(means[1], 0.0123 * 10.0**exponent)[1] == f"{0.0123:.{decimals}f}"
+
+
+def test_ratios_to_dnri_are_paired_by_seed(tmp_path: Path):
+    """ADE over DNRI's on the same seed: dider seed 1 (2.0 m) over dnri seed 1 (4.0 m), seed 2 (3.0 / 2.0)."""
+    jobs = [(m, 2, seed) for m in ("dnri", "dider") for seed in (1, 2)]
+    sweep = fake_sweep(tmp_path, {"model": "dnri,dider", "seed": "1,2"}, jobs)
+    ade = {("dnri", 1): 4.0, ("dnri", 2): 2.0, ("dider", 1): 2.0, ("dider", 2): 3.0}
+    for f in sweep.glob("*/metrics.json"):
+        record = json.loads(f.read_text())
+        record["metrics"]["test/ade/h20"] = ade[record["model"], record["seed"]]
+        f.write_text(json.dumps(record))
+    summary = report.main([str(sweep), "--out", str(tmp_path / "out")])
+    dider = next(g for g in summary.groups if g.key["model"] == "dider")
+    assert dider.stats("test/ade_vs_dnri/h20") == pytest.approx((1.0, np.std([0.5, 1.5], ddof=1), 2))
+    assert summary.stats[("test/ade_vs_dnri/h20", "ci95")][1] == pytest.approx(12.706 * np.std([0.5, 1.5], ddof=1)
+                                                                                / np.sqrt(2))
+    assert "## Forecast against DNRI" in (tmp_path / "out" / "report.md").read_text()
+    assert r"ade\_vs\_dnri/h20" in (tmp_path / "out" / "report.tex").read_text()
+
+
+def test_paired_support_higher_is_better():
+    """Edge recall: group 0 higher on each of 3 seeds by 0.1, 0.2, 0.15: mean 0.15, std 0.05, half-width
+    4.303 * 0.05 / sqrt(3) = 0.124 < 0.15: supported; against 2 seeds (12.706 * 0.0707 / sqrt(2) = 0.635): not."""
+    metric = "test/edge_acc/posterior/interaction"
+    frame = pd.DataFrame({"group": [0, 0, 0, 1, 1, 1], "seed": [1, 2, 3] * 2,
+                          metric: [0.9, 0.8, 0.85, 0.8, 0.6, 0.7]})
+    assert report_table.paired_support(frame, 0, metric) == (True, 3, None)
+    assert report_table.paired_support(frame[frame.seed < 3], 0, metric) == (False, 2, 1)
+    assert report_table.direction(metric) == 1 and report_table.direction("test/ade_vs_cv/h20") == -1
+    assert report_table.direction("test/type1/distance") == 0

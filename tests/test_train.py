@@ -56,11 +56,15 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
                 "train/segments/segments_per_edge", "val/segments/steps_per_segment", "val/segments/boundary_f1",
                 "val/ade_vs_cv/h25"):
         assert tag in tags["scalars"], tag
-    # the test's results: the HParams metrics once, at the last step (the rest is in the results card)
-    tests = {t for t in tags["scalars"] if t.startswith("test/")}
-    assert tests == {"test/ade_vs_cv/h01", "test/ade_vs_cv/h15", "test/ade_vs_cv/h25", "test/ade/h01", "test/ade/h15",
-                     "test/ade/h25", "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction"}
-    (point,) = acc.Scalars("test/ade_vs_cv/h25")
+    # the test's results: the HParams metrics once, at the last step, in a group that sorts after train/ and
+    # val/ (the rest is in the results card)
+    assert not [t for t in tags["scalars"] if t.startswith("test/")]
+    tests = {t for t in tags["scalars"] if t.startswith("~results/")}
+    assert tests == {f"~results/{k}" for k in ("ade_vs_cv/h01", "ade_vs_cv/h15", "ade_vs_cv/h25", "ade/h01",
+                                               "ade/h15", "ade/h25", "edge_acc/posterior/interaction",
+                                               "edge_acc/prior/interaction")}
+    assert sorted(["train/x", "val/x", *tests])[-1].startswith("~results/")
+    (point,) = acc.Scalars("~results/ade_vs_cv/h25")
     assert point.value == pytest.approx(record["metrics"]["test/ade_vs_cv/h25"]) and point.step > 0  # not step 0
     assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
     assert any(t.startswith("test/timeline/") for t in tags["images"])
@@ -68,8 +72,8 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     # HParams tab: the session start info names the hyper-parameters and the metric tags
     plugin = acc.PluginTagToContent("hparams")
     blob = b"".join(plugin.values())
-    assert b"model/num_edges" in blob and b"seed" in blob and b"test/ade_vs_cv/h25" in blob and b"test/ade/h01" in blob
-    assert b"test/mse/h01" not in blob  # three decimals would show it as 0.000
+    assert b"model/num_edges" in blob and b"seed" in blob and b"~results/ade_vs_cv/h25" in blob
+    assert b"~results/ade/h01" in blob and b"mse/h01" not in blob  # three decimals would show an MSE as 0.000
     # the text tab: the results card, with the forecast against constant velocity in the run's own numbers
     (event,) = acc.Tensors("results/text_summary")
     card = event.tensor_proto.string_val[0].decode()
@@ -221,3 +225,14 @@ def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplo
     assert fitted and float(fitted.group(1)) > 0
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert float(state["state_dict"]["model.decoder.kinematic.slope"]) > 0
+
+
+def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_path, caplog):
+    """model.nll_variance=fit: per feature, the constant-velocity residual's variance on a training batch, logged,
+    used and saved with the weights (the synthetic set's velocities change more than its positions' residual)."""
+    with caplog.at_level(logging.INFO, logger="dider.models.module"):
+        train(make_cfg(["model.nll_variance=fit", "logger=none"], out=tmp_path / "run"))
+    assert "NLL variance fitted on a training batch, per feature" in caplog.text
+    state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    variance = state["state_dict"]["model.likelihood.variance"]
+    assert variance.shape == (4,) and bool((variance > 0).all())

@@ -328,8 +328,15 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-# The page: a static template beside this module; render_html() fills in the title and the data.
-PAGE = (resources.files("dider") / "explorer.html").read_text(encoding="utf-8")
+def _page() -> str:
+    """The page's template: explorer.html with explorer.css and explorer.js (package data beside this module)
+    inlined, so the written page is one file that opens offline; render_html() fills in the title and data."""
+    files = resources.files("dider")
+    html, css, js = ((files / f"explorer.{ext}").read_text(encoding="utf-8") for ext in ("html", "css", "js"))
+    return html.replace("/*__CSS__*/", css.rstrip("\n")).replace("/*__JS__*/", js.rstrip("\n"))
+
+
+PAGE = _page()
 
 
 if __name__ == "__main__":

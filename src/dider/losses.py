@@ -11,14 +11,20 @@ import torch
 import torch.nn.functional as F
 
 
-def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, variance: float) -> torch.Tensor:
+def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+                 variance: float | torch.Tensor) -> torch.Tensor:
     """Fixed-variance Gaussian NLL per sample: sum over features, mean over present (step, agent). -> [B].
+    ``variance``: one for every feature, or one per feature ([D]).
 
     The log-normaliser is counted once per feature (a proper Gaussian); DNRI counted it once per agent,
     which only shifts the reported value by a constant.
     """
-    d = pred.shape[-1]
-    per_agent = (pred - target).pow(2).sum(-1) / (2 * variance) + 0.5 * d * math.log(2 * math.pi * variance)
+    if isinstance(variance, torch.Tensor) and variance.dim() > 0:  # one per feature
+        var = variance.to(pred.dtype)
+        per_agent = ((pred - target).pow(2) / (2 * var)).sum(-1) + 0.5 * torch.log(2 * math.pi * var).sum()
+    else:
+        v, d = float(variance), pred.shape[-1]
+        per_agent = (pred - target).pow(2).sum(-1) / (2 * v) + 0.5 * d * math.log(2 * math.pi * v)
     m = mask.to(per_agent.dtype)
     return (per_agent * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1.0)
 
@@ -44,3 +50,23 @@ def capacity(step: int, c_max: float, ramp_steps: int) -> float:
     if ramp_steps <= 0:
         return c_max
     return c_max * min(1.0, step / ramp_steps)
+
+
+def residual_variance(x: torch.Tensor, mask: torch.Tensor | None = None, floor: float = 1e-8) -> torch.Tensor:
+    """Per feature, the variance of what one step of constant velocity leaves unexplained: x [B, T, N, D] with
+    positions and velocities first (D >= 4; the position moves by a least-squares multiple of the velocity, which
+    absorbs the step and the two normalisations), or any features (D < 4: the change from one step to the
+    next); over the agents present at both ends (mask [B, T, N]). -> [D], at least ``floor`` (1 for every
+    feature without two such steps)."""
+    x = x.float()
+    both = (torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask.bool())
+    both = both[:, 1:] & both[:, :-1]
+    now, nxt = x[:, :-1][both], x[:, 1:][both]  # [M, D]
+    if len(now) < 2:
+        return torch.ones_like(x[0, 0, 0])
+    change = nxt - now
+    if x.shape[-1] >= 4:
+        dp, v = change[:, :2].flatten(), now[:, 2:4].flatten()
+        slope = ((v - v.mean()) * (dp - dp.mean())).mean() / ((v - v.mean()) ** 2).mean().clamp_min(1e-12)
+        change[:, :2] -= slope * now[:, 2:4] + (dp.mean() - slope * v.mean())
+    return change.var(0).clamp_min(floor)

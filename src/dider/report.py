@@ -11,14 +11,13 @@ timeline figures per group. Failed jobs (a .hydra/ folder without a readable met
 from __future__ import annotations
 
 import argparse
-import csv
 import io
 import itertools
 import json
-import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -27,13 +26,24 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
 from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
-from dider.report_latex import latex_table
+from dider.report_latex import latex_table  # noqa: E402
+from dider.report_table import (  # noqa: E402
+    BEST_NOTE,
+    ColumnFormat,
+    add_ratios,
+    group_stats,
+    jobs_frame,
+    marked_cells,
+    paired_support,
+)
 
 SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
+            ("Forecast against DNRI: error over DNRI's, paired by seed", r"(ade|fde)_vs_dnri/h\d+$"),
             ("Displacement error of the forecast positions (data units)", r"(cv/)?(ade|fde)/h\d+$"),
             ("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
             ("Forecast MSE with the edges inferred from the whole clip", r"mse_posterior/h\d+$"),
@@ -58,10 +68,8 @@ class Group:
 
     def stats(self, metric: str) -> tuple[float, float, int]:
         """Mean, sample std (n-1; nan for one job) and count over the jobs that logged the metric."""
-        v = np.array([j["metrics"][metric] for j in self.jobs if metric in j["metrics"]], dtype=float)
-        if len(v) == 0:
-            return float("nan"), float("nan"), 0
-        return float(v.mean()), float(v.std(ddof=1)) if len(v) > 1 else float("nan"), len(v)
+        v = pd.Series([j["metrics"].get(metric) for j in self.jobs], dtype=float)
+        return float(v.mean()), float(v.std(ddof=1)), int(v.count())
 
 
 @dataclass
@@ -72,6 +80,21 @@ class Summary:
     missing: list[str]
     expected: int | None
     ignored: list[str] = field(default_factory=list)  # job folders whose overrides the sweep never launched
+
+    @property
+    def keys(self) -> list[str]:
+        """The columns that name a group (model first, then num_edges and the other swept settings)."""
+        return list(dict.fromkeys(k for g in self.groups for k in g.key))
+
+    @cached_property
+    def frame(self) -> pd.DataFrame:
+        """One row per finished job: its group, the group's key, its seed and every metric."""
+        return jobs_frame(self.groups, self.metrics)
+
+    @cached_property
+    def stats(self) -> pd.DataFrame:
+        """Per group: mean, std, n and the 95% half-width of every metric (columns (metric, stat))."""
+        return group_stats(self.frame, self.metrics)
 
 
 def _canon(overrides: Sequence[str]) -> frozenset[str]:
@@ -166,14 +189,13 @@ def _order(metric: str) -> tuple:
 
 
 def summarise(sweep: Path) -> Summary:
+    """The sweep's finished jobs in groups, with the ratios to DNRI added when DNRI is in the sweep."""
     records, failed, missing, expected, ignored = collect(sweep)
+    groups = group_jobs(records, sweep)
+    add_ratios(groups)
     metrics = sorted({k for r in records for k, v in r["metrics"].items()
                       if k.startswith("test/") and isinstance(v, (int, float))}, key=_order)
-    return Summary(group_jobs(records, sweep), metrics, failed, missing, expected, ignored)
-
-
-def _fmt(mean: float, std: float) -> str:
-    return "–" if np.isnan(mean) else f"{mean:.3g}" + ("" if np.isnan(std) else f" ± {std:.2g}")
+    return Summary(groups, metrics, failed, missing, expected, ignored)
 
 
 def _save(fig: plt.Figure, path: Path) -> None:
@@ -181,24 +203,6 @@ def _save(fig: plt.Figure, path: Path) -> None:
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
-
-
-# Student's t 97.5% quantiles for 1..30 degrees of freedom: a 95% band over a few seeds is much wider than
-# the normal 1.96 (4 seeds: 3.18).
-T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145,
-        2.131, 2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045,
-        2.042)
-
-
-def t975(df: int) -> float:
-    """The 97.5% quantile of Student's t with ``df`` degrees of freedom (NaN for df < 1); beyond the table,
-    the Cornish-Fisher expansion around 1.96 (error < 1e-3 for df > 30)."""
-    if df < 1:
-        return math.nan
-    if df <= len(T975):
-        return T975[df - 1]
-    z = 1.959964
-    return z + (z**3 + z) / (4 * df) + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * df**2)
 
 
 def horizons_figure(s: Summary, path: Path) -> bool:
@@ -209,9 +213,8 @@ def horizons_figure(s: Summary, path: Path) -> bool:
         return False
     fig, ax = plt.subplots(figsize=(6, 4))
     hs = np.array([int(m.rsplit("h", 1)[1]) for m in mse])
-    for g in s.groups:
-        mean, std, n = (np.array(v, dtype=float) for v in zip(*(g.stats(m) for m in mse), strict=True))
-        half = np.array([t975(int(k) - 1) for k in n]) * std / np.sqrt(np.maximum(n, 1))
+    for i, g in enumerate(s.groups):
+        mean, half, n = (s.stats.loc[i, [(m, x) for m in mse]].to_numpy(float) for x in ("mean", "ci95", "n"))
         half = np.nan_to_num(half)  # one job: no band
         ax.plot(hs, mean, marker="o", label=f"{g.label} (n={int(n.max())})")
         # on the log axis a band reaching 0 would span decades: its lower edge stops at a tenth of the mean
@@ -255,20 +258,11 @@ def ablation_figure(s: Summary, path: Path) -> list[str]:
 def paired_caveat(groups: list[Group], best: int, metric: str) -> str:
     """Whether group ``best``'s lower ``metric`` holds against every other group, paired by seed: the 95%
     Student-t interval of the per-seed differences lies below 0. -> a note for the claim's line."""
-    by_seed = [{j.get("seed"): j["metrics"].get(metric, math.nan) for j in g.jobs} for g in groups]
-    smallest = None
-    for k, other in enumerate(by_seed):
-        if k == best:
-            continue
-        seeds = sorted(set(other) & set(by_seed[best]), key=str)
-        diff = np.array([by_seed[best][sd] - other[sd] for sd in seeds], dtype=float)
-        diff = diff[np.isfinite(diff)]
-        n = len(diff)
-        smallest = n if smallest is None else min(smallest, n)
-        if n < 2 or diff.mean() + t975(n - 1) * diff.std(ddof=1) / math.sqrt(n) >= 0:
-            return (f", not established: paired over {n} seed(s), the 95% interval of its difference to "
-                    f"num_edges={groups[k].key['num_edges']} reaches 0")
-    return f" (paired over {smallest} seeds, 95%)"
+    supported, n, other = paired_support(jobs_frame(groups, [metric]), best, metric)
+    if not supported:
+        return (f", not established: paired over {n} seed(s), the 95% interval of its difference to "
+                f"num_edges={groups[other].key['num_edges']} reaches 0")
+    return f" (paired over {n} seeds, 95%)"
 
 
 def copy_timelines(s: Summary, out: Path) -> list[tuple[str, str, list[str]]]:
@@ -287,15 +281,12 @@ def copy_timelines(s: Summary, out: Path) -> list[tuple[str, str, list[str]]]:
 
 
 def write_csv(s: Summary, path: Path) -> None:
-    keys = list(dict.fromkeys(k for g in s.groups for k in g.key))
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow([*keys, "n", "seeds", *(f"{m}_{x}" for m in s.metrics for x in ("mean", "std"))])
-    for g in s.groups:
-        stats = [g.stats(m) for m in s.metrics]
-        seeds = ";".join(str(j.get("seed")) for j in g.jobs)
-        w.writerow([*(g.key.get(k) for k in keys), len(g.jobs), seeds, *(repr(v) for st in stats for v in st[:2])])
-    atomic_write_text(path, buf.getvalue())
+    """One row per group: its key, n (jobs), seeds, and each metric's mean, std and 95% half-width."""
+    table = pd.DataFrame({k: [g.key.get(k) for g in s.groups] for k in s.keys})
+    table["n"] = [len(g.jobs) for g in s.groups]
+    table["seeds"] = [";".join(str(j.get("seed")) for j in g.jobs) for g in s.groups]
+    stats = {f"{m}_{x}": s.stats[(m, x)].to_numpy() for m in s.metrics for x in ("mean", "std", "ci95")}
+    atomic_write_text(path, pd.concat([table, pd.DataFrame(stats)], axis=1).to_csv(index=False))
 
 
 def write_runs_csv(s: Summary, sweep: Path, path: Path) -> None:
@@ -304,14 +295,12 @@ def write_runs_csv(s: Summary, sweep: Path, path: Path) -> None:
     jobs = [j for g in s.groups for j in g.jobs]
     settings = list(dict.fromkeys(o.split("=", 1)[0] for j in jobs for o in j.get("overrides", []) if "=" in o))
     settings = [k for k in settings if k not in ("model", "seed")]
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(["job", "model", "seed", *settings, *s.metrics])
-    for j in jobs:
-        given = dict(o.split("=", 1) for o in j.get("overrides", []) if "=" in o)
-        w.writerow([str(Path(j["dir"]).relative_to(sweep)), j.get("model"), j.get("seed"),
-                    *(given.get(k, "") for k in settings), *(j["metrics"].get(m, "") for m in s.metrics)])
-    atomic_write_text(path, buf.getvalue())
+    given = [dict(o.split("=", 1) for o in j.get("overrides", []) if "=" in o) for j in jobs]
+    table = pd.DataFrame({"job": [str(Path(j["dir"]).relative_to(sweep)) for j in jobs],
+                          "model": [j.get("model") for j in jobs], "seed": [j.get("seed") for j in jobs],
+                          **{k: [g.get(k, "") for g in given] for k in settings}})
+    metrics = s.frame[s.metrics].reset_index(drop=True)  # the frame holds the jobs in the same order
+    atomic_write_text(path, pd.concat([table, metrics], axis=1).to_csv(index=False))
 
 
 def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timelines: list) -> str:
@@ -319,8 +308,8 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
     lines = [f"# Sweep report: `{sweep}`", "",
              f"{n_ok} finished jobs, {len(s.failed)} failed, {len(s.missing)} missing"
              + (f" (the sweep expects {s.expected})." if s.expected is not None else "."),
-             "Cells: mean ± sample std (n-1) over the seeds of a row; n = jobs in the row.", ""]
-    keys = list(dict.fromkeys(k for g in s.groups for k in g.key))
+             f"Cells: mean ± sample std (n-1) over the seeds of a row, n = jobs in the row; {BEST_NOTE}.", ""]
+    keys = s.keys
     for i, (title, _) in enumerate(SECTIONS):
         cols = [m for m in s.metrics if _section(m) == i]
         if not cols:
@@ -328,11 +317,13 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         # one family per horizon (mse/h01, mse/h15...): the horizons name the columns; else the whole names
         by_horizon = len({m.rsplit("/", 1)[0] for m in cols}) == 1 and all(
             re.fullmatch(r"h\d+", m.rsplit("/", 1)[-1]) for m in cols)
-        names = [m.rsplit("/", 1)[-1] if by_horizon else m.removeprefix("test/") for m in cols]
+        names = [ColumnFormat.of(list(s.stats[(m, "mean")])).header(
+            m.rsplit("/", 1)[-1] if by_horizon else m.removeprefix("test/")) for m in cols]
         lines += [f"## {title}", "", "| " + " | ".join([*keys, "n", *names]) + " |",
                   "|" + "---|" * (len(keys) + 1 + len(cols))]
-        for g in s.groups:
-            cells = [_fmt(*g.stats(m)[:2]) for m in cols]
+        columns = [marked_cells(s.stats, s.frame, m, ("**", "**"), "†") for m in cols]
+        for i, g in enumerate(s.groups):
+            cells = [mean + (f" ± {std}" if std else "") for mean, std in (c[i] for c in columns)]
             lines.append("| " + " | ".join([*(str(g.key.get(k)) for k in keys), str(len(g.jobs)), *cells]) + " |")
         lines.append("")
     if figures:

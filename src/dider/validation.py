@@ -69,6 +69,11 @@ def optional(rule: Rule) -> Rule:
     return lambda value: None if value is None else rule(value)
 
 
+def or_word(word: str, rule: Rule) -> Rule:
+    """``rule``, or the string ``word``."""
+    return lambda value: None if value == word else (lambda why: why and f"{why} or '{word}'")(rule(value))
+
+
 def one_of(*options: Any) -> Rule:
     def rule(value: Any) -> str | None:
         return None if value in options else f"expected one of {list(options)}"
@@ -101,7 +106,7 @@ RULES: dict[str, Rule] = {
     **{key: integer(1) for key in WIDTH_KEYS},
     "model.decoder.hidden": optional(integer(1)),  # the constant-velocity baseline has none
     "model.num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
-    "model.nll_variance": above(0),
+    "model.nll_variance": or_word("fit", above(0)),
     "model.gumbel_tau": above(0),
     "model.beta_edge": at_least(0),
     "model.beta_duration": at_least(0),

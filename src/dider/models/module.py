@@ -109,23 +109,33 @@ class RelationalVAEModule(L.LightningModule):
         return self.model(x, mask, burn_in, num_pred, self.burn_in_mode)
 
     def on_fit_start(self) -> None:
-        """A kinematic decoder's step (:class:`~dider.models.decoders.KinematicStep`) is fitted to a training
-        batch before the first optimiser step; a resumed run keeps its trained values."""
+        """What is fitted to a training batch before the first optimiser step: a kinematic decoder's step
+        (:class:`~dider.models.decoders.KinematicStep`) and, with ``nll_variance: fit``, the NLL's variance per
+        feature. A resumed run keeps its trained values."""
         step = getattr(self.model.decoder, "kinematic", None)
         dm = getattr(self.trainer, "datamodule", None)
-        if step is None or self.global_step > 0 or dm is None:
+        likelihood = self.model.likelihood
+        if (step is None and not likelihood.fitted) or self.global_step > 0 or dm is None:
             return
         with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
             batch = next(iter(dm.train_dataloader()))
-        step.fit(batch["states"].to(self.device), batch["mask"].to(self.device))
-        # every rank fitted its own batch; DDP needs one set of weights
-        slope, offset = self.trainer.strategy.broadcast(torch.stack([step.slope.detach(), step.offset.detach()]))
-        with torch.no_grad():
-            step.slope.fill_(slope)
-            step.offset.fill_(offset)
-        if self.trainer.is_global_zero:
-            log.info("kinematic step fitted on a training batch: slope %.4g, offset %.3g", float(slope),
-                     float(offset))
+        states, mask = batch["states"].to(self.device), batch["mask"].to(self.device)
+        # every rank fits its own batch; DDP needs one set of values: rank 0's
+        broadcast = self.trainer.strategy.broadcast
+        if step is not None:
+            step.fit(states, mask)
+            slope, offset = broadcast(torch.stack([step.slope.detach(), step.offset.detach()]))
+            with torch.no_grad():
+                step.slope.fill_(slope)
+                step.offset.fill_(offset)
+            if self.trainer.is_global_zero:
+                log.info("kinematic step fitted on a training batch: slope %.4g, offset %.3g", float(slope),
+                         float(offset))
+        if likelihood.fitted:
+            likelihood.variance = broadcast(likelihood.fit(states, mask))
+            if self.trainer.is_global_zero:
+                log.info("NLL variance fitted on a training batch, per feature: %s",
+                         ", ".join(f"{v:.3g}" for v in likelihood.variance.tolist()))
 
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []

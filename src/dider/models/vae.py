@@ -5,8 +5,8 @@ DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins the model is b
 and the edge posterior and prior are read once per segment. With one-step segments this is exactly DNRI.
 Nothing here needs Lightning: schedules come in as a :class:`Progress`, the forecast protocol as arguments.
 
-Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots,
-R LSTM width, P predicted steps.
+Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots, R LSTM
+width, P predicted steps.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ from omegaconf import DictConfig
 from torch import nn
 
 from dider.graph import edge_mask
-from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_nll
+from dider.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
+from dider.models.likelihood import GaussianLikelihood
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation, entries, forced_boundaries
@@ -37,9 +38,8 @@ TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode"
 
 
 class RelationalVAE(nn.Module):
-    """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with
-    NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by
-    default)."""
+    """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with NLL + w (beta_e
+    |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by default)."""
 
     def __init__(
         self,
@@ -48,7 +48,7 @@ class RelationalVAE(nn.Module):
         duration: Duration,
         decoder: Decoder,
         num_edges: int = 2,
-        nll_variance: float = 5e-5,
+        nll_variance: float | str = 5e-5,
         gumbel_tau: float = 0.5,
         beta_edge: float = 1.0,
         beta_duration: float = 1.0,
@@ -107,7 +107,8 @@ class RelationalVAE(nn.Module):
                                 f"(missing {missing}; see dider.models.plugins)")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.num_types, self.name = num_edges, name
-        self.nll_variance, self.gumbel_tau = nll_variance, gumbel_tau
+        self.gumbel_tau = gumbel_tau
+        self.likelihood = GaussianLikelihood(nll_variance)
         self.beta_edge, self.beta_duration = beta_edge, beta_duration
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
         self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
@@ -151,7 +152,7 @@ class RelationalVAE(nn.Module):
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
-        nll = gaussian_nll(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:], self.nll_variance)
+        nll = self.likelihood(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:])
 
         # Edge KL per segment (or per step it holds, ``segment_kl``), summed over an edge's segments and
         # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
