@@ -259,3 +259,33 @@ def test_paired_support_higher_is_better():
     assert report_table.paired_support(frame[frame.seed < 3], 0, metric) == (False, 2, 1)
     assert report_table.direction(metric) == 1 and report_table.direction("test/ade_vs_cv/h20") == -1
     assert report_table.direction("test/type1/distance") == 0
+
+
+def test_paired_support_needs_seeds_it_can_pair():
+    """No seeds, one shared seed, or a seed run twice: nothing is established, whatever the means."""
+    metric = "test/ade/h20"
+    frame = pd.DataFrame({"group": [0, 0, 1, 1], "seed": [None, None, None, None], metric: [1.0, 1.1, 2.0, 2.1]})
+    assert report_table.paired_support(frame, 0, metric) == (False, 0, 1)
+    frame["seed"] = [1, 2, 3, 4]  # no seed in common
+    assert report_table.paired_support(frame, 0, metric) == (False, 0, 1)
+    frame["seed"] = [1, 1, 1, 2]  # group 0 ran seed 1 twice
+    assert report_table.paired_support(frame, 0, metric) == (False, 0, 1)
+    frame["seed"] = [1, 2, 1, 2]
+    assert report_table.paired_support(frame, 0, metric) == (True, 2, None)  # differences -1, -1: a point below 0
+
+
+def test_ratios_to_dnri_pair_num_edges_when_dnri_ran_several(tmp_path: Path):
+    """DNRI with 2 and 4 edge types: each job is divided by DNRI's with its own num_edges; a sweep of DNRI
+    alone gets no ratio columns."""
+    jobs = [(m, e, 1) for m in ("dnri", "dider") for e in (2, 4)]
+    sweep = fake_sweep(tmp_path, {"model": "dnri,dider", "model.num_edges": "2,4", "seed": "1"}, jobs)
+    groups = report.group_jobs(report.collect(sweep)[0], sweep)
+    assert report_table.add_ratios(groups) == []  # no ADE in these records
+    for g in groups:
+        for j in g.jobs:
+            j["metrics"]["test/ade/h20"] = {"dnri": 2.0, "dider": 3.0}[g.key["model"]] * g.key["num_edges"]
+    assert report_table.add_ratios(groups) == ["test/ade_vs_dnri/h20"]
+    assert {(g.key["model"], g.key["num_edges"]): g.jobs[0]["metrics"]["test/ade_vs_dnri/h20"] for g in groups} == {
+        ("dnri", 2): 1.0, ("dnri", 4): 1.0, ("dider", 2): 1.5, ("dider", 4): 1.5}
+    only = [g for g in groups if g.key["model"] == "dnri"]
+    assert report_table.add_ratios(only) == []

@@ -5,12 +5,14 @@ import logging
 import math
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dider
+from dider.models.module import RelationalVAEModule
 from dider.run import train
 from helpers.baselines import constant_velocity
 
@@ -236,3 +238,17 @@ def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_p
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     variance = state["state_dict"]["model.likelihood.variance"]
     assert variance.shape == (4,) and bool((variance > 0).all())
+
+
+def test_nothing_is_refitted_on_resume_and_fit_needs_a_datamodule(make_cfg):
+    """Lightning restores the weights before on_fit_start and the step count after it: a checkpoint being loaded
+    keeps the kinematic step and the variance it holds. Without a data module there is no batch to fit to."""
+    module = RelationalVAEModule.from_config(make_cfg(["model.nll_variance=fit",
+                                                       "model.decoder.kinematic=true"]).model)
+    slope = float(module.model.decoder.kinematic.slope)
+    module._trainer = SimpleNamespace(ckpt_path="checkpoints/last.ckpt", datamodule=None)
+    module.on_fit_start()
+    assert float(module.model.decoder.kinematic.slope) == slope and module.model.likelihood.variance.dim() == 0
+    module._trainer = SimpleNamespace(ckpt_path=None, datamodule=None)
+    with pytest.raises(ValueError, match="model.nll_variance=fit fits the variance to a training batch"):
+        module.on_fit_start()

@@ -20,7 +20,7 @@ def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
     which only shifts the reported value by a constant.
     """
     if isinstance(variance, torch.Tensor) and variance.dim() > 0:  # one per feature
-        var = variance.to(pred.dtype)
+        var = variance.to(torch.promote_types(pred.dtype, torch.float32))
         per_agent = ((pred - target).pow(2) / (2 * var)).sum(-1) + 0.5 * torch.log(2 * math.pi * var).sum()
     else:
         v, d = float(variance), pred.shape[-1]
@@ -52,12 +52,19 @@ def capacity(step: int, c_max: float, ramp_steps: int) -> float:
     return c_max * min(1.0, step / ramp_steps)
 
 
+def line_fit(v: torch.Tensor, dp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least squares of dp on v (flat tensors of equal length, v not constant): (slope, offset)."""
+    slope = ((v - v.mean()) * (dp - dp.mean())).mean() / ((v - v.mean()) ** 2).mean()
+    return slope, dp.mean() - slope * v.mean()
+
+
 def residual_variance(x: torch.Tensor, mask: torch.Tensor | None = None, floor: float = 1e-8) -> torch.Tensor:
     """Per feature, the variance of what one step of constant velocity leaves unexplained: x [B, T, N, D] with
     positions and velocities first (D >= 4; the position moves by a least-squares multiple of the velocity, which
     absorbs the step and the two normalisations), or any features (D < 4: the change from one step to the
-    next); over the agents present at both ends (mask [B, T, N]). -> [D], at least ``floor`` (1 for every
-    feature without two such steps)."""
+    next); over the agents present at both ends (mask [B, T, N]). -> [D], at least ``floor`` and a millionth of
+    the feature's own variance (a feature constant velocity explains exactly must not weigh millions of
+    times the others); 1 for every feature without two such steps."""
     x = x.float()
     both = (torch.ones_like(x[..., 0], dtype=torch.bool) if mask is None else mask.bool())
     both = both[:, 1:] & both[:, :-1]
@@ -65,8 +72,7 @@ def residual_variance(x: torch.Tensor, mask: torch.Tensor | None = None, floor: 
     if len(now) < 2:
         return torch.ones_like(x[0, 0, 0])
     change = nxt - now
-    if x.shape[-1] >= 4:
-        dp, v = change[:, :2].flatten(), now[:, 2:4].flatten()
-        slope = ((v - v.mean()) * (dp - dp.mean())).mean() / ((v - v.mean()) ** 2).mean().clamp_min(1e-12)
-        change[:, :2] -= slope * now[:, 2:4] + (dp.mean() - slope * v.mean())
-    return change.var(0).clamp_min(floor)
+    if x.shape[-1] >= 4 and now[:, 2:4].var() > 0:
+        slope, offset = line_fit(now[:, 2:4].flatten(), change[:, :2].flatten())
+        change[:, :2] -= slope * now[:, 2:4] + offset
+    return change.var(0).clamp_min(floor).maximum(1e-6 * now.var(0))

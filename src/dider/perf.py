@@ -21,8 +21,8 @@ import torch
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -2, -3, -4
 # heap: thresholds raised and no mmap at all, every freed block reused (the bench's DNRI training cases on the
 # 2-core CPU, fresh processes, alternating: recurrent step -8%, synthetic -5.5%; peak memory 5-14% higher, the
-# price of a heap that is never returned; docs/performance.md); thresholds: the thresholds only; system: glibc's
-# own settings.
+# price of a heap that is never returned; docs/journal/performance_history.md); thresholds: the thresholds
+# only; system: glibc's own settings.
 ALLOCATORS = ("heap", "thresholds", "system")
 _applied: str | None = None
 

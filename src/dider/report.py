@@ -34,7 +34,6 @@ from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
 from dider.report_latex import latex_table  # noqa: E402
 from dider.report_table import (  # noqa: E402
     BEST_NOTE,
-    ColumnFormat,
     add_ratios,
     group_stats,
     jobs_frame,
@@ -317,13 +316,13 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         # one family per horizon (mse/h01, mse/h15...): the horizons name the columns; else the whole names
         by_horizon = len({m.rsplit("/", 1)[0] for m in cols}) == 1 and all(
             re.fullmatch(r"h\d+", m.rsplit("/", 1)[-1]) for m in cols)
-        names = [ColumnFormat.of(list(s.stats[(m, "mean")])).header(
-            m.rsplit("/", 1)[-1] if by_horizon else m.removeprefix("test/")) for m in cols]
+        columns = [marked_cells(s.stats, s.frame, m, ("**", "**"), "†") for m in cols]
+        names = [fmt.header(m.rsplit("/", 1)[-1] if by_horizon else m.removeprefix("test/"))
+                 for m, (fmt, _) in zip(cols, columns, strict=True)]
         lines += [f"## {title}", "", "| " + " | ".join([*keys, "n", *names]) + " |",
                   "|" + "---|" * (len(keys) + 1 + len(cols))]
-        columns = [marked_cells(s.stats, s.frame, m, ("**", "**"), "†") for m in cols]
         for i, g in enumerate(s.groups):
-            cells = [mean + (f" ± {std}" if std else "") for mean, std in (c[i] for c in columns)]
+            cells = [mean + (f" ± {std}" if std else "") for mean, std in (c[1][i] for c in columns)]
             lines.append("| " + " | ".join([*(str(g.key.get(k)) for k in keys), str(len(g.jobs)), *cells]) + " |")
         lines.append("")
     if figures:

@@ -27,8 +27,7 @@ def columns(metrics: Sequence[str]) -> list[str]:
     return [m for pattern in COLUMNS for m in metrics if re.fullmatch(pattern, m)]
 
 
-def _header(s: Summary, metric: str) -> str:
-    fmt = ColumnFormat.of(list(s.stats[(metric, "mean")]))
+def _header(metric: str, fmt: ColumnFormat) -> str:
     name = _tex(metric.removeprefix("test/"))
     return name if fmt.exponent == 0 else rf"{name} ($\times 10^{{{fmt.exponent}}}$)"
 
@@ -37,8 +36,9 @@ def latex_table(s: Summary, caption: str = "") -> str:
     """The table, as a LaTeX ``table`` environment (needs ``\\usepackage{booktabs}``)."""
     cols = columns(s.metrics)
     keys = s.keys
-    cells = [marked_cells(s.stats, s.frame, m, (r"\textbf{", "}"), r"$^\dagger$") for m in cols]
-    head = [*(_tex(k) for k in keys), "$n$", *(_header(s, m) for m in cols)]
+    marked = [marked_cells(s.stats, s.frame, m, (r"\textbf{", "}"), r"$^\dagger$") for m in cols]
+    cells = [c for _, c in marked]
+    head = [*(_tex(k) for k in keys), "$n$", *(_header(m, fmt) for m, (fmt, _) in zip(cols, marked, strict=True))]
     lines = [r"\begin{table}[t]", r"\centering", r"\begin{tabular}{" + "l" * (len(keys) + 1) + "r" * len(cols) + "}",
              r"\toprule", " & ".join(head) + r" \\", r"\midrule"]
     for i, g in enumerate(s.groups):

@@ -24,7 +24,7 @@ T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2
         2.042)
 BASELINE = "dnri"  # the ratio columns' model, when the sweep has it
 RATIO_OF = r"test/(ade|fde)/h\d+"  # the errors a ratio column divides (data units: a ratio is unit-free)
-LOWER_IS_BETTER = r"test/((cv/)?(ade|fde)|ade_vs_cv|(ade|fde)_vs_\w+|mse\w*)/h\d+"
+LOWER_IS_BETTER = r"test/(ade|fde|ade_vs_cv|(ade|fde)_vs_\w+|mse\w*)/h\d+"  # not cv/: the same for every row
 HIGHER_IS_BETTER = r"test/(edge_acc/.*|boundary_f1)"
 
 
@@ -54,29 +54,41 @@ def group_stats(frame: pd.DataFrame, metrics: Sequence[str]) -> pd.DataFrame:
     by = frame.groupby("group", sort=True)[list(metrics)]
     n = by.count()
     std = by.std(ddof=1)
-    half = std * n.map(lambda k: t975(int(k) - 1)) / np.sqrt(n.clip(lower=1))
+    t = pd.DataFrame(np.vectorize(lambda k: t975(int(k) - 1))(n.to_numpy()), index=n.index, columns=n.columns)
+    half = std * t / np.sqrt(n.clip(lower=1))
     stats = pd.concat({"mean": by.mean(), "std": std, "n": n, "ci95": half}, axis=1)
     return stats.swaplevel(axis=1)
 
 
 def add_ratios(groups: Sequence[Group], baseline: str = BASELINE) -> list[str]:
     """Adds to every job's metrics ``test/ade_vs_<baseline>/hXX`` (and fde): its error over the baseline model's
-    on the same seed and the same other swept settings (num_edges aside: the models of a table may differ in
-    it). Returns the new metric names; none when the sweep has no baseline job."""
-    keys = [k for g in groups for k in g.key if k not in ("model", "num_edges")]
-    jobs = [(g, j) for g in groups for j in g.jobs]
-    index = {(tuple(g.key.get(k) for k in keys), j.get("seed")): j["metrics"] for g, j in jobs
-             if g.key.get("model") == baseline}
+    on the same seed and the same other swept settings; num_edges too when the baseline ran with several (the
+    models of a table may differ in it otherwise). Returns the new metric names: none when the sweep has no
+    baseline job or nothing but baseline jobs. Jobs without a seed, and seeds the baseline ran twice with the
+    same settings, get no ratio (their pairing is ambiguous)."""
+    baseline_groups = [g for g in groups if g.key.get("model") == baseline]
+    if not baseline_groups or len(baseline_groups) == len(groups):
+        return []
+    several = len({g.key.get("num_edges") for g in baseline_groups}) > 1
+    keys = [k for k in dict.fromkeys(k for g in groups for k in g.key)
+            if k != "model" and (k != "num_edges" or several)]
+    index: dict[tuple, dict[str, Any] | None] = {}
+    for g in baseline_groups:
+        for j in g.jobs:
+            if j.get("seed") is not None:
+                pair = (tuple(g.key.get(k) for k in keys), j["seed"])
+                index[pair] = None if pair in index else j["metrics"]  # a second job: ambiguous
     added: set[str] = set()
-    for g, j in jobs:
-        base = index.get((tuple(g.key.get(k) for k in keys), j.get("seed")))
-        if base is None:
-            continue
-        for m, v in list(j["metrics"].items()):
-            if re.fullmatch(RATIO_OF, m) and base.get(m):
-                name = re.sub(r"^test/(\w+)/", rf"test/\1_vs_{baseline}/", m)
-                j["metrics"][name] = v / base[m]
-                added.add(name)
+    for g in groups:
+        for j in g.jobs:
+            base = index.get((tuple(g.key.get(k) for k in keys), j.get("seed")))
+            if base is None:
+                continue
+            for m, v in list(j["metrics"].items()):
+                if re.fullmatch(RATIO_OF, m) and base.get(m):
+                    name = re.sub(r"^test/(\w+)/", rf"test/\1_vs_{baseline}/", m)
+                    j["metrics"][name] = v / base[m]
+                    added.add(name)
     return sorted(added)
 
 
@@ -124,21 +136,28 @@ def best_row(stats: pd.DataFrame, metric: str) -> int | None:
 
 
 def paired_support(frame: pd.DataFrame, best: int, metric: str) -> tuple[bool, int, Any]:
-    """Whether group ``best`` beats every other group on ``metric`` paired by seed: the 95% Student-t interval
-    of the per-seed differences excludes 0 on the better side. -> (supported, the fewest seeds paired, the first
-    group it is not established against, or None)."""
+    """Whether group ``best`` beats every other group with a value of ``metric``, paired by seed: the 95%
+    Student-t interval of the per-seed differences excludes 0 on the better side. Jobs without a seed are left
+    out; a group that ran a seed twice, or shares fewer than two seeds with ``best``, is not beaten. -> (supported,
+    the fewest seeds paired, the first group it is not established against, or None)."""
     sign = direction(metric) or -1
-    table = frame.pivot_table(index="seed", columns="group", values=metric, aggfunc="first")
+    rows = frame[frame["seed"].notna() & frame[metric].notna()]
+    others = [g for g in dict.fromkeys(frame.loc[frame[metric].notna(), "group"]) if g != best]
     fewest = None
-    for other in table.columns:
-        if other == best:
-            continue
-        diff = (table[best] - table[other]).dropna().to_numpy() * sign  # > 0: best is better
+    for other in others:
+        pair = rows[rows["group"].isin([best, other])]
+        if pair.duplicated(["group", "seed"]).any():
+            return False, 0, other
+        table = pair.pivot(index="seed", columns="group", values=metric)
+        if best in table and other in table:
+            diff = (table[best] - table[other]).dropna().to_numpy() * sign  # > 0: best is better
+        else:
+            diff = np.array([])
         n = len(diff)
         fewest = n if fewest is None else min(fewest, n)
         if n < 2 or diff.mean() - t975(n - 1) * diff.std(ddof=1) / math.sqrt(n) <= 0:
             return False, n, other
-    return True, fewest or 0, None
+    return bool(others), fewest or 0, None
 
 
 BEST_NOTE = ("the best mean of a column in bold, with † where it beats every other row paired by seed (the 95% "
@@ -147,9 +166,10 @@ BEST_NOTE = ("the best mean of a column in bold, with † where it beats every o
 
 
 def marked_cells(stats: pd.DataFrame, frame: pd.DataFrame, metric: str, bold: tuple[str, str],
-                 dagger: str) -> list[tuple[str, str]]:
-    """One column's cells by group, (mean, std) as printed with the column's decimals; the best mean wrapped in
-    ``bold`` and followed by ``dagger`` when a comparison paired by seed supports it against every other row."""
+                 dagger: str) -> tuple[ColumnFormat, list[tuple[str, str]]]:
+    """One column: its format and its cells by group, (mean, std) as printed with the column's decimals; the best
+    mean wrapped in ``bold`` and followed by ``dagger`` when a comparison paired by seed supports it against
+    every other row."""
     means, stds = stats[(metric, "mean")], stats[(metric, "std")]
     fmt = ColumnFormat.of(list(means))
     cells = [fmt.cell(mean, std) for mean, std in zip(means, stds, strict=True)]
@@ -157,4 +177,4 @@ def marked_cells(stats: pd.DataFrame, frame: pd.DataFrame, metric: str, bold: tu
     if best is not None:
         dag = dagger if paired_support(frame, best, metric)[0] else ""
         cells[best] = (bold[0] + cells[best][0] + bold[1] + dag, cells[best][1])
-    return cells
+    return fmt, cells

@@ -44,6 +44,8 @@ def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dic
     decoder_class = str(dec._target_).rsplit(".", 1)[-1]
     if decoder_class not in REFERENCE_DECODERS or model_cfg.sparsity_mix not in (0, 0.5):
         raise ValueError(f"no reference counterpart of decoder {decoder_class}, sparsity_mix={model_cfg.sparsity_mix}")
+    if model_cfg.nll_variance == "fit":
+        raise ValueError("no reference counterpart of model.nll_variance=fit: the reference's variance is a number")
     return {
         "num_vars": num_agents, "input_size": enc.input_dim, "num_edge_types": model_cfg.num_edges,
         "skip_first": dec.skip_first, "gpu": device == "cuda",

@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_mask
+from dider.losses import line_fit
 from dider.models.layers import PairLinear, TypedLinear, checkpointed
 from dider.validation import require
 
@@ -69,9 +70,9 @@ class KinematicStep(nn.Module):
         v, dp = v[both].flatten(), dp[both].flatten()
         if v.numel() < 2 or not v.var() > 0:
             return False
-        slope = ((v - v.mean()) * (dp - dp.mean())).mean() / ((v - v.mean()) ** 2).mean()
+        slope, offset = line_fit(v, dp)
         self.slope.fill_(slope)
-        self.offset.fill_(dp.mean() - slope * v.mean())
+        self.offset.fill_(offset)
         return True
 
     def forward(self, x: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:

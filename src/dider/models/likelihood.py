@@ -20,8 +20,8 @@ class GaussianLikelihood(nn.Module):
 
     def __init__(self, variance: float | str = 5e-5) -> None:
         super().__init__()
-        self.fitted = variance == "fit"
-        self.value = 1.0 if self.fitted else float(variance)  # a single variance as a number: no device sync
+        self.to_fit = variance == "fit"
+        self.value = 1.0 if self.to_fit else float(variance)  # a single variance as a number: no device sync
         self.register_buffer("variance", torch.tensor(self.value))
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
@@ -35,9 +35,9 @@ class GaussianLikelihood(nn.Module):
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         key = prefix + "variance"
-        if key in state_dict:  # a fitted variance has one entry per feature: take the saved shape
-            self.variance = state_dict[key].detach().clone().to(self.variance.device)
-            self.value = float(self.variance) if self.variance.dim() == 0 else self.value
-        else:  # a checkpoint saved before the variance was kept with the weights: the configured value
-            state_dict[key] = self.variance
+        saved = state_dict.get(key)
+        if saved is not None and saved.dim() > 0:  # a fitted variance, one per feature: take the saved shape
+            self.variance = saved.detach().clone().to(self.variance.device)
+        else:  # one variance is the configured number (the saved copy is rounded to the buffer's dtype), also
+            state_dict[key] = self.variance  # for checkpoints saved before the variance was kept with the weights
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -111,28 +111,35 @@ class RelationalVAEModule(L.LightningModule):
     def on_fit_start(self) -> None:
         """What is fitted to a training batch before the first optimiser step: a kinematic decoder's step
         (:class:`~dider.models.decoders.KinematicStep`) and, with ``nll_variance: fit``, the NLL's variance per
-        feature. A resumed run keeps its trained values."""
+        feature. A resumed run keeps its trained values (the weights are restored before this hook, the step
+        count after it: a checkpoint being loaded is the sign)."""
         step = getattr(self.model.decoder, "kinematic", None)
-        dm = getattr(self.trainer, "datamodule", None)
         likelihood = self.model.likelihood
-        if (step is None and not likelihood.fitted) or self.global_step > 0 or dm is None:
+        if (step is None and not likelihood.to_fit) or self.trainer.ckpt_path is not None:
+            return
+        dm = getattr(self.trainer, "datamodule", None)
+        if dm is None:
+            if likelihood.to_fit:
+                raise ValueError("model.nll_variance=fit fits the variance to a training batch of the data module: "
+                                 "train through trainer.fit(model, datamodule=...) or give a number")
             return
         with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
             batch = next(iter(dm.train_dataloader()))
         states, mask = batch["states"].to(self.device), batch["mask"].to(self.device)
-        # every rank fits its own batch; DDP needs one set of values: rank 0's
+        # every rank fits its own batch; DDP needs one set of values: rank 0's (a broadcast tensor arrives on
+        # rank 0's device, hence the moves)
         broadcast = self.trainer.strategy.broadcast
         if step is not None:
             step.fit(states, mask)
-            slope, offset = broadcast(torch.stack([step.slope.detach(), step.offset.detach()]))
+            slope, offset = broadcast(torch.stack([step.slope.detach(), step.offset.detach()])).to(self.device)
             with torch.no_grad():
                 step.slope.fill_(slope)
                 step.offset.fill_(offset)
             if self.trainer.is_global_zero:
                 log.info("kinematic step fitted on a training batch: slope %.4g, offset %.3g", float(slope),
                          float(offset))
-        if likelihood.fitted:
-            likelihood.variance = broadcast(likelihood.fit(states, mask))
+        if likelihood.to_fit:
+            likelihood.variance = broadcast(likelihood.fit(states, mask)).to(self.device)
             if self.trainer.is_global_zero:
                 log.info("NLL variance fitted on a training batch, per feature: %s",
                          ", ".join(f"{v:.3g}" for v in likelihood.variance.tolist()))

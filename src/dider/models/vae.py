@@ -5,8 +5,8 @@ DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins the model is b
 and the edge posterior and prior are read once per segment. With one-step segments this is exactly DNRI.
 Nothing here needs Lightning: schedules come in as a :class:`Progress`, the forecast protocol as arguments.
 
-Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots, R LSTM
-width, P predicted steps.
+Shapes: B batch, T frames, N agents, D = 4 features, E = N(N-1) edges, K edge types, S segment slots,
+R LSTM width, P predicted steps.
 """
 
 from __future__ import annotations
@@ -107,8 +107,7 @@ class RelationalVAE(nn.Module):
                                 f"(missing {missing}; see dider.models.plugins)")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.num_types, self.name = num_edges, name
-        self.gumbel_tau = gumbel_tau
-        self.likelihood = GaussianLikelihood(nll_variance)
+        self.gumbel_tau, self.likelihood = gumbel_tau, GaussianLikelihood(nll_variance)  # the NLL's Gaussian
         self.beta_edge, self.beta_duration = beta_edge, beta_duration
         self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
         self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
