@@ -544,6 +544,9 @@ def test_interaction_run_length_by_hand() -> None:
     assert m.compute().tolist() == [2.0, 10 / 16]
     m.update(torch.tensor([[[0, 0, 1, 1, 1, 1]]]))  # + 4 steps, + 1 run, + 6 present: 14 / 6 and 14 / 22
     torch.testing.assert_close(m.compute(), torch.tensor([14 / 6, 14 / 22]))
+    steps = InteractionRunLength()  # a mask per edge-step: the absent step ends the run and is not counted
+    steps.update(torch.tensor([[[1, 1, 1, 1]]]), torch.tensor([[[True, True, False, True]]]))
+    assert steps.compute().tolist() == [1.5, 1.0]
     empty = InteractionRunLength()
     empty.update(torch.zeros(2, 3, 5, dtype=torch.long))
     length, rate = empty.compute()

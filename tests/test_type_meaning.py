@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from dider import evaluation
 from dider.type_meaning import (
     PAIR_FEATURES,
     TypeProfile,
@@ -67,3 +68,24 @@ def test_degenerate_types_are_named_with_their_share() -> None:
     warning = degenerate_types({"test/type0/share": 0.999, "test/type1/share": 0.001, "test/type1/distance": 3.0},
                                "test")
     assert warning is not None and "type 0 on 99.90%, type 1 on 0.10%" in warning and "sparsity" in warning
+
+
+def test_interaction_rate_counts_the_edge_steps_the_type_table_counts() -> None:
+    """Three agents over four frames; agent 2 leaves after frame 1. An edge-step needs both agents at t and the
+    receiver at t+1: edges 0 -> 1 and 1 -> 0 hold at steps 0-2, the edges into agent 2 at step 0, the edges out
+    of it at steps 0-1 (12 edge-steps). Every posterior type is 1 except edge 0 -> 1 at step 0, and the absent
+    edge-steps carry types too (a model does not know they are absent): the rate must be the type table's
+    type-1 share, and a run ends at an absence."""
+    states = torch.randn(1, 4, 3, 4)
+    mask = torch.ones(1, 4, 3, dtype=torch.bool)
+    mask[0, 2:, 2] = False
+    posterior = torch.ones(1, 6, 3, dtype=torch.long)  # edges [B, E, T-1]
+    posterior[0, 0, 0] = 0
+    forecast = evaluation.Forecast(states[:, 2:], states[:, 2:], mask[:, 2:], posterior, None)
+    metrics = evaluation.TestMetrics([1], num_types=2)
+    metrics.update({"states": states, "mask": mask}, forecast, posterior, posterior)
+    out = metrics.compute()
+    assert out["test/type1/share"].item() == pytest.approx(11 / 12)
+    assert out["test/interaction_rate/posterior"].item() == pytest.approx(11 / 12)
+    # Runs of 2 (0 -> 1, steps 1-2), 3 (1 -> 0), 1 and 1 (into 2), 2 and 2 (out of 2): 11 steps in 6 runs.
+    assert out["test/run_length/posterior"].item() == pytest.approx(11 / 6)

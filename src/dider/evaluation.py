@@ -91,18 +91,21 @@ class TestMetrics(nn.Module):
                 self.displacement[name].update(units(f.pred), units(f.target), f.mask, f.horizon)
         if normalizer is not None:
             self.mse_raw.update(units(forecast.pred), units(forecast.target), forecast.mask, forecast.horizon)
-        self.types.update(posterior, *pair_features(units(batch["states"]), batch["mask"]))
+        # One rule for the edge-steps the type table and the interaction rates count: both agents present at t
+        # and the receiver at t+1 (where its acceleration is defined).
+        features, steps = pair_features(units(batch["states"]), batch["mask"])  # [B, E, T-1, F], [B, E, T-1]
+        self.types.update(posterior, features, steps)
         present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
         self.segments.update(posterior, present.any(1))
-        self.run_length["posterior"].update(posterior, present.any(1))
-        self.run_length["prior"].update(prior, present.any(1))
+        self.run_length["posterior"].update(posterior, steps)
+        self.run_length["prior"].update(prior, steps)
         if "edges" in batch:
             self.acc_posterior.update(posterior.transpose(1, 2), batch["edges"], present)
             self.acc_prior.update(prior.transpose(1, 2), batch["edges"], present)
             if prior_per_step is not None:
                 self.acc_prior_per_step.update(prior_per_step.transpose(1, 2), batch["edges"], present)
             self.boundary.update(posterior, batch["edges"].transpose(1, 2))
-            self.run_length["truth"].update(batch["edges"].transpose(1, 2), present.any(1))
+            self.run_length["truth"].update(batch["edges"].transpose(1, 2), steps)
         if own_cut is not None:
             self.own_cut.update(**own_cut)
         if "pair_kind" in batch:

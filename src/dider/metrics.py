@@ -168,8 +168,9 @@ class InteractionRunLength(Metric):
     first shows whether inferred interactions end too early or run on, the second whether a model marks
     interactions as often as the data have them (a sparsity prior asks for its own rate, e.g. DNRI's 10%).
 
-    update(types [B, E, T] long, edge_mask [B, E] bool or None); compute() -> [run length, rate] (the run
-    length NaN without any run).
+    update(types [B, E, T] long, present [B, E, T] or [B, E] bool or None: the edge-steps, or the whole edges,
+    that count; elsewhere a step is absent, as a type of -1 is, and an absence ends a run); compute() -> [run
+    length, rate] (the run length NaN without any run).
     """
 
     is_differentiable = False
@@ -180,14 +181,15 @@ class InteractionRunLength(Metric):
         for name in ("steps", "runs", "total"):
             self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
 
-    def update(self, types: torch.Tensor, edge_mask: torch.Tensor | None = None) -> None:
+    def update(self, types: torch.Tensor, present: torch.Tensor | None = None) -> None:
+        if present is not None:
+            types = types.masked_fill(~(present if present.dim() == types.dim() else present.unsqueeze(-1)), -1)
         active = types > 0  # [B, E, T]
         starts = active.clone()
         starts[..., 1:] &= switches(types)  # a run starts at t = 0 or where the type changes
-        keep = torch.ones(types.shape[:2], dtype=torch.bool, device=types.device) if edge_mask is None else edge_mask
-        self.steps += active[keep].sum()
-        self.runs += starts[keep].sum()
-        self.total += (types[keep] >= 0).sum()  # -1: an absent edge-step
+        self.steps += active.sum()
+        self.runs += starts.sum()
+        self.total += (types >= 0).sum()  # -1: an absent edge-step
 
     def compute(self) -> torch.Tensor:
         length = self.steps / self.runs if self.runs > 0 else torch.tensor(float("nan"), dtype=torch.float64)

@@ -65,11 +65,6 @@ class Group:
     def label(self) -> str:
         return " ".join([str(self.key["model"])] + [f"{k}={v}" for k, v in self.key.items() if k != "model"])
 
-    def stats(self, metric: str) -> tuple[float, float, int]:
-        """Mean, sample std (n-1; nan for one job) and count over the jobs that logged the metric."""
-        v = pd.Series([j["metrics"].get(metric) for j in self.jobs], dtype=float)
-        return float(v.mean()), float(v.std(ddof=1)), int(v.count())
-
 
 @dataclass
 class Summary:
@@ -241,7 +236,8 @@ def ablation_figure(s: Summary, path: Path) -> list[str]:
     for ax, m in zip(axes[0], mse, strict=True):
         for name, gs in rows.items():
             e = [g.key["num_edges"] for g in gs]
-            mean, std = np.array([g.stats(m)[:2] for g in gs]).T
+            at = [s.groups.index(g) for g in gs]
+            mean, std = (s.stats.loc[at, (m, x)].to_numpy(float) for x in ("mean", "std"))
             ax.errorbar(e, mean, yerr=np.nan_to_num(std), marker="o", capsize=3, label=name)
             i = int(np.nanargmin(mean))
             best.append(f"{name}, {m.removeprefix('test/')}: lowest mean MSE at num_edges={e[i]}"

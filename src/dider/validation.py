@@ -71,7 +71,13 @@ def optional(rule: Rule) -> Rule:
 
 def or_word(word: str, rule: Rule) -> Rule:
     """``rule``, or the string ``word``."""
-    return lambda value: None if value == word else (lambda why: why and f"{why} or '{word}'")(rule(value))
+    def either(value: Any) -> str | None:
+        if value == word:
+            return None
+        why = rule(value)
+        return why and f"{why} or '{word}'"
+
+    return either
 
 
 def one_of(*options: Any) -> Rule:
