@@ -85,8 +85,8 @@ def test_console_scripts_and_one_version():
 
 
 def test_every_config_folder_ships_as_a_package():
-    """pyproject lists each conf/ folder as a package (else setuptools warns at every install and a wheel may
-    leave its YAML out)."""
+    """pyproject lists each conf/ folder and each code package (else setuptools warns at every install and a
+    wheel may leave its YAML or its modules out)."""
     import tomllib
 
     project = tomllib.loads((CONF.parent / "pyproject.toml").read_text())
@@ -94,6 +94,9 @@ def test_every_config_folder_ships_as_a_package():
     folders = {"dider.conf" + "".join(f".{part}" for part in p.relative_to(CONF).parts)
                for p in [CONF, *CONF.rglob("*")] if p.is_dir() and list(p.glob("*.yaml"))}
     assert folders <= listed, sorted(folders - listed)
+    src = CONF.parent / "src"
+    code = {".".join(p.parent.relative_to(src).parts) for p in src.glob("dider/**/__init__.py")}
+    assert code <= listed, f"packages missing from pyproject.toml: {sorted(code - listed)}"
 
 
 @pytest.mark.parametrize("debug", options("debug"))
@@ -122,3 +125,21 @@ def test_a_debug_run_and_its_output(tmp_path):
                           r"\(\d+s, about \S+ left\)", text)) == 2
     assert text.count("test/ade_vs_cv/h01") == 1 and "Test metric" not in text
     assert "Tip" not in text and "LeafSpec" not in text and "configure_callbacks" not in text
+
+
+@pytest.mark.parametrize("name", ["eval", "predict"])
+def test_eval_and_predict_configs_need_a_checkpoint(name):
+    """--config-name eval / predict: the app's config with the mode set; without ckpt_path it stops at once."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    from dider.training.preflight import validate_config
+    from dider.validation import ConfigError
+
+    GlobalHydra.instance().clear()
+    with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+        cfg = compose(config_name=name, overrides=["ckpt_path=runs/mine"])
+        assert cfg.mode == name and cfg.ckpt_path == "runs/mine" and cfg.model.name == "dider"
+        with pytest.raises(ConfigError, match=f"mode={name} needs ckpt_path"):
+            validate_config(compose(config_name=name))
+    GlobalHydra.instance().clear()

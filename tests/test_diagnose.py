@@ -1,10 +1,10 @@
-"""The loss of given segmentations at a run's trained weights (``python -m dider.diagnose``)."""
+"""The loss of given segmentations at a run's trained weights (``python -m dider.analysis.diagnose``)."""
 
 import json
 
 import pytest
 
-from dider.diagnose import main
+from dider.analysis.diagnose import main
 from dider.run import train
 
 

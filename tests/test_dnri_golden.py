@@ -29,8 +29,8 @@ import torch.nn.functional as F
 from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 
-from dider.losses import gaussian_nll
 from dider.models.encoder import EncoderOutput
+from dider.models.losses import gaussian_nll
 from dider.models.vae import RelationalVAE
 
 GOLDEN = Path(__file__).parent / "golden" / "dnri"

@@ -6,7 +6,7 @@ import torch
 
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2
 from dider.data.synth import SynthDataModule
-from dider.metrics import BoundaryF1, EdgeAccuracy
+from dider.evaluation.metrics import BoundaryF1, EdgeAccuracy
 
 
 def first_test_batch(tmp_path) -> dict[str, torch.Tensor]:

@@ -1,4 +1,4 @@
-"""The interaction explorer (dider.explore): what the page embeds, the CLI, and the page in headless Chromium."""
+"""The interaction explorer (dider.analysis.explore): what the page embeds, the CLI, the page in headless Chromium."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dider.explore import (
+from dider.analysis.explore import (
     clip_payload,
     decode_path,
     edge_fields,
@@ -247,11 +247,12 @@ def test_cli_bad_shape_and_rows(run: Path, capsys: pytest.CaptureFixture) -> Non
 
 
 def test_module_entry_point(run: Path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "dider.explore", str(run), "--max-clips", "1"],
+    proc = subprocess.run([sys.executable, "-m", "dider.analysis.explore", str(run), "--max-clips", "1"],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     assert (run / "explorer.html").is_file()
-    proc = subprocess.run([sys.executable, "-m", "dider.explore", str(run / "x")], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "dider.analysis.explore", str(run / "x")], capture_output=True,
+                          text=True)
     assert proc.returncode == 2 and "run directory not found" in proc.stderr
 
 

@@ -4,9 +4,9 @@ import json
 
 import torch
 
-from dider.clips import split_clips, stack_clips
-from dider.export import segments_json
 from dider.graph import edge_index
+from dider.outputs.clips import split_clips, stack_clips
+from dider.outputs.export import segments_json
 from dider.run import train
 
 
@@ -38,7 +38,7 @@ def test_run_exports_every_test_clip(make_cfg, tmp_path):
     train(make_cfg(["model=dider", "trainer.max_epochs=1"], out=out))
     blob = json.loads((out / "segments.json").read_text())
     record = json.loads((out / "metrics.json").read_text())
-    from dider import explore  # the explorer reads the test clips of a synthetic run (no source ids)
+    from dider.analysis import explore  # the explorer reads the test clips of a synthetic run (no source ids)
 
     assert explore.main([str(out)]) == 0 and (out / "explorer.html").stat().st_size > 0
     assert len(blob["clips"]) == record["config"]["data"]["num_test"]

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from dider.bench.outputs import fake_outputs, time_outputs
+from dider.outputs.viz import TimelineFigures, shown_edges, timeline_figure, trajectory_figure
 from dider.run import train
-from dider.viz import TimelineFigures, shown_edges, timeline_figure, trajectory_figure
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -72,7 +72,7 @@ def test_a_crowded_run_writes_results_before_figures(make_cfg, tmp_path, monkeyp
     cfg = make_cfg(["data=table", f"data.path={crowd(tmp_path / 'crowd.csv')}", "data.seq_len=12", "data.stride=12",
                     "data.burn_in=4", "model.burn_in=4", "data.horizons=[1,4]", "data.batch_size=2",
                     "data.eval_batch_size=2", "model=dnri", "model.num_edges=2", "logger=none"], out=out)
-    with caplog.at_level(logging.WARNING, logger="dider.viz"):
+    with caplog.at_level(logging.WARNING, logger="dider.outputs.viz"):
         train(cfg)
     assert seen == {"metrics.json": True, "segments.json": True, "clips.npz": True}
     assert "test figures not drawn (RuntimeError: a figure failed)" in caplog.text
@@ -85,7 +85,7 @@ def test_a_crowded_run_writes_results_before_figures(make_cfg, tmp_path, monkeyp
 def test_forecast_figure_draws_every_carried_agent():
     """One true path (observed and future), one model and one constant-velocity line per agent present at the
     burn-in's last frame; an agent gone by then is left out."""
-    from dider.viz import forecast_figure
+    from dider.outputs.viz import forecast_figure
 
     t, n, burn_in = 10, 3, 4
     positions = torch.arange(t * n * 2, dtype=torch.float).reshape(t, n, 2)

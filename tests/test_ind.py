@@ -10,8 +10,8 @@ import torch
 from hydra.utils import instantiate
 
 from dider.bench.data import benchmark_preprocess
+from dider.bench.fake_levelx import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data import ind as ind_mod
-from dider.data.fakes import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data.ind import InDDataModule
 from dider.data.levelx.recordings import discover_recordings, split_counts
 from dider.protocol import burn_in_mask

@@ -1,4 +1,4 @@
-"""The loss terms of dider.losses against closed forms evaluated by hand with math.log.
+"""The loss terms of dider.models.losses against closed forms evaluated by hand with math.log.
 
 Inputs are float64 so that the comparisons can be tight; every expected value is derived in a comment.
 """
@@ -10,8 +10,15 @@ import math
 import pytest
 import torch
 
-from dider.losses import capacity, categorical_kl, categorical_kl_probs, gaussian_kl, gaussian_nll, residual_variance
 from dider.models.likelihood import GaussianLikelihood
+from dider.models.losses import (
+    capacity,
+    categorical_kl,
+    categorical_kl_probs,
+    gaussian_kl,
+    gaussian_nll,
+    residual_variance,
+)
 
 F64 = torch.float64
 

@@ -1,4 +1,4 @@
-"""The torchmetrics classes of dider.metrics against values worked out by hand.
+"""The torchmetrics classes of dider.evaluation.metrics against values worked out by hand.
 
 Each metric gets: a small example with its expected value derived in a comment, masked-out entries that
 must not count, its documented value with no data, and a DDP-style merge (two instances fed one half each,
@@ -15,8 +15,7 @@ import torch
 from torchmetrics import Metric
 from torchmetrics.utilities.data import dim_zero_sum
 
-from dider.evaluation import cv_verdict, displacement_values, leading_first
-from dider.metrics import (
+from dider.evaluation.metrics import (
     BoundaryF1,
     EdgeAccuracy,
     HorizonDisplacement,
@@ -26,6 +25,7 @@ from dider.metrics import (
     PairConsistency,
     SegmentStats,
 )
+from dider.evaluation.scoring import cv_verdict, displacement_values, leading_first
 
 L = torch.long
 
@@ -168,7 +168,7 @@ def test_horizon_mse_empty_is_nan() -> None:
 def test_horizon_mse_single_horizon_keeps_its_dimension() -> None:
     """data.horizons=[h] passes config validation; val/test logging reads the values with horizon_values
     (torchmetrics squeezes a one-element compute() to 0-d)."""
-    from dider.evaluation import horizon_values
+    from dider.evaluation.scoring import horizon_values
 
     m = HorizonMSE([3])
     m.update(PRED, TARGET, ALL)
@@ -225,7 +225,7 @@ def test_edge_accuracy_mask() -> None:
 
 
 def test_edge_accuracy_any_shape() -> None:
-    """[B, T, E] as dider.evaluation passes it: every element is an edge-step, the layout does not matter."""
+    """[B, T, E] as dider.evaluation.scoring passes it: every element is an edge-step, the layout does not matter."""
     m = EdgeAccuracy()
     m.update(EA_PRED[:6].view(2, 3, 1), EA_TARGET[:6].view(2, 3, 1), torch.ones(2, 3, 1, dtype=torch.bool))
     # none: 0, 4, 5 -> 2/3; interaction: 1, 2, 3 -> 2/3
@@ -235,7 +235,7 @@ def test_edge_accuracy_any_shape() -> None:
 def test_edge_accuracy_empty_is_nan(caplog) -> None:
     """A class with no edge-steps (no update, all masked, or only the other class) is NaN, never 0, and the
     logged values say so by name."""
-    from dider.evaluation import edge_acc_values
+    from dider.evaluation.scoring import edge_acc_values
 
     assert compute_quietly(EdgeAccuracy()).isnan().all()
     m = EdgeAccuracy()
@@ -348,7 +348,7 @@ def test_boundary_f1_edges_do_not_match_each_other() -> None:
 
 def test_boundary_f1_constant_padding_does_not_count() -> None:
     """There is no mask argument: absent edges count only through their switches, so padding them with a
-    constant type (as dider.evaluation's inputs do) leaves the score unchanged."""
+    constant type (as dider.evaluation.scoring's inputs do) leaves the score unchanged."""
     padded_pred = torch.cat([BF_PRED, torch.zeros_like(BF_PRED), torch.full_like(BF_PRED, 3)], dim=1)
     padded_true = torch.cat([BF_TRUE, torch.zeros_like(BF_TRUE), torch.zeros_like(BF_TRUE)], dim=1)
     a, b = BoundaryF1(tolerance=1), BoundaryF1(tolerance=1)

@@ -6,8 +6,8 @@ import torch
 
 from dider.data.ind import InDDataModule
 from dider.data.pairs import OPPOSITE, PARKED, PairRules, find_pairs, pair_kind_matrix
+from dider.evaluation.metrics import PairConsistency
 from dider.graph import edge_index
-from dider.metrics import PairConsistency
 from helpers.fixtures import write_ind_root
 
 T = 10

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from dider.models.module import RelationalVAEModule
 from dider.run import train
+from dider.training.module import RelationalVAEModule
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

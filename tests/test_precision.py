@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from dider.clips import write_clips_npz
 from dider.models.vae import RelationalVAE
+from dider.outputs.clips import write_clips_npz
 from dider.perf import native_bf16
 from dider.run import train
 

@@ -132,7 +132,7 @@ def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
         api = dider.load(ckpt).forecast(arrays["positions"], burn_in=5, steps=6, mask=arrays["mask"])
         assert np.allclose(z["forecast"], api, atol=1e-5)
     # the explorer reads the prediction run's clips.npz: every clip, every present agent
-    from dider import explore
+    from dider.analysis import explore
 
     assert explore.main([str(tmp_path / "pred")]) == 0
     page = (tmp_path / "pred" / "explorer.html").read_text()

@@ -229,7 +229,7 @@ def test_api_warns_of_a_unit_mismatch(trained, caplog):
 def test_a_killed_prediction_leaves_no_mixed_folder(trained, tmp_path, monkeypatch):
     """A prediction that dies between two writes leaves no predictions/ (only its staging folder), and the
     next one into the folder removes that and writes a complete set with complete.json."""
-    from dider import prediction
+    from dider.outputs import prediction
     from dider.run import predict
     from test_predict import compose_cfg
 

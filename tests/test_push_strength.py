@@ -1,4 +1,4 @@
-"""Interaction recall by the push's distance (``python -m dider.push_strength``)."""
+"""Interaction recall by the push's distance (``python -m dider.analysis.push_strength``)."""
 
 import json
 import math
@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
+from dider.analysis.push_strength import main, push_distances, recall_by_distance
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
-from dider.push_strength import main, push_distances, recall_by_distance
 from dider.run import train
 
 

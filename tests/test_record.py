@@ -1,11 +1,12 @@
-"""Records of sweeps (``python -m dider.record``): grouping by model and seed, summaries, paired differences."""
+"""Records of sweeps (``python -m dider.analysis.record``): grouping by model and seed, summaries, paired
+differences."""
 
 import json
 import math
 
 import pytest
 
-from dider.record import main
+from dider.analysis.record import main
 
 
 def fake_job(root, name, model, seed, h15, overrides=()):

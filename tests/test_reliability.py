@@ -15,11 +15,11 @@ import pytest
 import torch
 
 import dider.models.likelihood as likelihood_mod
-from dider.callbacks import NonFiniteError
-from dider.checkpoint import AtomicCheckpointIO
 from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
 from dider.run import ConfigError, train, trainer_plugins, validate_config
+from dider.training.callbacks import NonFiniteError
+from dider.training.checkpoint import AtomicCheckpointIO
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -345,9 +345,9 @@ def test_warnings_name_suspicious_settings(make_cfg, caplog):
 
 @pytest.mark.parametrize("native", [True, False])
 def test_bf16_on_a_cpu_that_emulates_it_is_named(make_cfg, caplog, monkeypatch, native):
-    import dider.preflight
+    import dider.training.preflight
 
-    monkeypatch.setattr(dider.preflight, "native_bf16", lambda device: native)
+    monkeypatch.setattr(dider.training.preflight, "native_bf16", lambda device: native)
     with caplog.at_level("WARNING"):
         validate_config(make_cfg(["trainer.precision=bf16-mixed", "trainer.accelerator=cpu"]))
     assert ("trainer.precision=bf16-mixed: this CPU has no native bf16" in caplog.text) is not native

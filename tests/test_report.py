@@ -1,4 +1,4 @@
-"""The experiment sweeps compose, and `dider.report` aggregates a real sweep faithfully."""
+"""The experiment sweeps compose, and `dider.analysis.report` aggregates a real sweep faithfully."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
 from omegaconf import OmegaConf
 
-from dider import report, report_table
+from dider.analysis import report, report_table
 
 EXPERIMENTS = ["synth_table", "synth_cpu_table", "bball_table", "ind50_table", "ind200_table", "edge_ablation"]
 

@@ -6,11 +6,11 @@ import torch.nn.functional as F
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
+from dider.evaluation.metrics import HorizonMSE
 from dider.graph import edge_mask
-from dider.metrics import HorizonMSE
-from dider.models.module import RelationalVAEModule
 from dider.models.vae import RelationalVAE
 from dider.protocol import agent_horizons, burn_in_mask
+from dider.training.module import RelationalVAEModule
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -193,7 +193,7 @@ def test_model_takes_the_mode_from_the_datamodule(make_cfg, tmp_path):
 def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
     """A tiny fit + test on inD-format files: the per-agent protocol is used and every horizon is scored."""
 
-    from dider.metrics import HorizonMSE as Metric
+    from dider.evaluation.metrics import HorizonMSE as Metric
     from dider.run import train
     from helpers.fixtures import write_ind_root
 

@@ -7,7 +7,7 @@ import json
 import pandas as pd
 import pytest
 
-from dider.search import check_space, search
+from dider.analysis.search import check_space, search
 
 optuna = pytest.importorskip("optuna")
 

@@ -12,8 +12,8 @@ import torch
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 import dider
-from dider.models.module import RelationalVAEModule
 from dider.run import train
+from dider.training.module import RelationalVAEModule
 from helpers.baselines import constant_velocity
 
 
@@ -210,7 +210,7 @@ def test_metrics_json_records_objective_and_provenance(make_cfg, tmp_path):
 
 
 def test_results_card_marks_what_is_missing():
-    from dider.results_card import results_markdown
+    from dider.outputs.results_card import results_markdown
 
     card = results_markdown({"test/ade/h01": 1.0, "test/cv/ade/h01": 2.0, "test/ade_vs_cv/h01": 0.5,
                              "test/fde/h01": float("nan")}, "nri, seed 2")
@@ -221,7 +221,7 @@ def test_results_card_marks_what_is_missing():
 def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplog):
     """model.decoder.kinematic=true: the step is fitted on a training batch before the first optimiser step
     (positions move with the velocity on the synthetic set: a positive slope), then trained on."""
-    with caplog.at_level(logging.INFO, logger="dider.models.module"):
+    with caplog.at_level(logging.INFO, logger="dider.training.module"):
         train(make_cfg(["model.decoder.kinematic=true", "logger=none"], out=tmp_path / "run"))
     fitted = re.search(r"kinematic step fitted on a training batch: slope (\S+), offset (\S+)", caplog.text)
     assert fitted and float(fitted.group(1)) > 0
@@ -232,7 +232,7 @@ def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplo
 def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_path, caplog):
     """model.nll_variance=fit: per feature, the constant-velocity residual's variance on a training batch, logged,
     used and saved with the weights (the synthetic set's velocities change more than its positions' residual)."""
-    with caplog.at_level(logging.INFO, logger="dider.models.module"):
+    with caplog.at_level(logging.INFO, logger="dider.training.module"):
         train(make_cfg(["model.nll_variance=fit", "logger=none"], out=tmp_path / "run"))
     assert "NLL variance fitted on a training batch, per feature" in caplog.text
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)

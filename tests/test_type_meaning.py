@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from dider import evaluation
-from dider.type_meaning import (
+from dider.evaluation import scoring
+from dider.evaluation.type_meaning import (
     PAIR_FEATURES,
     TypeProfile,
     degenerate_types,
@@ -81,8 +81,8 @@ def test_interaction_rate_counts_the_edge_steps_the_type_table_counts() -> None:
     mask[0, 2:, 2] = False
     posterior = torch.ones(1, 6, 3, dtype=torch.long)  # edges [B, E, T-1]
     posterior[0, 0, 0] = 0
-    forecast = evaluation.Forecast(states[:, 2:], states[:, 2:], mask[:, 2:], posterior, None)
-    metrics = evaluation.TestMetrics([1], num_types=2)
+    forecast = scoring.Forecast(states[:, 2:], states[:, 2:], mask[:, 2:], posterior, None)
+    metrics = scoring.TestMetrics([1], num_types=2)
     metrics.update({"states": states, "mask": mask}, forecast, posterior, posterior)
     out = metrics.compute()
     assert out["test/type1/share"].item() == pytest.approx(11 / 12)

@@ -27,17 +27,19 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dider import __version__
-from dider.checkpoint import AtomicCheckpointIO
 from dider.data.soccer import kloppy_sample
-from dider.evaluation import cv_verdict, leading_first
+from dider.evaluation.scoring import cv_verdict, leading_first
 from dider.io import atomic_write_text
-from dider.models.module import RelationalVAEModule
+from dider.outputs.prediction import PredictionWriter, PredictProgress
+from dider.outputs.results_card import results_markdown
+from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocator
-from dider.prediction import PredictionWriter, PredictProgress
-from dider.preflight import clip_problem, input_warnings, validate_config
-from dider.quiet import silence_library_chatter
-from dider.results_card import results_markdown
-from dider.runfolder import (
+from dider.trained import find_checkpoint, load, training_settings
+from dider.training.checkpoint import AtomicCheckpointIO
+from dider.training.module import RelationalVAEModule
+from dider.training.preflight import clip_problem, input_warnings, validate_config
+from dider.training.quiet import silence_library_chatter
+from dider.training.runfolder import (
     RunLock,
     RunRefused,
     check_checkpoint,
@@ -48,9 +50,7 @@ from dider.runfolder import (
     open_run_folder,
     resolve_ckpt,
 )
-from dider.trained import find_checkpoint, load, training_settings
 from dider.validation import ConfigError
-from dider.viz import draw_figures
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +177,7 @@ def format_table(metrics: dict[str, float]) -> str:
 
 def predict(cfg: DictConfig) -> list[Path]:
     """mode=predict: the checkpoint's model (its own config and normaliser, whatever ``model=`` says) on every
-    clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.prediction`). Returns them.
+    clip of ``data`` -> files under ``output_dir/predictions`` (:mod:`dider.outputs.prediction`). Returns them.
 
     The folder gets a training run's guarantees: ``predictions/`` must not exist yet (a refusal names it), a
     lock keeps a second live run out, and the files are written into a staging folder that becomes
@@ -355,7 +355,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         name = f"{cfg.model.get('name', 'model')}-seed{cfg.seed}"
         print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir_spec {name}:{out_dir})")
     if trainer.is_global_zero and (out_dir / "clips.npz").exists():
-        print(f"explorer: python -m dider.explore {out_dir}  (writes {out_dir / 'explorer.html'})")
+        print(f"explorer: python -m dider.analysis.explore {out_dir}  (writes {out_dir / 'explorer.html'})")
     return metrics, objective
 
 

@@ -24,12 +24,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-from dider.clips import segment_frame
 from dider.data.batch import Normalizer
 from dider.data.trajectories import trajectory_states
 from dider.models.vae import TRAINING_KEYS, RelationalVAE
-from dider.preflight import input_warnings, version_problem
+from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
+from dider.training.preflight import input_warnings, version_problem
 from dider.validation import above, check_arguments, integer, optional
 
 ArrayLike = np.ndarray | torch.Tensor

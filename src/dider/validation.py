@@ -1,6 +1,6 @@
 """One way to validate settings: each rule is written once, under its full config key.
 
-Constructors call :func:`require` with the values they receive; ``dider.preflight.validate_config`` applies
+Constructors call :func:`require` with the values they receive; ``dider.training.preflight.validate_config`` applies
 every rule to a whole config before any work starts. Either way an error names the key and the value,
 e.g. ``model.num_edges=1: must be >= 2 (...)``, and lists every problem at once.
 """

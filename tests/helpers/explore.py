@@ -1,4 +1,4 @@
-"""clips.npz files for the explorer's tests (dider.explore), and headless Chromium helpers.
+"""clips.npz files for the explorer's tests (dider.analysis.explore), and headless Chromium helpers.
 
 - :func:`write_clips`: 2 clips of 4 agent slots with types that switch at known transitions (``SWITCHES``):
   clip 0 has agent slot 3 absent throughout, clip 1 has slot 1 absent for frames 0-2.
@@ -284,7 +284,7 @@ def screenshot(html: Path, png: Path, fragment: str = "", size: str = "1200,900"
 
 def make_figure(png: Path) -> Path:
     """docs/figures/explorer.png: the realistic fixture's explorer at a frame with interactions."""
-    from dider.explore import write_explorer
+    from dider.analysis.explore import write_explorer
 
     with tempfile.TemporaryDirectory() as tmp:
         run = Path(tmp) / "synth_run"

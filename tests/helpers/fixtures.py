@@ -1,7 +1,7 @@
 """Small synthetic files in the exact formats of the real data sets (no real rows: those are licensed).
 
 - inD / rounD / uniD: ``XX_tracks.csv``, ``XX_tracksMeta.csv``, ``XX_recordingMeta.csv`` with every real
-  header column (dider.data.fakes writes them), parked vehicles, VRUs, tracks entering mid-recording.
+  header column (dider.bench.fake_levelx writes them), parked vehicles, VRUs, tracks entering mid-recording.
 - Basketball: Zhan et al.'s ``train.npz`` / ``test.npz`` (key ``data``, (S, 50, 22) feet) and DNRI's
   ``{loc,vel}_{train,valid,test}_bball.npy`` ([S, T, 5, 2]).
 - Bring-your-own trajectories: an npz with ``positions`` and optional ``velocities``, ``mask``, ``edges``.
@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from dider.data.fakes import write_levelx_recording
+from dider.bench.fake_levelx import write_levelx_recording
 from dider.graph import num_edges
 
 # Location of each fake recording, mirroring inD's layout (00-06 location 4, 07-17 location 1, ...).

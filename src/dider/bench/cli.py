@@ -113,7 +113,7 @@ def _run_isolated(case: Case, device: str, quick: bool = False) -> dict[str, Any
     return _isolated(run_case, (case, device), {"name": case.name, "kind": case.kind})
 
 
-def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
     parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
@@ -144,19 +144,60 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                         help="instead of timing: profile one step of the training case CASE (e.g. "
                         "train/dnri/recurrent) with torch.profiler, print its op table and write it next to --out")
     parser.add_argument("--profile-rows", type=int, default=25, help="--profile: ops in the table")
+    return parser
+
+
+def _profile(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """--profile: one step of a training case under torch.profiler, its op table printed and written."""
+    trainable = {c.name: c for c in cases() if c.kind == "train"}
+    if args.profile not in trainable:
+        parser.error(f"--profile {args.profile!r}: not a training case; one of {', '.join(trainable)}")
+    tune_allocator()  # in this process, as every case's worker does
+    table = profile_case(trainable[args.profile], args.device, args.profile_rows)
+    path = args.out.with_name(f"profile_{args.profile.replace('/', '_')}.txt")
+    atomic_write_text(path, table)
+    print(table)
+    print(f"wrote {path}")
+
+
+def _reference(args: argparse.Namespace, names: tuple[str, ...], bf16: bool) -> dict[str, Any]:
+    """The public DNRI code's training step against ours on the cases ``names``, in a process of its own."""
+    reference = _isolated(compare_with_reference, (args.reference, names, args.reference_size, args.reference_rounds,
+                                                   args.reference_iters, 1, args.device, args.reference_threads,
+                                                   bf16),
+                          {"checkout": str(args.reference)})
+    if "error" in reference:
+        print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
+    for name, r in reference.get("cases", {}).items():
+        ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f}, matmul-only "
+                         f"ceiling {r['ceiling']['speedup'][k]:.2f})" for k in r["speedup"])
+        print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours {ours}",
+              flush=True)
+    return reference
+
+
+def _print_record(case: Case, record: dict[str, Any]) -> None:
+    if "error" in record:
+        print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
+    elif case.kind == "largest":
+        print(f"{record['name']:<32} largest N {record['largest_agents']} (next N: {record['bound']})", flush=True)
+    elif case.kind == "result":
+        print(f"{record['name']:<32} {record['wall_s']:9.1f} s for {record['runs']} run(s)", flush=True)
+        for model, values in record["models"].items():
+            print(f"    {model:<28} " + "  ".join(f"{k.removeprefix('test/')} {v:.3g}" for k, v in values.items()
+                                               if k != "runs"), flush=True)
+    else:
+        print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
+              f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = _parser()
     args = parser.parse_args(argv)
     if args.allocator:  # the spawned case processes read it at start (_worker)
         os.environ["DIDER_ALLOCATOR"] = args.allocator
     if args.profile is not None:
-        trainable = {c.name: c for c in cases() if c.kind == "train"}
-        if args.profile not in trainable:
-            parser.error(f"--profile {args.profile!r}: not a training case; one of {', '.join(trainable)}")
-        tune_allocator()  # in this process, as every case's worker does
-        table = profile_case(trainable[args.profile], args.device, args.profile_rows)
-        path = args.out.with_name(f"profile_{args.profile.replace('/', '_')}.txt")
-        atomic_write_text(path, table)
-        print(table)
-        print(f"wrote {path}")
+        _profile(args, parser)
         return []
     native = native_bf16(args.device)
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
@@ -169,20 +210,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     def selected(name: str) -> bool:
         return (not args.only or any(s in name for s in args.only)) and (bf16 or "bf16" not in name)
 
-    reference: dict[str, Any] | None = None
     names = tuple(n for n in REFERENCE_CASES if selected(f"reference/{n}"))
-    if args.reference is not None and names:
-        reference = _isolated(compare_with_reference, (args.reference, names, args.reference_size,
-                                                       args.reference_rounds, args.reference_iters, 1, args.device,
-                                                       args.reference_threads, bf16),
-                              {"checkout": str(args.reference)})
-        if "error" in reference:
-            print(f"{'reference':<32} FAILED: {reference['error']}", flush=True)
-        for name, r in reference.get("cases", {}).items():
-            ours = ", ".join(f"{r['step_s'][k] * 1000:.1f} ({k}, speed-up {r['speedup'][k]:.2f}, matmul-only "
-                             f"ceiling {r['ceiling']['speedup'][k]:.2f})" for k in r["speedup"])
-            print(f"{'reference/' + name:<32} reference {r['step_s']['reference'] * 1000:9.1f} ms/step, ours {ours}",
-                  flush=True)
+    reference = _reference(args, names, bf16) if args.reference is not None and names else None
 
     def write(records: list[dict[str, Any]]) -> None:
         document = {"meta": meta, "summary": summary(records, reference), "records": records}
@@ -202,21 +231,9 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         else:
             record = _run_isolated(case, args.device, args.quick)
         records.append(record)
-        if "error" in record:
-            print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
-        elif case.kind == "largest":
-            print(f"{record['name']:<32} largest N {record['largest_agents']} (next N: {record['bound']})", flush=True)
-        elif case.kind == "result":
-            print(f"{record['name']:<32} {record['wall_s']:9.1f} s for {record['runs']} run(s)", flush=True)
-            for model, values in record["models"].items():
-                print(f"    {model:<28} " + "  ".join(f"{k.removeprefix('test/')} {v:.3g}" for k, v in values.items()
-                                                   if k != "runs"), flush=True)
-        else:
-            print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
-                  f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
+        _print_record(case, record)
         write(records)  # after every case: an interrupted benchmark keeps what it measured
-    derived = summary(records, reference)
-    for key, value in derived.items():
+    for key, value in summary(records, reference).items():
         print(f"{key:<44} {value:.2f}")
     if any(r["name"].startswith("scale/") for r in records):
         plot(records, args.plot or args.out.with_suffix(".png"))

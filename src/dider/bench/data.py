@@ -23,9 +23,10 @@ def benchmark_preprocess(tmpdir: str | Path | None = None, minutes: float = 20.0
 
     Writing the CSV files is not timed. No assertion: a measurement to report.
     """
-    from dider.data.fakes import write_levelx_recording
+    from dider.bench.fake_levelx import write_levelx_recording
+    from dider.data.levelx.reading import WindowParams
     from dider.data.levelx.recordings import discover_recordings
-    from dider.data.levelx.windows import WindowParams, preprocess_recording
+    from dider.data.levelx.windows import preprocess_recording
 
     with tempfile.TemporaryDirectory(dir=tmpdir) as tmp:
         frames = int(minutes * 60 * 25)

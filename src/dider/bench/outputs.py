@@ -13,10 +13,10 @@ from typing import Any
 import matplotlib.pyplot as plt
 import torch
 
-from dider.clips import explore_arrays, split_clips, stack_clips, write_clips_npz
-from dider.export import segments_json
 from dider.io import atomic_write_text
-from dider.viz import timeline_figure, trajectory_figure
+from dider.outputs.clips import explore_arrays, split_clips, stack_clips, write_clips_npz
+from dider.outputs.export import segments_json
+from dider.outputs.viz import timeline_figure, trajectory_figure
 
 
 def fake_outputs(clips: int, agents: int, steps: int, num_types: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dider.report import summarise
+from dider.analysis.report import summarise
 
 # What a record keeps of each model's metrics: edge recall (posterior and the online prior's) and the
 # forecast error at the synthetic horizons.
@@ -62,12 +62,11 @@ def time_to_result(job: Job, quick: bool = False, tmpdir: str | Path | None = No
             raise RuntimeError(f"{' '.join(argv[2:])} failed with exit code {proc.returncode}:\n{tail}")
         summary = summarise(folder)
     models: dict[str, dict[str, float | int]] = {}
-    for group in summary.groups:
+    for i, group in enumerate(summary.groups):
         values: dict[str, float | int] = {"runs": len(group.jobs)}
         for metric in RESULT_METRICS:
-            mean, _, count = group.stats(metric)
-            if count:
-                values[metric] = mean
+            if metric in summary.metrics and summary.stats.loc[i, (metric, "n")] > 0:
+                values[metric] = float(summary.stats.loc[i, (metric, "mean")])
         models[group.label] = values
     failed = len(summary.failed) + len(summary.missing)
     return {"wall_s": wall, "command": "python -m dider.run " + " ".join(job.overrides), "quick": quick,

@@ -36,16 +36,11 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
+from dider.data.columns import csv_header, read_columns
 from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, check_counts, pad_collate, spread_indices
-from dider.data.levelx.reading import _header, _read_columns
-from dider.data.levelx.recordings import RecordingFiles, _pattern_regex, discover_recordings, split_counts
-from dider.data.levelx.windows import (
-    DEFAULT_FEATURES,
-    WindowParams,
-    concat_windows,
-    preprocess_recording,
-    select_windows,
-)
+from dider.data.levelx.reading import DEFAULT_FEATURES, WindowParams
+from dider.data.levelx.recordings import RecordingFiles, discover_recordings, pattern_regex, split_counts
+from dider.data.levelx.windows import concat_windows, preprocess_recording, select_windows
 from dider.data.pairs import PairRules, find_pairs
 from dider.protocol import fill_absent
 
@@ -128,7 +123,7 @@ class InDDataModule(ClipDataModule):
         for key, pattern in [("tracks_pattern", tracks_pattern), ("tracks_meta_pattern", tracks_meta_pattern),
                              ("recording_meta_pattern", recording_meta_pattern)]:
             try:
-                _pattern_regex(pattern)
+                pattern_regex(pattern)
             except ValueError as e:
                 raise ValueError(f"data.{key}: {e}") from None
         split_counts(split, available=10**9)  # form only; the recording count is known in prepare_data
@@ -284,9 +279,9 @@ class InDDataModule(ClipDataModule):
         h, ds = self.hparams, self.datasets[split]
         files = self.recordings_of(split)[int(ds.window_recording[index])]
         image = files.tracks.parent / h.background_pattern.format(id=files.id)
-        if not image.is_file() or "orthoPxToMeter" not in _header(files.recording_meta):
+        if not image.is_file() or "orthoPxToMeter" not in csv_header(files.recording_meta):
             return None
-        meters = float(_read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * h.background_scale
+        meters = float(read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * h.background_scale
         if not (np.isfinite(meters) and meters > 0):
             return None
         try:

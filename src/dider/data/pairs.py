@@ -5,7 +5,8 @@ Two kinds of pairs, found per window in raw units (metres, m/s) when the test sp
 - ``OPPOSITE``: two moving vehicles heading in opposite directions whose paths in the window never cross.
 
 A model whose edge types mean something should give each such pair one type nearly all the time; the
-share of the pair's edge-steps in its dominant type is the check (metric :class:`dider.metrics.PairConsistency`).
+share of the pair's edge-steps in its dominant type is the check (metric
+:class:`dider.evaluation.metrics.PairConsistency`).
 
 Pairs are stored packed, like the windows: ``pair_offsets`` [W+1] (window w owns pairs
 pair_offsets[w]:pair_offsets[w+1]), ``pair_agents`` [Q, 2] long (agent positions inside the window) and

@@ -44,33 +44,15 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
-from dider.data.levelx.windows import MAX_GRID_CELLS
 from dider.data.table_reading import check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
+from dider.data.windowing import MAX_GRID_CELLS, cut_windows
 from dider.protocol import fill_absent
 from dider.validation import above, optional, require
 
 log = logging.getLogger(__name__)
 
 # -- windows
-
-
-def cut_windows(present: np.ndarray, seq_len: int, stride: int, min_agent_steps: int,
-                min_agents: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The windows of one scene and the agents each keeps.
-
-    present: [S, K] bool (steps x agents) -> starts [W] int64 (first step of each kept window), window [P]
-    and agent [P] int64: the kept (window, agent) pairs, by window then agent.
-    """
-    num_steps, k = present.shape
-    starts = np.arange(0, num_steps - seq_len + 1, stride)
-    # Steps each agent is present in each window, from a cumulative sum over time: [W, K].
-    csum = np.zeros((num_steps + 1, k), np.int64)
-    np.cumsum(present, axis=0, out=csum[1:])
-    kept = csum[starts + seq_len] - csum[starts] >= min_agent_steps
-    good = kept.sum(1) >= min_agents
-    window, agent = np.nonzero(kept[good])
-    return starts[good], window, agent
 
 
 def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: np.ndarray,

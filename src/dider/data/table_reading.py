@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from dider.data.levelx.reading import _header
+from dider.data.columns import csv_header
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def _read_frame(path: Path, names: list[str], optional: Sequence[str] = ()) -> p
     # CSV: the header first, so a missing column is named before the rows are read. Parquet: every column
     # (reading the schema alone needs engine-specific code).
     whole = None if csv else _read_parquet(path)
-    found = _header(path) if whole is None else [str(c) for c in whole.columns]
+    found = csv_header(path) if whole is None else [str(c) for c in whole.columns]
     if missing := [n for n in names if n not in found]:
         raise ValueError(f"{path}: missing column(s) {missing} (found {found}); name them in data.columns")
     names = names + [n for n in optional if n in found and n not in names]

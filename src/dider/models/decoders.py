@@ -14,8 +14,8 @@ import torch
 from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_mask
-from dider.losses import line_fit
 from dider.models.layers import PairLinear, TypedLinear, checkpointed
+from dider.models.losses import line_fit
 from dider.validation import require
 
 

@@ -18,7 +18,7 @@ import math
 import torch
 from torch import nn
 
-from dider.losses import gaussian_kl
+from dider.models.losses import gaussian_kl
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation, entries
 from dider.validation import require, within_open

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dider.losses import categorical_kl
+from dider.models.losses import categorical_kl
 from dider.models.segments import forced_boundaries
 
 

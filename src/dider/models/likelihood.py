@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from dider.losses import gaussian_nll, residual_variance
+from dider.models.losses import gaussian_nll, residual_variance
 
 
 class GaussianLikelihood(nn.Module):

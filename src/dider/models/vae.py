@@ -22,10 +22,10 @@ from omegaconf import DictConfig
 from torch import nn
 
 from dider.graph import edge_mask
-from dider.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
 from dider.models.likelihood import GaussianLikelihood
+from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
 from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation, entries, forced_boundaries
@@ -135,7 +135,7 @@ class RelationalVAE(nn.Module):
 
         batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool. cut: [B, E, T-1] bool, a given segmentation
         (a segment starts at each true step; the fixed boundaries of :func:`forced_boundaries` are added) in
-        place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.diagnose``)."""
+        place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.analysis.diagnose``)."""
         x, mask = batch["states"], batch["mask"]
         # With every agent present (the synthetic sets) the plugins skip their masking passes.
         plugin_mask = None if bool(mask.all()) else mask

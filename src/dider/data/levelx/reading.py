@@ -8,72 +8,39 @@ tracks.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
 
 import numpy as np
-import pandas as pd
 
+from dider.data.columns import check_finite, csv_header, read_columns
 from dider.data.levelx.recordings import RecordingFiles
 
-if TYPE_CHECKING:  # annotations only: windows.py imports this module, so a run-time import would be circular
-    from dider.data.levelx.windows import WindowParams
+DEFAULT_FEATURES = ("xCenter", "yCenter", "xVelocity", "yVelocity")
 
 
-def _header(path: Path) -> list[str]:
-    try:
-        return list(pd.read_csv(path, nrows=0).columns)
-    except pd.errors.EmptyDataError as e:
-        raise ValueError(f"{path}: empty file (expected a CSV header)") from e
-    except (ValueError, OSError) as e:  # e.g. binary garbage, a bad encoding
-        raise ValueError(f"{path}: not a readable CSV file ({type(e).__name__}: {e})") from e
+@dataclass(frozen=True)
+class WindowParams:
+    """Everything that changes the windows cut from a recording (part of the cache key)."""
+
+    track_id_column: str = "trackId"
+    frame_column: str = "frame"
+    class_column: str = "class"
+    frame_rate_column: str = "frameRate"
+    features: tuple[str, ...] = DEFAULT_FEATURES
+    classes: tuple[str, ...] | None = None
+    downsample: int = 10
+    seq_len: int = 50
+    stride: int = 50
+    min_agent_steps: int = 1
+    min_agents: int = 2
+    max_agents: int | None = None
 
 
-def _read_columns(path: Path, numeric: Sequence[str], text: Sequence[str] = ()) -> pd.DataFrame:
-    """Read only the named columns (extras ignored); numbers as float64 (checked later for NaN/inf/ints)."""
-    header = _header(path)
-    missing = [c for c in [*numeric, *text] if c not in header]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {missing} (found {list(header)})")
-    dtype: dict[str, Any] = {c: np.float64 for c in numeric} | {c: str for c in text}
-    try:
-        return pd.read_csv(path, usecols=[*numeric, *text], dtype=dtype, engine="c")
-    except ValueError as e:  # e.g. a word, or a padded " nan", in a numeric column: find the cell
-        raise ValueError(_first_bad_number(path, numeric) or f"{path}: could not parse columns {list(numeric)} as "
-                         f"numbers: {e}") from e
-
-
-def _first_bad_number(path: Path, numeric: Sequence[str]) -> str | None:
-    """'file: column c, line n: 'value' is not a number' for the first cell of ``numeric`` that does not parse."""
-    raw = pd.read_csv(path, usecols=list(numeric), dtype=str, keep_default_na=False, engine="c")
-    for col in numeric:
-        parsed = pd.to_numeric(raw[col], errors="coerce")
-        bad = parsed.isna().to_numpy()
-        if bad.any():
-            row = int(np.argmax(bad))
-            return f"{path}: column {col!r}, line {row + 2}: {raw[col].iloc[row]!r} is not a number"
-    return None
-
-
-def _finite(path: Path, df: pd.DataFrame, columns: Sequence[str], integer: Sequence[str] = ()) -> None:
-    """NaN/inf (and non-integers in id/frame columns) raise, naming file, column and CSV line."""
-    for col in columns:
-        a = df[col].to_numpy()
-        bad = ~np.isfinite(a)
-        if col in integer:
-            bad |= np.where(bad, False, a != np.round(a))
-        if bad.any():
-            row = int(np.argmax(bad))
-            raise ValueError(f"{path}: column {col!r} has {int(bad.sum())} missing, NaN, inf or (for ids and "
-                             f"frames) non-integer values (first on line {row + 2}: {a[row]!r})")
-
-
-def _read_tracks(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_tracks(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """-> track id [R] int64, frame [R] int64, features [R, 4] float64 for every row of XX_tracks.csv."""
     cols = [p.track_id_column, p.frame_column, *p.features]
-    df = _read_columns(files.tracks, cols)
-    _finite(files.tracks, df, cols, integer=cols[:2])
+    df = read_columns(files.tracks, cols)
+    check_finite(files.tracks, df, cols, integer=cols[:2])
     tid = df[p.track_id_column].to_numpy().astype(np.int64)
     frame = df[p.frame_column].to_numpy().astype(np.int64)
     if (frame < 0).any():
@@ -88,11 +55,11 @@ def _read_tracks(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np
     return tid, frame, feats
 
 
-def _read_tracks_meta(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def read_tracks_meta(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """-> meta track ids [K] (sorted), (initialFrame, finalFrame, numFrames) [K, 3] int64, class [K] str."""
     numeric = [p.track_id_column, "initialFrame", "finalFrame", "numFrames"]
-    df = _read_columns(files.tracks_meta, numeric, [p.class_column])
-    _finite(files.tracks_meta, df, numeric, integer=numeric)
+    df = read_columns(files.tracks_meta, numeric, [p.class_column])
+    check_finite(files.tracks_meta, df, numeric, integer=numeric)
     if df[p.class_column].isna().any():
         row = int(np.argmax(df[p.class_column].isna().to_numpy()))
         raise ValueError(f"{files.tracks_meta}: column {p.class_column!r} is empty on line {row + 2}")
@@ -106,13 +73,13 @@ def _read_tracks_meta(files: RecordingFiles, p: WindowParams) -> tuple[np.ndarra
     return ids, frames, df[p.class_column].to_numpy(dtype=object)[order].astype(str)
 
 
-def _frame_rate(files: RecordingFiles, p: WindowParams) -> tuple[float, int | None]:
+def frame_rate(files: RecordingFiles, p: WindowParams) -> tuple[float, int | None]:
     """-> (frameRate, locationId or None) from XX_recordingMeta.csv."""
-    optional = ["locationId"] if "locationId" in _header(files.recording_meta) else []
-    df = _read_columns(files.recording_meta, [p.frame_rate_column, *optional])
+    optional = ["locationId"] if "locationId" in csv_header(files.recording_meta) else []
+    df = read_columns(files.recording_meta, [p.frame_rate_column, *optional])
     if len(df) == 0:
         raise ValueError(f"{files.recording_meta}: no rows (expected one row describing the recording)")
-    _finite(files.recording_meta, df, [p.frame_rate_column])
+    check_finite(files.recording_meta, df, [p.frame_rate_column])
     rate = float(df[p.frame_rate_column].iloc[0])
     if rate <= 0:
         raise ValueError(f"{files.recording_meta}: column {p.frame_rate_column!r} = {rate}: must be > 0")
@@ -120,7 +87,7 @@ def _frame_rate(files: RecordingFiles, p: WindowParams) -> tuple[float, int | No
     return rate, None if loc is None or not np.isfinite(loc) else int(loc)
 
 
-def _check_consistency(files: RecordingFiles, tid: np.ndarray, frame: np.ndarray, meta_ids: np.ndarray,
+def check_consistency(files: RecordingFiles, tid: np.ndarray, frame: np.ndarray, meta_ids: np.ndarray,
                        meta_frames: np.ndarray) -> None:
     """Duplicate (trackId, frame) rows and tracks vs tracksMeta (ids, first/last frame, contiguous count).
 

@@ -28,7 +28,7 @@ class RecordingFiles:
                 for p in (self.tracks, self.tracks_meta, self.recording_meta)]
 
 
-def _pattern_regex(pattern: str) -> re.Pattern[str]:
+def pattern_regex(pattern: str) -> re.Pattern[str]:
     if pattern.count("{id}") != 1:
         raise ValueError(f"file pattern {pattern!r}: must contain '{{id}}' exactly once, e.g. "
                          f"'{{id}}_tracks.csv'")
@@ -54,9 +54,9 @@ def discover_recordings(
     if not root.is_dir():
         raise FileNotFoundError(f"data.root={root}: no such folder (point it at the folder holding the "
                                 f"{tracks_pattern.format(id='XX')} files)")
-    regex = _pattern_regex(tracks_pattern)
+    regex = pattern_regex(tracks_pattern)
     for p in (tracks_meta_pattern, recording_meta_pattern):
-        _pattern_regex(p)
+        pattern_regex(p)
     found = {m["id"]: m for p in root.iterdir() if (m := regex.match(p.name))}
     ids = _sort_ids(list(found))
     if recordings is not None:

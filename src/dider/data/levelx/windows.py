@@ -4,43 +4,22 @@ A recording is downsampled on absolute frame numbers (every ``downsample``-th fr
 into windows of ``seq_len`` downsampled steps, one every ``stride`` steps. A window keeps the tracks
 present in it (at least ``min_agent_steps`` of its steps), ordered by trackId, with a presence mask: agents
 enter and leave mid-window. Windows with fewer than ``min_agents`` agents (default 2: a relation needs
-two) are dropped. Windows have different agent counts, so they are stored packed: one row per agent per
-window, window w owning rows offsets[w]:offsets[w+1].
+two) are dropped (the cut is :func:`dider.data.windowing.cut_windows`, which the table reader uses too).
+Windows have different agent counts, so they are stored packed: one row per agent per window, window w owning
+rows offsets[w]:offsets[w+1].
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
 from dider.data.common import ragged_rows
-from dider.data.levelx.reading import _check_consistency, _frame_rate, _read_tracks, _read_tracks_meta
+from dider.data.levelx.reading import WindowParams, check_consistency, frame_rate, read_tracks, read_tracks_meta
 from dider.data.levelx.recordings import RecordingFiles
-
-DEFAULT_FEATURES = ("xCenter", "yCenter", "xVelocity", "yVelocity")
-# Cap on the dense (steps x tracks) grid of one recording: a real one has ~4k steps x ~400 tracks.
-MAX_GRID_CELLS = 2**28
-
-
-@dataclass(frozen=True)
-class WindowParams:
-    """Everything that changes the windows cut from a recording (part of the cache key)."""
-
-    track_id_column: str = "trackId"
-    frame_column: str = "frame"
-    class_column: str = "class"
-    frame_rate_column: str = "frameRate"
-    features: tuple[str, ...] = DEFAULT_FEATURES
-    classes: tuple[str, ...] | None = None
-    downsample: int = 10
-    seq_len: int = 50
-    stride: int = 50
-    min_agent_steps: int = 1
-    min_agents: int = 2
-    max_agents: int | None = None
+from dider.data.windowing import MAX_GRID_CELLS, cut_windows
 
 
 def preprocess_recording(files: RecordingFiles, p: WindowParams) -> dict[str, Any]:
@@ -51,10 +30,10 @@ def preprocess_recording(files: RecordingFiles, p: WindowParams) -> dict[str, An
     agent_class [P] long (index into class_names), class_names list[str], window_start [W] long
     (downsampled step), frame_rate, location_id, recording, num_steps (downsampled), num_tracks.
     """
-    tid, frame, feats = _read_tracks(files, p)
-    meta_ids, meta_frames, meta_class = _read_tracks_meta(files, p)
-    rate, location = _frame_rate(files, p)
-    _check_consistency(files, tid, frame, meta_ids, meta_frames)
+    tid, frame, feats = read_tracks(files, p)
+    meta_ids, meta_frames, meta_class = read_tracks_meta(files, p)
+    rate, location = frame_rate(files, p)
+    check_consistency(files, tid, frame, meta_ids, meta_frames)
 
     # Downsample on absolute frame numbers (DNRI's feats[::10] from frame 0), then drop filtered classes.
     keep = frame % p.downsample == 0
@@ -78,28 +57,12 @@ def preprocess_recording(files: RecordingFiles, p: WindowParams) -> dict[str, An
     present[step, k] = True
     out["num_steps"], out["num_tracks"] = num_steps, int(tracks.size)
 
-    starts = np.arange(0, num_steps - p.seq_len + 1, p.stride)
+    starts, w, a = cut_windows(present, p.seq_len, p.stride, p.min_agent_steps, p.min_agents, p.max_agents)
     if starts.size == 0:
         return out
-    # Steps each track is present in each window, from a cumulative sum over time: [W, K].
-    csum = np.zeros((num_steps + 1, tracks.size), np.int32)
-    np.cumsum(present, axis=0, out=csum[1:])
-    steps_in = csum[starts + p.seq_len] - csum[starts]
-    kept = steps_in >= p.min_agent_steps
-    if p.max_agents is not None:
-        # Keep the agents seen longest in the window (ties: lower trackId): rank them per window.
-        k_all = tracks.size
-        score = np.where(kept, steps_in.astype(np.int64) * (k_all + 1) + (k_all - np.arange(k_all)), -1)
-        order = np.argsort(-score, axis=1, kind="stable")
-        rank = np.empty_like(order)
-        np.put_along_axis(rank, order, np.arange(k_all)[None, :].repeat(len(starts), 0), axis=1)
-        kept &= rank < p.max_agents
-    good = kept.sum(1) >= p.min_agents
-    starts, kept = starts[good], kept[good]
-    w, a = np.nonzero(kept)  # row-major: by window, then by trackId
     t_idx = starts[w][:, None] + np.arange(p.seq_len)[None, :]  # [P, T]
     offsets = np.zeros(len(starts) + 1, np.int64)
-    offsets[1:] = np.cumsum(kept.sum(1))
+    offsets[1:] = np.cumsum(np.bincount(w, minlength=len(starts)))
     code = np.searchsorted(class_names, meta_class[np.searchsorted(meta_ids, tracks)])
     out.update(
         states=torch.from_numpy(grid[t_idx, a[:, None]]),

@@ -1,7 +1,7 @@
 """The loss of given segmentations at a run's trained weights: does the model sit where its own objective
 wants it?
 
-    python -m dider.diagnose RUN [--clips 200] [--draws 4] [--lengths 3,5,10] [--seed 0] [--out FILE]
+    python -m dider.analysis.diagnose RUN [--clips 200] [--draws 4] [--lengths 3,5,10] [--seed 0] [--out FILE]
 
 For the run's test clips, each segmentation below is scored with the trained network, split into the NLL
 (per agent-step), the edge KL (per edge-step, with the model's sparsity term) and the duration KL (per
@@ -30,9 +30,9 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
 from dider.io import atomic_write_text
-from dider.metrics import switches
 from dider.models.vae import RelationalVAE
 from dider.trained import find_checkpoint
 
@@ -90,7 +90,7 @@ def run_config(run: Path) -> DictConfig:
     if hydra.is_file():
         return OmegaConf.load(hydra)
     raise FileNotFoundError(f"{run}: not a run folder (neither {record} with its config nor {hydra}); "
-                            "dider.diagnose reads the run's data and model settings from it")
+                            "dider.analysis.diagnose reads the run's data and model settings from it")
 
 
 def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequence[int] = (3, 5, 10),
@@ -141,7 +141,7 @@ def _lengths(text: str) -> list[int]:
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(prog="python -m dider.diagnose", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dider.analysis.diagnose", description=__doc__.split("\n\n")[0])
     parser.add_argument("run", help="a run folder (with .hydra/config.yaml and a checkpoint)")
     parser.add_argument("--clips", type=int, default=200, help="test clips to score (default 200)")
     parser.add_argument("--draws", type=int, default=4, help="draws of the edge types per clip (default 4)")

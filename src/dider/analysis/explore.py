@@ -1,6 +1,6 @@
 """Interactive explorer of a run's inferred interactions: one self-contained HTML file per run.
 
-``python -m dider.explore RUN_DIR [--out FILE.html] [--max-clips K] [--clips 0,3,5]`` reads the run's
+``python -m dider.analysis.explore RUN_DIR [--out FILE.html] [--max-clips K] [--clips 0,3,5]`` reads the run's
 ``clips.npz`` (``RUN_DIR/predictions/clips.npz`` of a prediction run, else ``RUN_DIR/clips.npz`` of a
 training run's test split) and writes ``RUN_DIR/explorer.html``: the agents' paths over the scene image
 with a scale bar in the data's units, the model's forecast after the burn-in (dashed; ``forecast`` and
@@ -32,9 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from dider.evaluation.type_meaning import profile_notes
 from dider.graph import edge_index
 from dider.io import atomic_write_text
-from dider.type_meaning import profile_notes
 
 REQUIRED_KEYS = ("positions", "mask", "segments", "probs", "per_step", "prior", "clip", "num_types", "model")
 # Timeline strip order: the reference first, then the posterior before and after segmentation, then the prior.
@@ -109,7 +109,7 @@ def type_names(data: dict[str, np.ndarray]) -> list[str]:
 
 
 def type_colors(num_types: int) -> list[str]:
-    """The timeline PNGs' colours (:mod:`dider.viz`: tab10 resampled to the type count), type 0 grey."""
+    """The timeline PNGs' colours (:mod:`dider.outputs.viz`: tab10 resampled to the type count), type 0 grey."""
     from matplotlib import colormaps
     from matplotlib.colors import to_hex
 
@@ -312,7 +312,7 @@ def parse_rows(text: str) -> list[int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m dider.explore", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dider.analysis.explore", description=__doc__.split("\n\n")[0])
     parser.add_argument("run_dir", type=Path, help="a run folder holding clips.npz or predictions/clips.npz")
     parser.add_argument("--out", type=Path, help="the HTML file to write (default RUN_DIR/explorer.html)")
     parser.add_argument("--max-clips", type=int, default=50, help="embed at most this many clips (default 50)")
@@ -331,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
 def _page() -> str:
     """The page's template: explorer.html with explorer.css and explorer.js (package data beside this module)
     inlined, so the written page is one file that opens offline; render_html() fills in the title and data."""
-    files = resources.files("dider")
+    files = resources.files("dider.analysis")
     html, css, js = ((files / f"explorer.{ext}").read_text(encoding="utf-8") for ext in ("html", "css", "js"))
     return html.replace("/*__CSS__*/", css.rstrip("\n")).replace("/*__JS__*/", js.rstrip("\n"))
 

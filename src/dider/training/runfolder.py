@@ -22,7 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
-from dider.preflight import version_problem
+from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
@@ -122,7 +122,7 @@ class RunRefused(ConfigError):
 def open_run_folder(folder: Path, cfg: Mapping[str, Any] | None = None) -> None:
     """Once the folder checks have passed (never before: a refused run leaves another run's folder as it
     was): Hydra's record of the run (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``, as
-    ``dider.report`` reads them) and the run's log file ``run.log``, on rank zero."""
+    ``dider.analysis.report`` reads them) and the run's log file ``run.log``, on rank zero."""
     if not is_rank_zero():
         return
     OPENED.add(folder.resolve())

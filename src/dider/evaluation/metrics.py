@@ -13,7 +13,7 @@ class HorizonMSE(Metric):
 
     update(pred [B, P, N, D], target [B, P, N, D], mask [B, P, N] bool, horizon [B, P, N] long or None);
     compute() -> [len(horizons)], 0-d for a single horizon (torchmetrics squeezes one-element results; read
-    it with :func:`dider.evaluation.horizon_values`). Without ``horizon`` frame p of the window is horizon
+    it with :func:`dider.evaluation.scoring.horizon_values`). Without ``horizon`` frame p of the window is horizon
     p + 1 for every agent (one burn-in for the whole window). With it, each element carries its own
     horizon (e.g. the agent's h-th own predicted step, dider.protocol.agent_horizons): horizon h scores, per
     agent, the present frame whose horizon equals h (at most one per agent; <= 0 marks burn-in frames,
@@ -55,7 +55,7 @@ class HorizonMSE(Metric):
 
     def compute(self) -> torch.Tensor:
         """[H] MSE per horizon; NaN for a horizon no present agent reached (an empty metric is not a perfect
-        0; :func:`dider.evaluation.horizon_values` warns naming it)."""
+        0; :func:`dider.evaluation.scoring.horizon_values` warns naming it)."""
         return (self.sum_sq / self.count).float()
 
 

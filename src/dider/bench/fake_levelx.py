@@ -1,7 +1,7 @@
-"""Synthetic stand-ins written in the exact file formats of licensed data sets.
+"""Synthetic recordings in the exact file format of the levelX data sets (inD, rounD, uniD).
 
-The real inD / rounD / uniD recordings may not be redistributed, so tests, benchmarks and smoke runs use
-recordings generated here: every header column of the levelXdata v1 schema, in the real order, with
+The real recordings may not be redistributed, so the preprocessing benchmark (and the tests) read recordings
+generated here: every header column of the levelXdata v1 schema, in the real order, with
 consistent metadata (numFrames = finalFrame - initialFrame + 1, trackLifetime = frame - initialFrame,
 counts of vehicles / VRUs, frame rate), parked vehicles that never move, VRUs with width = length = 0,
 and tracks that enter and leave mid-recording. Nothing here is derived from real rows.

@@ -3,15 +3,15 @@
 ``predictions/`` holds
 - ``segments.csv`` (and ``segments.parquet`` when pyarrow is installed): one row per (clip, sender,
   receiver, segment) with its steps, the input's frame numbers and ids, type and probability
-  (:func:`dider.clips.segment_frame`);
+  (:func:`dider.outputs.clips.segment_frame`);
 - ``clips.npz``: the arrays behind it (``segments``, ``probs``, ``per_step``, ``prior`` [S, E, T-1],
   ``step_probs`` [S, E, T-1, K] per-step edge-type probabilities, ``positions`` [S, T, N, 2] and ``mask``
-  [S, T, N] in the input's units, source ids), read by ``python -m dider.explore``;
+  [S, T, N] in the input's units, source ids), read by ``python -m dider.analysis.explore``;
 - with ``predict.forecast_steps``: ``forecast.csv`` (clip, agent, step, x, y) and ``forecast`` [S, P, N, 2]
   in ``clips.npz``, rolled out from each clip's first ``predict.burn_in`` frames; where the clips hold the
   forecast's future, ``forecast_scores.json``: its ADE / FDE in data units beside constant velocity's on the
   same clips and agents, and their ratio (``predict/ade_vs_cv/hXX``);
-- ``types.csv``: what each edge type means, one row per type (:mod:`dider.type_meaning`): its share of the
+- ``types.csv``: what each edge type means, one row per type (:mod:`dider.evaluation.type_meaning`): its share of the
   present edge-steps and the mean distance, closing speed, relative heading and receiver acceleration (data
   units) while it holds (``distance``...) and over the other edge-steps (``others_distance``...).
 """
@@ -33,7 +33,9 @@ import torch
 from lightning.pytorch.callbacks import BasePredictionWriter
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from dider.clips import (
+from dider.evaluation.type_meaning import degenerate_types, profile_rows
+from dider.io import atomic_write_bytes, atomic_write_text
+from dider.outputs.clips import (
     explore_arrays,
     explore_extras,
     gather_in_order,
@@ -44,8 +46,6 @@ from dider.clips import (
     write_clips_npz,
     write_table,
 )
-from dider.io import atomic_write_bytes, atomic_write_text
-from dider.type_meaning import degenerate_types, profile_rows
 
 log = logging.getLogger(__name__)
 

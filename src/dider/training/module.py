@@ -18,10 +18,10 @@ from omegaconf import DictConfig
 from torchmetrics import Metric
 
 from dider import __version__
-from dider.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.data.batch import Batch
 from dider.data.common import data_description
-from dider.evaluation import (
+from dider.evaluation.metrics import EdgeAccuracy, HorizonDisplacement, HorizonMSE, OwnCut
+from dider.evaluation.scoring import (
     Forecast,
     TestMetrics,
     data_units,
@@ -30,13 +30,13 @@ from dider.evaluation import (
     horizon_values,
     own_cut_values,
 )
+from dider.evaluation.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
 from dider.graph import edge_mask
-from dider.metrics import EdgeAccuracy, HorizonDisplacement, HorizonMSE, OwnCut
 from dider.models.baselines import ConstantVelocity
 from dider.models.plugins import Progress
 from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons
-from dider.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
+from dider.training.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.validation import require
 
 log = logging.getLogger(__name__)
@@ -156,9 +156,9 @@ class RelationalVAEModule(L.LightningModule):
 
     @staticmethod
     def own_cut(out: Inference, batch: Batch) -> dict[str, torch.Tensor] | None:
-        """What :class:`~dider.metrics.OwnCut` reads of a pass: each step's slot, the held types, the free steps
-        and (where known) the true types, each [B, E, T-1]; None for a plugin without a cut of its own (a slot
-        per step)."""
+        """What :class:`~dider.evaluation.metrics.OwnCut` reads of a pass: each step's slot, the held types, the
+        free steps and (where known) the true types, each [B, E, T-1]; None for a plugin without a cut of its own
+        (a slot per step)."""
         if out.seg.assign is None:
             return None
         present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)

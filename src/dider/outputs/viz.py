@@ -18,7 +18,7 @@ import torch  # noqa: E402
 from lightning.pytorch.loggers import MLFlowLogger, TensorBoardLogger, WandbLogger  # noqa: E402
 from matplotlib.collections import LineCollection  # noqa: E402
 
-from dider.evaluation import seeded_forecast  # noqa: E402
+from dider.evaluation.scoring import seeded_forecast  # noqa: E402
 from dider.graph import edge_index, num_agents  # noqa: E402
 from dider.io import atomic_write  # noqa: E402
 

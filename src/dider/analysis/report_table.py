@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 if TYPE_CHECKING:
-    from dider.report import Group
+    from dider.analysis.report import Group
 
 # Student's t 97.5% quantiles for 1..30 degrees of freedom: a 95% band over a few seeds is much wider than
 # the normal 1.96 (4 seeds: 3.18).

@@ -8,8 +8,8 @@ import math
 import re
 from collections.abc import Mapping
 
-from dider.evaluation import cv_verdict
-from dider.type_meaning import PAIR_FEATURES, degenerate_types, profile_rows
+from dider.evaluation.scoring import cv_verdict
+from dider.evaluation.type_meaning import PAIR_FEATURES, degenerate_types, profile_rows
 
 
 def _num(value: float | None) -> str:

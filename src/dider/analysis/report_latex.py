@@ -9,10 +9,10 @@ import re
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-from dider.report_table import ColumnFormat, marked_cells
+from dider.analysis.report_table import ColumnFormat, marked_cells
 
 if TYPE_CHECKING:
-    from dider.report import Summary
+    from dider.analysis.report import Summary
 
 # The columns a paper's table shows, in this order, where the sweep has them.
 COLUMNS = (r"test/ade_vs_cv/h\d+", r"test/ade_vs_dnri/h\d+", r"test/ade/h\d+", r"test/mse/h\d+",

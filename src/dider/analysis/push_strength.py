@@ -6,7 +6,7 @@ maximum, and about 45% of the pushes' steps lie there. Edge recall over all push
 near-invisible steps with the clear ones; this tool splits it by d, for the posterior (the segments
 inferred from whole clips) and the online prior (past only)::
 
-    python -m dider.push_strength RUN_OR_CKPT [RUN_OR_CKPT ...] [--clips 400] [--seed 4242] \\
+    python -m dider.analysis.push_strength RUN_OR_CKPT [RUN_OR_CKPT ...] [--clips 400] [--seed 4242] \\
         [--bins 0,0.5,0.7,0.8,0.9,1] [--out recall_by_distance.json]
 
 Fresh clips are simulated with the run's ``push_factor`` (``--seed`` picks them), so any synthetic run can be
@@ -26,8 +26,8 @@ from typing import Any
 import torch
 
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from dider.evaluation.metrics import EdgeAccuracy
 from dider.io import atomic_write_text
-from dider.metrics import EdgeAccuracy
 from dider.trained import load
 
 DEFAULT_BINS = (0.0, 0.5, 0.7, 0.8, 0.9, 1.0)
@@ -92,7 +92,8 @@ def _bins(text: str) -> list[float]:
 
 
 def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
-    parser = argparse.ArgumentParser(prog="python -m dider.push_strength", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dider.analysis.push_strength",
+                                     description=__doc__.split("\n\n")[0])
     parser.add_argument("runs", nargs="+", help="run folders or checkpoints of models trained on data=synth")
     parser.add_argument("--clips", type=int, default=400, help="fresh clips to simulate (default 400)")
     parser.add_argument("--seed", type=int, default=4242, help="the clips' simulator seed (default 4242)")

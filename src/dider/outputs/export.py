@@ -12,7 +12,9 @@ import lightning as L
 import numpy as np
 import torch
 
-from dider.clips import (
+from dider.evaluation.scoring import seeded_forecast
+from dider.io import atomic_write_text
+from dider.outputs.clips import (
     explore_arrays,
     explore_extras,
     gather_in_order,
@@ -21,15 +23,13 @@ from dider.clips import (
     stack_clips,
     write_clips_npz,
 )
-from dider.evaluation import seeded_forecast
-from dider.io import atomic_write_text
 
 
 def segments_json(arrays: Mapping[str, torch.Tensor], frame_step: int = 1,
                   names: Mapping[str, Sequence[str]] | None = None) -> dict[str, Any]:
     """The segments of every test clip, in test-set order.
 
-    arrays: stacked clips (:func:`dider.clips.stack_clips`): ``segments`` [S, E, T-1] long (-1 where the
+    arrays: stacked clips (:func:`dider.outputs.clips.stack_clips`): ``segments`` [S, E, T-1] long (-1 where the
     edge is absent), ``probs`` [S, E, T-1], and the source identifiers the data set has (``clip``,
     ``scene``, ``frame``, ``agent``; :mod:`dider.data.common`). ->
     {"clips": [{"clip": i, "source": {...}, "edges": [{"sender", "receiver", ["sender_id", "receiver_id"],
@@ -82,7 +82,7 @@ def _source(arrays: Mapping[str, torch.Tensor], i: int, names: Mapping[str, Sequ
 
 class SegmentExport(L.Callback):
     """After testing, writes the posterior segments of every test clip to ``path`` (JSON, atomic) and the
-    first ``explore_clips`` test clips' arrays to ``clips.npz`` beside it (for ``python -m dider.explore``).
+    first ``explore_clips`` test clips' arrays to ``clips.npz`` beside it (for ``python -m dider.analysis.explore``).
 
     Collects what ``test_step`` returns per batch and the batch's source identifiers; under DDP rank 0
     puts the clips of every rank back in test-set order before writing."""

@@ -1,6 +1,6 @@
 """A committed record of sweeps: every job's metrics, per-model summaries and differences paired by seed.
 
-    python -m dider.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
+    python -m dider.analysis.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
         [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...] [--curve val/mse/h01 ...]
 
 Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), and for ``train/`` and
@@ -127,7 +127,7 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(prog="python -m dider.record", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m dider.analysis.record", description=__doc__.split("\n\n")[0])
     parser.add_argument("paths", nargs="+", type=Path, help="sweep folders or run folders")
     parser.add_argument("--out", type=Path, required=True, help="the JSON file to write")
     parser.add_argument("--baseline", help="a model name: differences paired by seed against it")

@@ -18,8 +18,7 @@ from torchmetrics import Metric
 
 from dider.data.batch import Batch, Normalizer
 from dider.data.pairs import KIND_NAMES
-from dider.graph import edge_mask
-from dider.metrics import (
+from dider.evaluation.metrics import (
     BoundaryF1,
     EdgeAccuracy,
     HorizonDisplacement,
@@ -29,7 +28,8 @@ from dider.metrics import (
     PairConsistency,
     SegmentStats,
 )
-from dider.type_meaning import TypeProfile, pair_features, profile_values
+from dider.evaluation.type_meaning import TypeProfile, pair_features, profile_values
+from dider.graph import edge_mask
 
 log = logging.getLogger(__name__)
 

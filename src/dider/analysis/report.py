@@ -1,4 +1,4 @@
-"""Aggregate a Hydra sweep into tables and plots: `python -m dider.report multirun/SWEEP [--out DIR]`.
+"""Aggregate a Hydra sweep into tables and plots: `python -m dider.analysis.report multirun/SWEEP [--out DIR]`.
 
 Reads every job's metrics.json, groups the jobs by model (and num_edges, or any other swept setting, when
 it varies), and writes to DIR (default: the sweep folder) report.md and report.csv (mean ± sample std over
@@ -30,9 +30,8 @@ import pandas as pd  # noqa: E402
 from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
-from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
-from dider.report_latex import latex_table  # noqa: E402
-from dider.report_table import (  # noqa: E402
+from dider.analysis.report_latex import latex_table  # noqa: E402
+from dider.analysis.report_table import (  # noqa: E402
     BEST_NOTE,
     add_ratios,
     group_stats,
@@ -40,6 +39,7 @@ from dider.report_table import (  # noqa: E402
     marked_cells,
     paired_support,
 )
+from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
 
 SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
             ("Forecast against DNRI: error over DNRI's, paired by seed", r"(ade|fde)_vs_dnri/h\d+$"),
@@ -337,7 +337,7 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
 
 
 def main(argv: Sequence[str] | None = None) -> Summary:
-    parser = argparse.ArgumentParser(prog="python -m dider.report", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m dider.analysis.report", description=__doc__.splitlines()[0])
     parser.add_argument("sweep", type=Path, help="a multirun folder (multirun/<date>/<time>)")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: the sweep folder)")
     args = parser.parse_args(argv)

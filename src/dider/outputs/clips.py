@@ -23,9 +23,9 @@ import numpy as np
 import pandas as pd
 import torch
 
+from dider.evaluation.type_meaning import profile_array
 from dider.graph import edge_id, edge_index, num_agents
 from dider.io import atomic_write, atomic_write_bytes
-from dider.type_meaning import profile_array
 
 # Arrays over a clip's edges and transitions ([E, T-1, ...]): padded by re-indexing edges, not appending.
 EDGE_KEYS = ("segments", "probs", "per_step", "prior", "truth", "step_probs")
@@ -211,7 +211,7 @@ def explore_arrays(arrays: Mapping[str, torch.Tensor], dm: Any) -> dict[str, tor
 def explore_extras(pl_module: Any, dm: Any, split: str, arrays: Mapping[str, torch.Tensor],
                    scores: Mapping[str, float] | None = None) -> dict[str, np.ndarray]:
     """What the explorer needs besides the clips: ``num_types``, ``model``, what each type means
-    (``type_profile``, from the ``split/typeK/...`` values in ``scores``, :mod:`dider.type_meaning`) and the
+    (``type_profile``, from the ``split/typeK/...`` values in ``scores``, :mod:`dider.evaluation.type_meaning`) and the
     data set's scene images (``background_of`` [S] index of each clip's image or -1, ``background_K`` and
     ``background_K_extent``)."""
     model = pl_module.model if hasattr(pl_module, "model") else pl_module

@@ -1,4 +1,5 @@
-"""Hyper-parameter search with Optuna around the app: `python -m dider.search hparams_search=dider [overrides]`.
+"""Hyper-parameter search with Optuna around the app:
+`python -m dider.analysis.search hparams_search=dider [overrides]`.
 
 Each trial composes the app's config with the given overrides and the values Optuna suggests from the
 space in ``hparams_search`` (conf/hparams_search), trains in ``<out>/trial_<k>`` and reports the run's
@@ -80,7 +81,7 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
     try:
         import optuna
     except ImportError as e:
-        raise ImportError("python -m dider.search needs optuna: pip install optuna") from e
+        raise ImportError("python -m dider.analysis.search needs optuna: pip install optuna") from e
     base = compose_run(overrides, Path("."))
     if base.get("hparams_search") is None:
         raise ValueError("hparams_search is not set: add hparams_search=dider (or a space of your own in "
@@ -113,7 +114,7 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
             value = fit_and_score(cfg)[1]
         except SystemExit as e:  # SIGTERM in the trial: the search stops, to go on from its study later
             again = " ".join([*given, f"hydra.run.dir={out}"])
-            print(f"search terminated in trial {trial.number}; go on with: python -m dider.search {again}",
+            print(f"search terminated in trial {trial.number}; go on with: python -m dider.analysis.search {again}",
                   file=sys.stderr)
             raise SystemExit(e.code) from None
         value = math.inf if value is None or not math.isfinite(value) else float(value)

@@ -15,7 +15,7 @@ import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dider.models.vae import LOSS_TERMS
-from dider.rng import rng_state, set_rng_state
+from dider.training.rng import rng_state, set_rng_state
 
 log = logging.getLogger(__name__)
 

@@ -1,0 +1,1 @@
+"""Reading runs after the fact: sweep reports, committed records, the explorer, diagnoses, search."""

@@ -1,0 +1,1 @@
+"""What a run is scored by: torchmetrics classes, the test pass, what each learned edge type means."""

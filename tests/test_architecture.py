@@ -1,0 +1,66 @@
+"""The package's rooms and which way imports run between them (docs/architecture.md draws the same layers)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "dider"
+CORE = {"graph", "io", "perf", "protocol", "validation"}  # modules at the package root every room may use
+# A room may import its own modules and any room of a lower layer; data and models know nothing of each other.
+LAYERS = {"core": 0, "data": 1, "models": 1, "evaluation": 2, "training": 3, "outputs": 3, "trained": 4, "run": 5,
+          "analysis": 6, "bench": 7}
+
+
+def room(module: str) -> str:
+    """dider.training.module -> training; dider.graph -> core; dider (the package's own __init__) -> core."""
+    parts = module.split(".")
+    if len(parts) == 1 or parts[1] in CORE:
+        return "core"
+    return parts[1]
+
+
+def modules() -> list[tuple[str, Path]]:
+    out = []
+    for path in sorted(SRC.rglob("*.py")):
+        name = ".".join(("dider", *path.relative_to(SRC).with_suffix("").parts)).removesuffix(".__init__")
+        out.append((name, path))
+    return out
+
+
+def is_module(name: str) -> bool:
+    path = SRC.joinpath(*name.split(".")[1:])
+    return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
+
+
+def imported(path: Path) -> set[str]:
+    """The dider modules a file imports: ``from dider.x import y`` counts dider.x.y where y is a module."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "dider":
+            names.add(node.module)
+            names |= {f"{node.module}.{a.name}" for a in node.names if is_module(f"{node.module}.{a.name}")}
+        elif isinstance(node, ast.Import):
+            names |= {a.name for a in node.names if a.name.split(".")[0] == "dider"}
+    return names
+
+
+def test_every_module_sits_in_a_known_room() -> None:
+    assert {room(name) for name, _ in modules()} == set(LAYERS)
+
+
+# The one import up the layers: ``dider.load`` resolves the Python API lazily, at first use.
+ALLOWED = {("dider", "dider.trained")}
+
+
+def test_imports_run_down_the_layers() -> None:
+    wrong = {name: sorted(m for m in imported(path) if room(m) != room(name) and (name, m) not in ALLOWED
+                          and LAYERS[room(m)] >= LAYERS[room(name)])
+             for name, path in modules()}
+    wrong = {name: bad for name, bad in wrong.items() if bad}
+    assert not wrong, f"imports must run from higher layers to lower ({LAYERS}): {wrong}"
+
+
+def test_no_module_over_400_lines() -> None:
+    long = {name: n for name, path in modules() if (n := len(path.read_text().splitlines())) > 400}
+    assert not long, f"split these modules by what they hold: {long}"
