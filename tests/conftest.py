@@ -13,8 +13,6 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
-import dider.run  # noqa: F401  (registers the resolvers the configs use, e.g. ${dider_precision:...})
-
 os.environ.setdefault("HYDRA_FULL_ERROR", "1")
 # trainer.precision's default depends on the CPU (bf16 where it is native); the tests' thresholds were measured
 # in fp32, so every run here (and every CLI run they spawn) trains in fp32 unless a test asks otherwise.

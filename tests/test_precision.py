@@ -63,10 +63,10 @@ def test_bf16_mixed_run_writes_its_results(make_cfg, tmp_path):
 def test_default_precision_is_bf16_only_on_cpus_that_compute_it(make_cfg, monkeypatch, native):
     """trainer.precision's default: bf16-mixed on a CPU with native bf16, 32-true on one without and on GPUs;
     an explicit value and $DIDER_DEFAULT_PRECISION (which this suite sets to 32-true) win."""
-    import dider.run
+    import dider.training.resolvers
 
     monkeypatch.delenv("DIDER_DEFAULT_PRECISION")
-    monkeypatch.setattr(dider.run, "native_bf16", lambda device: native)
+    monkeypatch.setattr(dider.training.resolvers, "native_bf16", lambda device: native)
     assert make_cfg([]).trainer.precision == ("bf16-mixed" if native else "32-true")  # accelerator=cpu (TINY)
     assert make_cfg(["trainer.accelerator=gpu"]).trainer.precision == "32-true"
     assert make_cfg(["trainer.precision=32-true"]).trainer.precision == "32-true"

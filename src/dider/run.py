@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import math
@@ -27,13 +26,12 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dider import __version__
-from dider.data.soccer import kloppy_sample
 from dider.evaluation.scoring import cv_verdict, leading_first
 from dider.io import atomic_write_text
 from dider.outputs.prediction import PredictionWriter, PredictProgress
 from dider.outputs.results_card import results_markdown
 from dider.outputs.viz import draw_figures
-from dider.perf import compile_modules, native_bf16, trains_on_cpu, tune_allocator
+from dider.perf import compile_modules, tune_allocator
 from dider.trained import find_checkpoint, load, training_settings
 from dider.training.checkpoint import AtomicCheckpointIO
 from dider.training.module import RelationalVAEModule
@@ -53,39 +51,6 @@ from dider.training.runfolder import (
 from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
-
-def job_name(override_dirname: str, limit: int = 120) -> str:
-    """A sweep job's folder name: its overrides, shortened with a stable hash when too long for a path."""
-    name = override_dirname.replace("/", "_") or "default"
-    if len(name) <= limit:
-        return name
-    digest = hashlib.sha256(name.encode()).hexdigest()[:10]
-    return f"{name[: limit - 12]}__{digest}"
-
-
-OmegaConf.register_new_resolver("dider_job_name", job_name, replace=True)
-
-
-# What $DIDER_DEFAULT_PRECISION may say (Lightning's precision names).
-PRECISIONS = ("64-true", "32-true", "16-mixed", "bf16-mixed", "16-true", "bf16-true")
-
-
-def default_precision(accelerator: str | None) -> str:
-    """``trainer.precision``'s default: bf16 autocast where training runs on a CPU that computes bf16 natively
-    (AVX-512-BF16 or AMX; measured on the CPU table, seeds 1-8: the metrics within the seed spread, the jobs
-    1.5x faster), fp32 elsewhere (GPUs: not measured here). ``$DIDER_DEFAULT_PRECISION`` replaces the choice
-    for a whole environment (the test suite sets 32-true: its thresholds were measured in fp32)."""
-    pinned = os.environ.get("DIDER_DEFAULT_PRECISION")
-    if pinned:
-        if pinned not in PRECISIONS:
-            raise ConfigError(f"DIDER_DEFAULT_PRECISION={pinned!r}: expected one of {list(PRECISIONS)}")
-        return pinned
-    return "bf16-mixed" if trains_on_cpu(accelerator) and native_bf16("cpu") else "32-true"
-
-
-OmegaConf.register_new_resolver("dider_precision", default_precision, replace=True)
-OmegaConf.register_new_resolver("kloppy_sample", kloppy_sample, replace=True)
-
 
 def hparam_metrics(cfg: DictConfig) -> list[str]:
     """The metrics shown in TensorBoard's HParams tab: at the data set's own horizons the forecast's ADE over
