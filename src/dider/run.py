@@ -4,11 +4,8 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -25,14 +22,13 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from dider import __version__
-from dider.evaluation.scoring import cv_verdict, leading_first
+from dider.evaluation.scoring import cv_verdict
 from dider.io import atomic_write_text
 from dider.outputs.prediction import PredictionWriter, PredictProgress
-from dider.outputs.results_card import results_markdown
+from dider.outputs.run_record import format_table, hparams, log_results, overrides, provenance, write_metrics
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
-from dider.trained import find_checkpoint, load, training_settings
+from dider.trained import TrainedModel, find_checkpoint, load, training_settings
 from dider.training.checkpoint import AtomicCheckpointIO
 from dider.training.module import RelationalVAEModule
 from dider.training.preflight import clip_problem, input_warnings, validate_config
@@ -52,72 +48,6 @@ from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
 
-def hparam_metrics(cfg: DictConfig) -> list[str]:
-    """The metrics shown in TensorBoard's HParams tab: at the data set's own horizons the forecast's ADE over
-    constant velocity's and its ADE in data units; the edge recall (where the data have ground truth); the
-    model-selection objective. Not the normalised MSE: the tab shows three decimals, and MSEs of 1e-4 read 0.000
-    there (they are in the scalars and the results card)."""
-    horizons = OmegaConf.select(cfg, "data.horizons", default=None) or []
-    return [*(f"test/ade_vs_cv/h{int(h):02d}" for h in horizons), *(f"test/ade/h{int(h):02d}" for h in horizons),
-            "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "val/select"]
-
-
-def provenance(started: float, device: str) -> dict[str, Any]:
-    """Where a result came from: package, torch and lightning versions, the git commit (when the package runs
-    from a repository), the device and the wall time."""
-    record: dict[str, Any] = {"dider": __version__, "torch": torch.__version__, "lightning": L.__version__,
-                              "python": platform.python_version(), "device": device,
-                              "wall_s": round(time.time() - started, 1)}
-    try:
-        root = Path(__file__).resolve().parents[2]
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10)
-        if commit.returncode == 0:
-            dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                   capture_output=True, text=True, timeout=10).stdout.strip()
-            record["git_commit"] = commit.stdout.strip() + ("-dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):  # no git: an installed package
-        pass
-    return record
-
-
-def _overrides() -> list[str]:
-    try:
-        return list(HydraConfig.get().overrides.task)
-    except ValueError:  # composed outside a Hydra app
-        return []
-
-
-def _hparams(cfg: DictConfig) -> dict[str, Any]:
-    """The scalar settings worth comparing across runs, flattened with '/'."""
-    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
-    for section in ("model", "data"):
-        flat = OmegaConf.to_container(cfg[section], resolve=True)
-        for key, value in _flatten(flat, section).items():
-            if isinstance(value, (int, float, str, bool)) and not key.endswith("_target_"):
-                keep[key] = value
-    return keep
-
-
-def _hparams_tab(cfg: DictConfig) -> dict[str, Any]:
-    """What TensorBoard's HParams table shows as columns: the model, the data, the seed, the number of edge types
-    and every model and data setting given on the command line, so that the metrics are in view (all 63-71
-    settings pushed them off the screen; the other loggers get them all)."""
-    every = _hparams(cfg)
-    given = {o.split("=", 1)[0].lstrip("+~").replace(".", "/") for o in _overrides()}
-    return {k: v for k, v in every.items()
-            if k in ("model", "data", "seed", "model/num_edges") or k in given}
-
-
-def _flatten(d: Any, prefix: str) -> dict[str, Any]:
-    if not isinstance(d, dict):
-        return {prefix: d}
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_flatten(v, f"{prefix}/{k}"))
-    return out
-
-
 def _build_list(group: DictConfig | None) -> list[Any]:
     return [instantiate(c) for c in (group or {}).values() if c is not None and "_target_" in c]
 
@@ -131,13 +61,6 @@ def trainer_plugins(cfg: DictConfig) -> list[Any]:
     if not any(isinstance(p, CheckpointIO) for p in plugins):
         plugins.append(AtomicCheckpointIO())
     return plugins
-
-
-def format_table(metrics: dict[str, float]) -> str:
-    width = max((len(k) for k in metrics), default=10)
-    lines = [f"{'metric':<{width}}  value", f"{'-' * width}  ----------"]
-    lines += [f"{k:<{width}}  {metrics[k]:.4g}" for k in leading_first(list(metrics))]
-    return "\n".join(lines)
 
 
 def predict(cfg: DictConfig) -> list[Path]:
@@ -157,23 +80,7 @@ def predict(cfg: DictConfig) -> list[Path]:
         raise RunRefused(f"{final} already holds a prediction; predict into another folder (hydra.run.dir=...)")
     ckpt = find_checkpoint(str(cfg.ckpt_path))  # a checkpoint file or a run folder, as dider.load takes
     trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
-    set_by_user = {o.split("=", 1)[0].lstrip("+~") for o in _overrides()}
-    try:
-        take = training_settings(trained, cfg.data, set_by_user, bool(cfg.predict.force))
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
-    for key, value in take.items():
-        log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
-                 key, value, key, cfg.data[key])
-    with open_dict(cfg):
-        cfg.data.update(take)
-        if "horizons" in cfg.data:  # the data's test horizons score nothing here: no clip length to fit them in
-            cfg.data.horizons = [1]
-    datamodule = instantiate(cfg.data, _convert_="all")
-    if not getattr(datamodule, "predicts", False):
-        raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
-                          f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
-    datamodule.use_normalizer(trained.normalizer)
+    datamodule = _prediction_data(cfg, trained)
     module = RelationalVAEModule.from_config(trained.config)
     module.model.load_state_dict(trained.network.state_dict())
     burn_in = cfg.predict.burn_in or module.hparams.burn_in
@@ -215,6 +122,30 @@ def predict(cfg: DictConfig) -> list[Path]:
     if verdict := cv_verdict(writer.scores):
         (log.info if verdict[1] else log.warning)(verdict[0])
     return written
+
+
+def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataModule:
+    """The data module of ``mode=predict``: the settings that shape the features taken from the checkpoint
+    where the command line does not set them (a differing one refused unless ``predict.force``), the
+    checkpoint's normaliser."""
+    set_by_user = {o.split("=", 1)[0].lstrip("+~") for o in overrides()}
+    try:
+        take = training_settings(trained, cfg.data, set_by_user, bool(cfg.predict.force))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    for key, value in take.items():
+        log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
+                 key, value, key, cfg.data[key])
+    with open_dict(cfg):
+        cfg.data.update(take)
+        if "horizons" in cfg.data:  # the data's test horizons score nothing here: no clip length to fit them in
+            cfg.data.horizons = [1]
+    datamodule = instantiate(cfg.data, _convert_="all")
+    if not getattr(datamodule, "predicts", False):
+        raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
+                          f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
+    datamodule.use_normalizer(trained.normalizer)
+    return datamodule
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -273,7 +204,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         datamodule.setup("fit" if cfg.mode == "train" else "test")
     for lg in loggers if trainer.is_global_zero else []:  # every logger gets the settings worth comparing
         if not isinstance(lg, TensorBoardLogger):  # TensorBoard's HParams entry waits for the results (below)
-            lg.log_hyperparams(_hparams(cfg))
+            lg.log_hyperparams(hparams(cfg))
 
     best = ""
     try:
@@ -284,33 +215,19 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt,
                      verbose=False)
     except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
-        again = [o for o in _overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
+        again = [o for o in overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
         resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
         print(f"terminated (SIGTERM); resume with: python -m dider.run {' '.join(again)} "
               f"hydra.run.dir={out_dir} {resume}", file=sys.stderr)
         raise SystemExit(TERMINATED) from None
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
-    for lg in loggers if trainer.is_global_zero else []:
-        if isinstance(lg, TensorBoardLogger):  # only a finished run enters the HParams tab: no NaN rows of failed ones
-            lg.log_hyperparams(_hparams_tab(cfg), metrics={k: metrics.get(k, math.nan) for k in hparam_metrics(cfg)},
-                               step=trainer.global_step)
-            card = results_markdown(metrics, f"{cfg.model.get('name', 'model')}, seed {cfg.seed}")
-            lg.experiment.add_text("results", card, global_step=trainer.global_step)
+    if trainer.is_global_zero:
+        log_results(loggers, cfg, metrics, trainer.global_step)
     objective = _objective(cfg, trainer, callbacks, metrics)
     if trainer.is_global_zero:
-        record = {
-            "metrics": metrics,
-            "overrides": _overrides(),
-            "seed": int(cfg.seed),
-            "model": cfg.model.get("name", "model"),
-            "checkpoint": ckpt if cfg.mode == "eval" else (best or None),
-            "checkpoint_version": ckpt_version,  # the package version that wrote ckpt_path (eval, resume)
-            "objective": objective,
-            "provenance": provenance(started, str(trainer.strategy.root_device)),
-            "config": OmegaConf.to_container(cfg, resolve=True),
-        }
-        atomic_write_text(out_dir / "metrics.json", json.dumps(record, indent=2, default=str))
+        write_metrics(out_dir / "metrics.json", cfg, metrics, ckpt if cfg.mode == "eval" else (best or None),
+                      ckpt_version, objective, provenance(started, str(trainer.strategy.root_device)))
         print(f"\n{format_table(metrics)}\n")
         if verdict := cv_verdict(metrics):
             (log.info if verdict[1] else log.warning)(verdict[0])

@@ -87,6 +87,16 @@ def drop_jumps(grid: np.ndarray, present: np.ndarray, max_speed: float | None) -
     return grid * ~fast[..., None], present & ~fast, int(fast.sum())
 
 
+def _too_few_frames(path: Path | str, seq_len: int, downsample: int, drop: int, longest: int) -> str:
+    """The arithmetic of a window that no scene is long enough for (``drop``: the step finite differences use)."""
+    need = (seq_len + drop - 1) * downsample + 1
+    return (f"{path}: too few frames for one window of data.seq_len={seq_len} steps: a window needs "
+            f"{seq_len} step(s){' + 1 for the finite-difference velocities' if drop else ''} of "
+            f"data.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
+            f"scene has {longest + drop} step(s): set data.seq_len <= {longest}"
+            + (", or lower data.downsample" if downsample > 1 else ""))
+
+
 def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsample: int, seq_len: int,
                   stride: int, min_agent_steps: int, min_agents: int, max_speed: float | None = None
                   ) -> dict[str, Any]:
@@ -137,13 +147,7 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
                     "jumps, marked absent", path, steps_fast, steps_kept + steps_fast,
                     100 * steps_fast / (steps_kept + steps_fast), max_speed)
     if longest < seq_len:
-        need = (seq_len + drop - 1) * downsample + 1
-        raise ValueError(
-            f"{path}: too few frames for one window of data.seq_len={seq_len} steps: a window needs "
-            f"{seq_len} step(s){' + 1 for the finite-difference velocities' if drop else ''} of "
-            f"data.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
-            f"scene has {longest + drop} step(s): set data.seq_len <= {longest}"
-            + (", or lower data.downsample" if downsample > 1 else ""))
+        raise ValueError(_too_few_frames(path, seq_len, downsample, drop, longest))
     out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts]))
            for k in ("states", "mask", "agent", "scene_index", "frame")}
     if len(out["frame"]) == 0:

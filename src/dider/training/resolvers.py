@@ -9,7 +9,6 @@ import os
 
 from omegaconf import OmegaConf
 
-from dider.data.soccer import kloppy_sample
 from dider.perf import native_bf16, trains_on_cpu
 from dider.validation import ConfigError
 
@@ -38,6 +37,14 @@ def default_precision(accelerator: str | None) -> str:
             raise ConfigError(f"DIDER_DEFAULT_PRECISION={pinned!r}: expected one of {list(PRECISIONS)}")
         return pinned
     return "bf16-mixed" if trains_on_cpu(accelerator) and native_bf16("cpu") else "32-true"
+
+
+def kloppy_sample(name: str) -> str:
+    """``${kloppy_sample:NAME}``: :func:`dider.data.soccer.kloppy_sample`, imported when a config uses it (composing
+    a config loads neither the data modules nor Lightning)."""
+    from dider.data.soccer import kloppy_sample as find
+
+    return find(name)
 
 
 def register_resolvers() -> None:

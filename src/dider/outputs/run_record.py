@@ -1,0 +1,125 @@
+"""What a run records about itself: the settings its loggers compare, where its results came from (versions,
+commit, device, wall time), the results its TensorBoard HParams tab and text tab show, and ``metrics.json``."""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from hydra.core.hydra_config import HydraConfig
+from lightning.pytorch.loggers import Logger, TensorBoardLogger
+from omegaconf import DictConfig, OmegaConf
+
+from dider import __version__
+from dider.evaluation.scoring import leading_first
+from dider.io import atomic_write_text
+from dider.outputs.results_card import results_markdown
+
+
+def hparam_metrics(cfg: DictConfig) -> list[str]:
+    """The metrics shown in TensorBoard's HParams tab: at the data set's own horizons the forecast's ADE over
+    constant velocity's and its ADE in data units; the edge recall (where the data have ground truth); the
+    model-selection objective. Not the normalised MSE: the tab shows three decimals, and MSEs of 1e-4 read 0.000
+    there (they are in the scalars and the results card)."""
+    horizons = OmegaConf.select(cfg, "data.horizons", default=None) or []
+    return [*(f"test/ade_vs_cv/h{int(h):02d}" for h in horizons), *(f"test/ade/h{int(h):02d}" for h in horizons),
+            "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "val/select"]
+
+
+def provenance(started: float, device: str) -> dict[str, Any]:
+    """Where a result came from: package, torch and lightning versions, the git commit (when the package runs
+    from a repository), the device and the wall time."""
+    record: dict[str, Any] = {"dider": __version__, "torch": torch.__version__, "lightning": L.__version__,
+                              "python": platform.python_version(), "device": device,
+                              "wall_s": round(time.time() - started, 1)}
+    try:
+        root = Path(__file__).resolve().parents[3]  # src/dider/outputs/ -> the repository
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10)
+        if commit.returncode == 0:
+            dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                   capture_output=True, text=True, timeout=10).stdout.strip()
+            record["git_commit"] = commit.stdout.strip() + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):  # no git: an installed package
+        pass
+    return record
+
+
+def overrides() -> list[str]:
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # composed outside a Hydra app
+        return []
+
+
+def hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The scalar settings worth comparing across runs, flattened with '/'."""
+    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
+    for section in ("model", "data"):
+        flat = OmegaConf.to_container(cfg[section], resolve=True)
+        for key, value in _flatten(flat, section).items():
+            if isinstance(value, (int, float, str, bool)) and not key.endswith("_target_"):
+                keep[key] = value
+    return keep
+
+
+def hparams_tab(cfg: DictConfig) -> dict[str, Any]:
+    """What TensorBoard's HParams table shows as columns: the model, the data, the seed, the number of edge types
+    and every model and data setting given on the command line, so that the metrics are in view (all 63-71
+    settings pushed them off the screen; the other loggers get them all)."""
+    every = hparams(cfg)
+    given = {o.split("=", 1)[0].lstrip("+~").replace(".", "/") for o in overrides()}
+    return {k: v for k, v in every.items()
+            if k in ("model", "data", "seed", "model/num_edges") or k in given}
+
+
+def _flatten(d: Any, prefix: str) -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flatten(v, f"{prefix}/{k}"))
+    return out
+
+
+def format_table(metrics: dict[str, float]) -> str:
+    width = max((len(k) for k in metrics), default=10)
+    lines = [f"{'metric':<{width}}  value", f"{'-' * width}  ----------"]
+    lines += [f"{k:<{width}}  {metrics[k]:.4g}" for k in leading_first(list(metrics))]
+    return "\n".join(lines)
+
+
+def log_results(loggers: list[Logger], cfg: DictConfig, metrics: dict[str, float], step: int) -> None:
+    """A finished run's results in TensorBoard: the HParams entry (only finished runs enter it: no NaN rows of
+    failed ones) and the results card in the text tab. The other loggers got the settings at the start."""
+    for lg in loggers:
+        if isinstance(lg, TensorBoardLogger):
+            lg.log_hyperparams(hparams_tab(cfg), metrics={k: metrics.get(k, math.nan) for k in hparam_metrics(cfg)},
+                               step=step)
+            card = results_markdown(metrics, f"{cfg.model.get('name', 'model')}, seed {cfg.seed}")
+            lg.experiment.add_text("results", card, global_step=step)
+
+
+def write_metrics(path: Path, cfg: DictConfig, metrics: dict[str, float], checkpoint: str | None,
+                  checkpoint_version: str | None, objective: float | None, provenance_: dict[str, Any]) -> None:
+    """``metrics.json``: the test metrics, the overrides, seed and model, the checkpoint tested and the package
+    version that wrote it (eval, resume), the objective, the provenance and the resolved config."""
+    record = {
+        "metrics": metrics,
+        "overrides": overrides(),
+        "seed": int(cfg.seed),
+        "model": cfg.model.get("name", "model"),
+        "checkpoint": checkpoint,
+        "checkpoint_version": checkpoint_version,
+        "objective": objective,
+        "provenance": provenance_,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }
+    atomic_write_text(path, json.dumps(record, indent=2, default=str))
