@@ -30,7 +30,7 @@ REFERENCE_COMMIT = "ab7125c"  # the snapshot of cgraber/cvpr_dNRI the golden fil
 B, T, N, D = 2, 12, 3, 4
 BURN_IN, NUM_PRED = 6, 6  # the roll-out reads x_0..x_5 and predicts x_6..x_11
 ENC_HIDDEN, RNN_HIDDEN, HEAD_HIDDEN, DEC_HIDDEN = 32, 16, 16, 32
-NO_EDGE_PRIOR = 0.9  # DNRI synth's --add_uniform_prior --no_edge_prior 0.9 (ours: model.sparsity_mix=0.5)
+NO_EDGE_PRIOR = 0.9  # DNRI synth's --add_uniform_prior --no_edge_prior 0.9 (ours: model/objective=dnri)
 # Smallest allowed gap between the top two logits of any argmax edge decision: ~500x the logit differences
 # measured between the implementations (~2e-7), so that the exact edge comparison cannot flip.
 MIN_MARGIN = 1e-4
@@ -48,7 +48,8 @@ def our_overrides(decoder: str, num_types: int) -> list[str]:
         f"model.encoder.hidden={ENC_HIDDEN}", f"model.encoder.rnn_hidden={RNN_HIDDEN}",
         f"model.encoder.head_hidden={HEAD_HIDDEN}", f"model.prior.hidden={HEAD_HIDDEN}",
         f"model.decoder.hidden={DEC_HIDDEN}", "model.rollout_edges=argmax",
-        "model.sparsity_mix=0.5", f"model.no_edge_prob={NO_EDGE_PRIOR}", "model.nll_variance=5e-5",
+        "model/objective=dnri", f"model.objective.sparsity.no_edge_prob={NO_EDGE_PRIOR}",
+        "model.objective.nll.variance=5e-5",
     ]  # fmt: skip
 
 

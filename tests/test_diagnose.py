@@ -13,10 +13,12 @@ def test_command_line_scores_each_segmentation_of_a_trained_run(make_cfg, tmp_pa
     train(make_cfg(["model=dider", "logger=none"], out=run))
     out = tmp_path / "diagnose.json"
     main([str(run), "--clips", "16", "--draws", "2", "--lengths", "10", "--out", str(out)])
-    rows = json.loads(out.read_text())["rows"]
+    result = json.loads(out.read_text())
+    rows, weights = result["rows"], result["weights"]
+    assert weights == {"kl_edge": 0.5, "kl_duration": 1.0, "sparsity": 0.5}  # model=dider's objective
     assert set(rows) == {"own (test)", "own (training)", "one-step", "posterior runs", "truth runs", "fixed 10"}
     for name, row in rows.items():  # the loss is the sum of its terms, the slots tile each edge's 49 steps
-        assert row["loss"] == pytest.approx(row["nll"] + row["kl_edge"] + row["kl_duration"], abs=1e-4), name
+        assert row["loss"] == pytest.approx(row["nll"] + sum(w * row[k] for k, w in weights.items()), abs=1e-4), name
         assert row["segments_per_edge"] * row["steps_per_segment"] == pytest.approx(49, rel=1e-4), name
     # the burn-in (transitions 0-3) is one segment, every later step its own: 1 + 45 slots; fixed 10: at 0, the
     # burn-in's end (4), 10, 20, 30 and 40

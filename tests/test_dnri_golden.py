@@ -87,8 +87,9 @@ def our_outputs(
     out["decoder_pred"] = model.decoder(x[:, :-1], z)
 
     # The loss through our own infer(), with the encoder's posterior swapped for the reference's: the KL
-    # term uses our prior and our segment/KL/sparsity-mix code. infer() draws Gumbel noise for its decoder
-    # pass (not compared), so the global RNG is forked to leave other tests' streams alone.
+    # term uses our prior, our segment and KL code and our objective's terms (the reference's KL is the 0.5/0.5 mix
+    # of the edge KL and its uniform-prior term: our kl_edge and sparsity at their weights). infer() draws
+    # Gumbel noise for its decoder pass (not compared), so the global RNG is forked to leave other tests' streams alone.
     q = posterior_logits.transpose(1, 2)  # -> our [B, E, T-1, K]
     real_forward = model.encoder.forward
 
@@ -98,7 +99,8 @@ def our_outputs(
 
     with torch.random.fork_rng(), mock.patch.object(model.encoder, "forward", with_reference_posterior):
         torch.manual_seed(0)
-        out["kl"] = model.infer({"states": x, "mask": mask}, hard=True).kl_edge
+        terms = model.infer({"states": x, "mask": mask}, hard=True).terms
+    out["kl"] = sum(model.objective.terms[k].weight * terms[k] for k in ("kl_edge", "sparsity"))
     # DNRI's eval loss drives the decoder with (hard) posterior edges; the recorded reference ran with
     # argmax instead of Gumbel samples, so that the NLL is deterministic.
     z_post = F.one_hot(posterior_logits.argmax(-1), posterior_logits.shape[-1]).to(x.dtype)

@@ -10,7 +10,7 @@ import math
 import pytest
 import torch
 
-from dider.models.likelihood import GaussianLikelihood
+from dider.models.likelihood import GaussianNLL
 from dider.models.losses import (
     capacity,
     categorical_kl,
@@ -165,12 +165,12 @@ def test_residual_variance_hand_example() -> None:
 
 def test_likelihood_fit_is_saved_and_old_weights_load() -> None:
     x = torch.randn(2, 6, 3, 4)
-    fitted = GaussianLikelihood("fit")
+    fitted = GaussianNLL("fit")
     variance = fitted.fit(x, None)
     assert variance.shape == (4,) and bool((variance > 0).all())
-    fresh = GaussianLikelihood("fit")  # before fitting: one variance of 1
+    fresh = GaussianNLL("fit")  # before fitting: one variance of 1
     fresh.load_state_dict(fitted.state_dict())
     assert torch.equal(fresh.variance, variance)
-    fixed = GaussianLikelihood(5e-5)
+    fixed = GaussianNLL(5e-5)
     fixed.load_state_dict({})  # weights saved before the variance was kept with them: the configured value
     assert fixed.variance.item() == pytest.approx(5e-5)

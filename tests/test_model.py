@@ -142,10 +142,8 @@ def test_bad_model_values_name_the_key(make_cfg):
         build(make_cfg, "model.num_edges=1")
     with pytest.raises(Exception, match="model.gumbel_tau=0"):
         build(make_cfg, "model.gumbel_tau=0")
-    with pytest.raises(Exception, match="model.prior_fit=-1"):
-        build(make_cfg, "model.prior_fit=-1")
-    with pytest.raises(Exception, match="model.prior_fit_warmup=3"):
-        build(make_cfg, "model.prior_fit_warmup=3")
+    with pytest.raises(Exception, match="PriorFit: weight=-1"):
+        build(make_cfg, "model=dider", "model.objective.prior_fit.weight=-1")
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["all_present", "masked"])

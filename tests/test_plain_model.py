@@ -84,7 +84,7 @@ def test_a_plugin_lacking_its_interface_is_named(make_cfg):
     from dider.models.vae import RelationalVAE
 
     cfg = make_cfg(["model=dnri"]).model
-    parts = {k: instantiate(cfg[k]) for k in ("encoder", "prior", "duration")}
+    parts = {k: instantiate(cfg[k]) for k in ("encoder", "prior", "duration", "objective")}
     with pytest.raises(TypeError, match=r"model.decoder: Linear is not a Decoder plugin \(missing \['init_state', "
                                         r"'stateless', 'step'\]"):
         RelationalVAE(**parts, decoder=torch.nn.Linear(2, 2))

@@ -11,9 +11,10 @@ import pandas as pd
 import pytest
 
 from dider.run import predict, train
+from helpers import NO_SPARSITY
 from helpers.fixtures import write_background, write_ind_root, write_trajectories, write_zhan
 
-SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", "model.sparsity_mix=0",
+SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", *NO_SPARSITY,
          "model/decoder=recurrent", "data.batch_size=4", "data.eval_batch_size=4"]
 
 

@@ -20,6 +20,7 @@ from dider.models.vae import RelationalVAE
 from dider.run import ConfigError, train, trainer_plugins, validate_config
 from dider.training.callbacks import NonFiniteError
 from dider.training.checkpoint import AtomicCheckpointIO
+from helpers import NO_SPARSITY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -215,7 +216,7 @@ def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypat
         if self.training and progress.step >= 1:
             # finite value (0), NaN gradient (d sqrt(u)/du at 0 is inf, times du/dw = 0)
             w = next(self.decoder.parameters())
-            out.kl_duration = out.kl_duration + (w.sum() * 0).sqrt()
+            out.terms["kl_duration"] = out.terms["kl_duration"] + (w.sum() * 0).sqrt()
         return out
 
     monkeypatch.setattr(RelationalVAE, "infer", infer)
@@ -234,8 +235,8 @@ BAD_CONFIGS = [
     (["data.horizons=[0,5]"], r"data.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
     (["model=dider", "model.duration.rate=1.5"], r"model.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
-    (["model.capacity_edge=-0.5"], r"model.capacity_edge=-0.5: must be >= 0"),
-    (["model.capacity_duration=-1"], r"model.capacity_duration=-1: must be >= 0"),
+    (["model.objective.kl_edge.capacity=-0.5"], r"model.objective.kl_edge.capacity=-0.5: must be >= 0"),
+    (["model.objective.kl_duration.weight=-1"], r"model.objective.kl_duration.weight=-1: must be >= 0"),
     (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
     (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
     (["data=ind", "data.seq_len=20", "data.burn_in=20"], r"data.burn_in=20: must be shorter .*data.seq_len=20"),
@@ -265,11 +266,13 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
         raise AssertionError("work started")
 
     monkeypatch.setattr("dider.run.instantiate", boom)
-    cfg = make_cfg(["model.num_edges=1", "model.capacity_edge=-1", "data.burn_in=60"], out=tmp_path / "run")
+    cfg = make_cfg(["model.num_edges=1", "model.objective.kl_edge.capacity=-1", "data.burn_in=60"],
+                   out=tmp_path / "run")
     with pytest.raises(ConfigError) as info:
         train(cfg)
     message = str(info.value)  # every problem at once
-    assert "model.num_edges=1" in message and "model.capacity_edge=-1" in message and "data.burn_in=60" in message
+    for key in ("model.num_edges=1", "model.objective.kl_edge.capacity=-1", "data.burn_in=60"):
+        assert key in message
     assert not (tmp_path / "run").exists()
 
 
@@ -388,7 +391,7 @@ def test_a_corrupt_background_image_costs_no_results(make_cfg, tmp_path, caplog)
     (root / "02_background.png").write_bytes(b"garbage, not a PNG")
     with caplog.at_level("WARNING"):
         train(make_cfg(["data=ind", f"data.root={root}", "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4",
-                        "data.num_test=4", "logger=none", "model=dnri", "model.sparsity_mix=0"], out=tmp_path / "run"))
+                        "data.num_test=4", "logger=none", "model=dnri", *NO_SPARSITY], out=tmp_path / "run"))
     assert (tmp_path / "run" / "metrics.json").exists() and (tmp_path / "run" / "segments.json").exists()
     assert "02_background.png: cannot read the background image" in caplog.text
 

@@ -11,6 +11,7 @@ from dider.graph import edge_mask
 from dider.models.vae import RelationalVAE
 from dider.protocol import agent_horizons, burn_in_mask
 from dider.training.module import RelationalVAEModule
+from helpers import NO_SPARSITY
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -208,7 +209,7 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
     monkeypatch.setattr(Metric, "update", spy)
     cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
                     "data.horizons=[1,5,15]", "data.batch_size=4", "data.eval_batch_size=4", "model=dnri",
-                    "model/decoder=recurrent", "model.sparsity_mix=0", "logger=none", "callbacks=none"],
+                    "model/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],
                    out=tmp_path / "run")
     metrics = train(cfg)
     assert seen and all(seen)

@@ -7,6 +7,7 @@ e.g. ``model.num_edges=1: must be >= 2 (...)``, and lists every problem at once.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -112,22 +113,10 @@ RULES: dict[str, Rule] = {
     **{key: integer(1) for key in WIDTH_KEYS},
     "model.decoder.hidden": optional(integer(1)),  # the constant-velocity baseline has none
     "model.num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
-    "model.nll_variance": or_word("fit", above(0)),
     "model.gumbel_tau": above(0),
-    "model.beta_edge": at_least(0),
-    "model.beta_duration": at_least(0),
-    "model.capacity_edge": at_least(0),
-    "model.capacity_duration": at_least(0),
-    "model.capacity_ramp": FRACTION_OF_TRAINING,
-    "model.kl_warmup": FRACTION_OF_TRAINING,
-    "model.sparsity_mix": within(0.0, 1.0),
-    "model.prior_fit": at_least(0),
-    "model.prior_fit_warmup": boolean,
     "model.posterior_readout": one_of("start", "mean"),
     "model.rollout_edges": one_of("sample", "argmax"),
     "model.forecast_edges": one_of("prior", "burn_in"),
-    "model.segment_kl": one_of("per_segment", "per_step"),
-    "model.sparsity_form": one_of("mean_edges", "per_edge"),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.decoder_edges": boolean,
@@ -162,6 +151,44 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
     found = [f"{name}={value!r}: {why}" for name, (value, rule) in checks.items() if (why := rule(value)) is not None]
     if found:
         raise ValueError(f"{where}: " + "; ".join(found))
+
+
+def check_settings(owner: object, values: Mapping[str, Any]) -> None:
+    """Check a constructor's arguments by the rules its class declares once (``SETTINGS``: name -> rule); raises
+    :class:`ConfigError` naming the class and every setting that fails. The preflight applies the same rules to
+    the config node that builds the class (:func:`settings_problems`), under the node's keys."""
+    rules = type(owner).SETTINGS
+    found = [f"{name}={value!r}: {why}" for name, value in values.items() if (why := rules[name](value)) is not None]
+    if found:
+        raise ConfigError(f"{type(owner).__name__}: " + "; ".join(found))
+
+
+def settings_problems(node: Any, path: str) -> list[str]:
+    """The settings of every config node under ``node`` (a plain container) whose ``_target_`` class declares
+    ``SETTINGS``, checked by those rules: ``"path.key=value: what is wrong"`` for each that fails."""
+    found: list[str] = []
+    if isinstance(node, Mapping):
+        rules = getattr(_target_class(node.get("_target_")), "SETTINGS", {})
+        for key, value in node.items():
+            where = f"{path}.{key}"
+            if key in rules and (why := rules[key](value)) is not None:
+                found.append(f"{where}={value!r}: {why}")
+            else:
+                found += settings_problems(value, where)
+    return found
+
+
+def _target_class(target: Any) -> type | None:
+    """The class a ``_target_`` names, or None (no target, not a class, or not importable: instantiation
+    reports that one)."""
+    if not isinstance(target, str) or "." not in target:
+        return None
+    module, _, name = target.rpartition(".")
+    try:
+        found = getattr(importlib.import_module(module), name, None)
+    except ImportError:
+        return None
+    return found if isinstance(found, type) else None
 
 
 def problem(key: str, value: Any) -> str | None:

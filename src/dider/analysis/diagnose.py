@@ -4,8 +4,9 @@ wants it?
     python -m dider.analysis.diagnose RUN [--clips 200] [--draws 4] [--lengths 3,5,10] [--seed 0] [--out FILE]
 
 For the run's test clips, each segmentation below is scored with the trained network, split into the NLL
-(per agent-step), the edge KL (per edge-step, with the model's sparsity term) and the duration KL (per
-edge-step), and their sum, the negative ELBO:
+(per agent-step) and the objective's other terms (the edge KL and the duration KL per edge-step, the sparsity
+term where the model has one), and ``loss``, the objective free of schedules (the NLL and each term at its weight,
+``weights`` in the output):
 - ``own (test)``: the model's own cut as evaluation takes it, with its own duration KL;
 - ``own (training)``: the cut the plugin draws in training, with its own duration KL;
 - ``one-step``: a segment at every step;
@@ -36,7 +37,7 @@ from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
 from dider.trained import find_checkpoint
 
-TERMS = ("nll", "kl_edge", "kl_duration", "loss")
+STATS = ("segments_per_edge", "steps_per_segment")
 
 
 def _changes(types: torch.Tensor) -> torch.Tensor:
@@ -64,17 +65,20 @@ def cuts(net: RelationalVAE, batch: dict[str, torch.Tensor], lengths: Sequence[i
 @torch.no_grad()
 def score(net: RelationalVAE, batch: dict[str, torch.Tensor], cut: torch.Tensor | None, draws: int, seed: int,
           training_cut: bool = False) -> dict[str, float]:
-    """The loss terms (batch means) of one segmentation: the plugin's own (``cut`` None; drawn as in training
-    with ``training_cut``) or a given one; the NLL and edge KL averaged over ``draws`` draws of the types."""
-    sums = dict.fromkeys(TERMS, 0.0)
+    """The objective's terms (batch means) of one segmentation, and ``loss``, its ``nelbo`` (the NLL and each
+    term at its weight, no schedule): the plugin's own cut (``cut`` None; drawn as in training with
+    ``training_cut``) or a given one, averaged over ``draws`` draws of the types."""
+    sums: dict[str, float] = {}
     for draw in range(draws):
         torch.manual_seed(seed + draw)
         net.duration.train(training_cut)
         out = net.infer(batch, hard=True, cut=cut)
         net.duration.eval()
         terms = net.loss(out)  # after training: every schedule at its end (KL weight 1, capacities reached)
-        for k, key in (("nll", "nll"), ("kl_edge", "kl_edge"), ("kl_duration", "kl_duration"), ("loss", "nelbo")):
-            sums[k] += float(terms[key]) / draws
+        for key, value in terms.items():
+            if key != "loss":  # the schedules' loss: the row's loss is the objective without them
+                name = "loss" if key == "nelbo" else key
+                sums[name] = sums.get(name, 0.0) + float(value) / draws
         if draw == 0:
             present = edge_mask(batch["mask"][:, :-1]).any(1)
             stats = out.seg.stats(present)
@@ -117,16 +121,20 @@ def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequenc
             row = rows.setdefault(name, dict.fromkeys(terms, 0.0))
             for k, v in terms.items():
                 row[k] += w * v
-    return {"run": str(run), "checkpoint": str(ckpt), "clips": seen, "draws": draws, "seed": seed, "rows": rows}
+    weights = {k: t.weight for k, t in net.objective.terms.items() if k != "nll" and t.in_nelbo}
+    return {"run": str(run), "checkpoint": str(ckpt), "clips": seen, "draws": draws, "seed": seed,
+            "weights": weights, "rows": rows}
 
 
 def table(result: dict[str, Any]) -> str:
     """The rows as a plain-text table."""
-    head = f"{'segmentation':18s} {'slots/edge':>10s} {'steps/slot':>10s} " + " ".join(f"{k:>11s}" for k in TERMS)
+    first = next(iter(result["rows"].values()), {})
+    terms = [k for k in first if k not in (*STATS, "loss")] + ["loss"]
+    head = f"{'segmentation':18s} {'slots/edge':>10s} {'steps/slot':>10s} " + " ".join(f"{k:>11s}" for k in terms)
     lines = [head]
     for name, row in result["rows"].items():
         lines.append(f"{name:18s} {row['segments_per_edge']:10.2f} {row['steps_per_segment']:10.2f} "
-                     + " ".join(f"{row[k]:11.4f}" for k in TERMS))
+                     + " ".join(f"{row[k]:11.4f}" for k in terms))
     return "\n".join(lines)
 
 

@@ -51,7 +51,7 @@ SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, 
             ("Duration slots: the model's own cut", r"segments/"),
             ("Segments", r"(segments_per_edge|switches_per_100|boundary_f1|run_length/\w+|interaction_rate/\w+)$"),
             ("What each edge type means (data units; others: the other edge-steps)", r"type\d+/"),
-            ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration|prior_fit|nelbo)$"),
+            ("Consistency", r".*consist"), ("Losses", r"(nll|kl_edge|kl_duration|sparsity|prior_fit|nelbo)$"),
             ("Other", r""))
 NOT_GROUPED = {"seed", "model", "model.num_edges"}  # model and num_edges are read from each job's record
 

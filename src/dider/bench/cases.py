@@ -32,7 +32,8 @@ OUTPUT_AGENTS = (40, 100)
 SCALE_STEPS = (50, 100, 200)
 # The scaling series: DNRI's step with narrower networks (N = 50 has 2450 edges; full width would need
 # tens of GB), so the growth in N and T shows, not the constant.
-SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", "model.sparsity_mix=0"]
+NO_SPARSITY = ["model.objective.sparsity=null", "model.objective.kl_edge.weight=1"]
+SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", *NO_SPARSITY]
 
 
 # Peak memory of one DNRI step at the paper's widths (batch 8), activation checkpointing off and on.
@@ -48,7 +49,7 @@ def memory_case(agents: int, checkpoint: bool) -> Case:
 
 
 def cases() -> list[Case]:
-    recurrent = ["model/decoder=recurrent", "model.sparsity_mix=0"]
+    recurrent = ["model/decoder=recurrent", *NO_SPARSITY]
     out = [Case(f"gemm/{dtype}", [], 1, 0, 0, iters=20, warmup=3, kind="gemm", settings={"dtype": dtype})
            for dtype in ("fp32", "bf16")]
     for model in ("dnri", "dider", "dider_skid"):

@@ -38,14 +38,19 @@ REFERENCE_DECODERS = {"MarkovDecoder": "ref_mlp", "RecurrentDecoder": "recurrent
 def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dict[str, Any]:
     """The public DNRI code's ``params`` dict for the network of our model config ``model_cfg`` (``model=dnri``
     with either decoder): the same widths and depths, teacher-forced training with soft Gumbel-softmax edges,
-    normalised Gaussian NLL and KL, and our ``sparsity_mix`` 0.5 as its ``add_uniform_prior`` (a fixed
-    0.5/0.5 mix with KL(mean q || [no_edge_prob, ...]))."""
-    enc, dec, prior = model_cfg.encoder, model_cfg.decoder, model_cfg.prior
+    normalised Gaussian NLL and KL, and our objective's edge KL at weight 1, or at 0.5 beside a ``mean_edges``
+    sparsity term at 0.5, as its ``add_uniform_prior`` (a fixed 0.5/0.5 mix with KL(mean q || [no_edge_prob,
+    ...]))."""
+    enc, dec, prior, objective = model_cfg.encoder, model_cfg.decoder, model_cfg.prior, model_cfg.objective
     decoder_class = str(dec._target_).rsplit(".", 1)[-1]
-    if decoder_class not in REFERENCE_DECODERS or model_cfg.sparsity_mix not in (0, 0.5):
-        raise ValueError(f"no reference counterpart of decoder {decoder_class}, sparsity_mix={model_cfg.sparsity_mix}")
-    if model_cfg.nll_variance == "fit":
-        raise ValueError("no reference counterpart of model.nll_variance=fit: the reference's variance is a number")
+    sparsity = objective.get("sparsity")
+    edge_weight = objective.kl_edge.weight
+    halves = sparsity is not None and sparsity.form == "mean_edges" and sparsity.weight == edge_weight == 0.5
+    if decoder_class not in REFERENCE_DECODERS or not (halves or sparsity is None and edge_weight == 1):
+        raise ValueError(f"no reference counterpart of decoder {decoder_class} with objective {objective}")
+    if objective.nll.variance == "fit":
+        raise ValueError("no reference counterpart of model.objective.nll.variance=fit: the reference's variance is "
+                         "a number")
     return {
         "num_vars": num_agents, "input_size": enc.input_dim, "num_edge_types": model_cfg.num_edges,
         "skip_first": dec.skip_first, "gpu": device == "cuda",
@@ -55,8 +60,8 @@ def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dic
         "decoder_type": REFERENCE_DECODERS[decoder_class], "decoder_hidden": dec.hidden,
         "decoder_dropout": dec.dropout, "gumbel_temp": model_cfg.gumbel_tau, "train_hard_sample": False,
         "teacher_forcing_steps": -1, "val_teacher_forcing_steps": -1, "normalize_kl": True, "normalize_nll": True,
-        "nll_loss_type": "gaussian", "prior_variance": model_cfg.nll_variance, "kl_coef": 1.0,
-        "add_uniform_prior": model_cfg.sparsity_mix > 0, "no_edge_prior": model_cfg.no_edge_prob,
+        "nll_loss_type": "gaussian", "prior_variance": objective.nll.variance, "kl_coef": 1.0,
+        "add_uniform_prior": halves, "no_edge_prior": sparsity.no_edge_prob if halves else 0.9,
     }  # fmt: skip
 
 

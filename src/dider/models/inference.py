@@ -7,7 +7,7 @@ Shapes: B batch, T frames, N agents, D features, E edges, K edge types, S segmen
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -26,12 +26,11 @@ class Inference:
     prior_logits: torch.Tensor  # [B, E, S, K] per segment
     probs: torch.Tensor  # [B, E, T-1, K] posterior probabilities held over each segment
     step_logits: torch.Tensor  # [B, E, T-1, K] per-step posterior logits (before segmentation)
+    prior_step_logits: torch.Tensor  # [B, E, T-1, K] the learned prior's logits at every step
     seg: Segmentation
     h_fwd: torch.Tensor  # [B, E, T-1, R]
-    nll: torch.Tensor  # [B]
-    kl_edge: torch.Tensor  # [B]
-    kl_duration: torch.Tensor  # [B]
-    prior_fit: torch.Tensor  # [B] KL(held posterior || prior) per step, the posterior's gradient stopped
+    present: torch.Tensor  # [B, E, T-1] bool: the edges present at each transition
+    terms: dict[str, torch.Tensor] = field(default_factory=dict)  # the objective's terms per clip, name -> [B]
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""

@@ -1,30 +1,43 @@
-"""The decoder's likelihood: a Gaussian with a fixed variance, one for every feature or one per feature fitted to
-the data before training."""
+"""The decoder's likelihood, the objective's ``nll`` term: a Gaussian with a fixed variance, one for every feature
+or one per feature fitted to the data before training."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
-from torch import nn
 
+from dider.models.inference import Inference
 from dider.models.losses import gaussian_nll, residual_variance
+from dider.models.objective import Batch, Term
+from dider.validation import Rule, above, check_settings, or_word
 
 
-class GaussianLikelihood(nn.Module):
+class GaussianNLL(Term):
     """``variance``: a number (DNRI's 5e-5 on its synthetic set), or ``"fit"``: per feature, the variance that one
     step of constant velocity leaves unexplained on a training batch (:meth:`fit`, called before the first
     optimiser step). A fitted variance makes the NLL a calibrated likelihood, so the edge KL prices what the
     edges tell the decoder at its true rate; a variance far below the data's lets edges that carry the clip's
-    future buy likelihood at almost any KL. The variance is saved with the weights."""
+    future buy likelihood at almost any KL. The variance is saved with the weights. Counted at weight 1, from
+    the first step."""
+
+    warms_up = False
+    SETTINGS: ClassVar[dict[str, Rule]] = {"variance": or_word("fit", above(0))}
 
     def __init__(self, variance: float | str = 5e-5) -> None:
         super().__init__()
+        check_settings(self, {"variance": variance})
         self.to_fit = variance == "fit"
         self.value = 1.0 if self.to_fit else float(variance)  # a single variance as a number: no device sync
         self.register_buffer("variance", torch.tensor(self.value))
 
-    def forward(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        """The NLL per clip [B] of the pass's one-step predictions of frames 1..T-1, over the agents present at
+        both ends of each step."""
+        mask = batch["mask"]
+        return self.nll(out.pred, batch["states"][:, 1:], mask[:, :-1] & mask[:, 1:])
+
+    def nll(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """pred, target [B, T, N, D], mask [B, T, N] -> the NLL per sample [B] (:func:`gaussian_nll`)."""
         return gaussian_nll(pred, target, mask, self.variance if self.variance.dim() else self.value)
 

@@ -24,22 +24,21 @@ from torch import nn
 from dider.graph import edge_mask
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
-from dider.models.likelihood import GaussianLikelihood
-from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
+from dider.models.legacy import rename_likelihood, upgrade_model_config
+from dider.models.likelihood import GaussianNLL
+from dider.models.objective import Objective
 from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
-from dider.models.prior import fixed_log_probs
 from dider.models.segments import Segmentation, entries, forced_boundaries
 from dider.protocol import burn_in_mask, fill_absent
 from dider.validation import require
 
-LOSS_TERMS = ("nll", "kl_edge", "kl_duration", "prior_fit")
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
 
 
 class RelationalVAE(nn.Module):
-    """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with NLL + w (beta_e
-    |KL_e - C_e| + beta_d |KL_d - C_d|) (+ w prior_fit x the prior's per-step fit, off by default)."""
+    """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with the ``objective``'s
+    terms (:mod:`dider.models.objective`: the NLL, the edge and duration KLs, and optional terms)."""
 
     def __init__(
         self,
@@ -47,57 +46,27 @@ class RelationalVAE(nn.Module):
         prior: Prior,
         duration: Duration,
         decoder: Decoder,
+        objective: Objective,
         num_edges: int = 2,
-        nll_variance: float | str = 5e-5,
         gumbel_tau: float = 0.5,
-        beta_edge: float = 1.0,
-        beta_duration: float = 1.0,
-        capacity_edge: float = 0.0,
-        capacity_duration: float = 0.0,
-        capacity_ramp: float = 0.5,
-        kl_warmup: float = 0.0,
-        sparsity_mix: float = 0.0,
-        no_edge_prob: float = 0.9,
-        sparsity_form: str = "mean_edges",
         rollout_edges: str = "sample",
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
-        segment_kl: str = "per_segment",
         decoder_edges: bool = True,
-        prior_fit: float = 0.0,
-        prior_fit_warmup: bool = True,
         name: str = "model",
     ) -> None:
-        """capacity_ramp, kl_warmup: fractions of training over which the capacities and the KL weight
-        ramp up. sparsity_mix: weight in the edge KL of a sparsity term against the fixed prior
-        [no_edge_prob, ...] (DNRI's synthetic-data runs: 0.5). sparsity_form: ``mean_edges`` (DNRI's: the KL
-        of the edges' mean type distribution at each step, which a step with fewer interacting edges than the
-        budget pays for marking one more) or ``per_edge`` (the mean over edges of each edge's KL to the fixed
-        prior, NRI's form: every marked edge-step costs log(no_edge_prob / rest) more than an unmarked one,
-        none is paid for).
-        rollout_edges: ``sample`` (DNRI) or ``argmax`` prior edge types in roll-outs.
-        posterior_readout: a segment's posterior type read at its first step (``start``, the paper) or
-        pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from: ``prior``
-        (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in alone,
-        one type per edge held for the whole roll-out: NRI). segment_kl: a segment's edge KL counted once
-        (``per_segment``, the paper's sum over segments) or once per step it holds (``per_step``, DNRI's
-        weight for a type held that long). decoder_edges: False switches every edge off for the decoder
-        (the ``static_decoder`` baseline: the learned per-agent dynamics alone). prior_fit: weight of a term
-        outside the ELBO that fits the learned prior at every step to the posterior type held there, the
-        posterior's gradient stopped; with segments the ELBO's KL trains the prior at segment starts only
-        (0: the paper's loss). prior_fit_warmup: the fit's weight ramps up with the KL warm-up, as the ELBO's
-        KL terms do (False: full weight from the first step, when the fit, through the encoder the posterior
-        shares, can settle the posterior on an edge type that does no harm)."""
+        """num_edges: the number of edge types K (type 0 is "no interaction"). gumbel_tau: the Gumbel-softmax
+        temperature of the decoder's edge draws in training. rollout_edges: ``sample`` (DNRI) or ``argmax`` prior
+        edge types in roll-outs. posterior_readout: a segment's posterior type read at its first step (``start``,
+        the paper) or pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from:
+        ``prior`` (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in
+        alone, one type per edge held for the whole roll-out: NRI). decoder_edges: False switches every edge off
+        for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
         super().__init__()
         require({
             "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
-            "model.rollout_edges": rollout_edges, "model.nll_variance": nll_variance, "model.gumbel_tau": gumbel_tau,
-            "model.capacity_edge": capacity_edge, "model.capacity_duration": capacity_duration,
-            "model.beta_edge": beta_edge, "model.beta_duration": beta_duration, "model.capacity_ramp": capacity_ramp,
-            "model.kl_warmup": kl_warmup, "model.sparsity_mix": sparsity_mix,
-            "model.sparsity_form": sparsity_form, "model.forecast_edges": forecast_edges,
-            "model.segment_kl": segment_kl, "model.decoder_edges": decoder_edges, "model.prior_fit": prior_fit,
-            "model.prior_fit_warmup": prior_fit_warmup,
+            "model.rollout_edges": rollout_edges, "model.gumbel_tau": gumbel_tau,
+            "model.forecast_edges": forecast_edges, "model.decoder_edges": decoder_edges,
         })  # fmt: skip
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
@@ -105,21 +74,24 @@ class RelationalVAE(nn.Module):
             if missing := missing_members(plugin, interface):  # a user's plugin: say what it lacks, up front
                 raise TypeError(f"model.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
                                 f"(missing {missing}; see dider.models.plugins)")
+        if not isinstance(objective, Objective):
+            raise TypeError(f"model.objective: {type(objective).__name__} is not a dider.models.objective.Objective")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
-        self.num_types, self.name = num_edges, name
-        self.gumbel_tau, self.likelihood = gumbel_tau, GaussianLikelihood(nll_variance)  # the NLL's Gaussian
-        self.beta_edge, self.beta_duration = beta_edge, beta_duration
-        self.capacity_edge, self.capacity_duration, self.capacity_ramp = capacity_edge, capacity_duration, capacity_ramp
-        self.kl_warmup, self.sparsity_mix, self.sparsity_form = kl_warmup, sparsity_mix, sparsity_form
-        self.rollout_edges, self.posterior_readout = rollout_edges, posterior_readout
-        self.forecast_edges, self.segment_kl, self.decoder_edges = forecast_edges, segment_kl, decoder_edges
-        self.prior_fit, self.prior_fit_warmup = prior_fit, prior_fit_warmup
-        self.register_buffer("sparsity_log_probs", fixed_log_probs(num_edges, no_edge_prob), persistent=False)
+        self.objective, self.num_types, self.name = objective, num_edges, name
+        self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
+        self.forecast_edges, self.decoder_edges = forecast_edges, decoder_edges
+        self.register_load_state_dict_pre_hook(rename_likelihood)
+
+    @property
+    def likelihood(self) -> GaussianNLL:
+        """The decoder's Gaussian likelihood: the objective's ``nll`` term."""
+        return self.objective.terms["nll"]
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
-        """Build the network from a model config (``cfg.model`` of the Hydra app), ignoring its training keys."""
-        node = plain_config(cfg)
+        """Build the network from a model config (``cfg.model`` of the Hydra app, or a checkpoint's, whose loss
+        settings may predate the ``objective`` node), ignoring its training keys."""
+        node = upgrade_model_config(plain_config(cfg))
         return instantiate({k: v for k, v in node.items() if k not in TRAINING_KEYS}, _convert_="all")
 
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
@@ -147,29 +119,13 @@ class RelationalVAE(nn.Module):
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
         # The prior always reads a segment's first step, so it stays online.
         p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
-        p_seg = seg.gather(p_step)
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
-        nll = self.likelihood(pred, x[:, 1:], mask[:, :-1] & mask[:, 1:])
-
-        # Edge KL per segment (or per step it holds, ``segment_kl``), summed over an edge's segments and
-        # divided by its steps, so that with one-step segments it is DNRI's mean over (step, edge).
-        at_start = present.gather(2, seg.start)
-        kl_slots = categorical_kl(q_seg, p_seg) * at_start * seg.slot_weight  # 0 where a slot holds no step
-        if self.segment_kl == "per_step":
-            kl_slots = kl_slots * seg.num_steps_per_slot
-        steps = present.flatten(1).sum(1).clamp_min(1)
-        kl_edge = kl_slots.flatten(1).sum(1) / steps
         probs = seg.spread(F.softmax(q_seg, dim=-1))
-        if self.sparsity_mix > 0:
-            kl_edge = (1 - self.sparsity_mix) * kl_edge + self.sparsity_mix * self.sparsity_kl(probs, present, steps)
-        # Between segment starts the ELBO leaves the prior untrained: prior_fit fits it at every step.
-        q_held = probs.detach()  # [B, E, T-1, K], each segment's posterior held over its steps
-        kl_fit = categorical_kl_probs(q_held, F.log_softmax(p_step, dim=-1))
-        prior_fit = (kl_fit * present).flatten(1).sum(1) / steps
-        return Inference(pred, q_seg, p_seg, probs, enc.posterior_logits, seg, enc.h_fwd, nll, kl_edge, seg.kl,
-                         prior_fit)
+        out = Inference(pred, q_seg, seg.gather(p_step), probs, enc.posterior_logits, p_step, seg, enc.h_fwd, present)
+        out.terms = self.objective.values(out, batch)
+        return out
 
     def cut_segmentation(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, cut: torch.Tensor,
                          present: torch.Tensor) -> Segmentation:
@@ -188,47 +144,23 @@ class RelationalVAE(nn.Module):
         slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         return Segmentation(slots, gate, hold_assignment(gate.float().detach()), kl, fixed=fixed.expand(b, e, t))
 
-    def sparsity_kl(self, probs: torch.Tensor, present: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
-        """The sparsity term against the fixed prior [no_edge_prob, ...], in ``sparsity_form``.
-        probs [B, E, T-1, K] (each step's posterior), present [B, E, T-1] bool, steps [B] present edge-steps -> [B]."""
-        if self.sparsity_form == "per_edge":
-            kl = categorical_kl_probs(probs, self.sparsity_log_probs)  # [B, E, T-1]
-            return (kl * present).flatten(1).sum(1) / steps
-        w = present.unsqueeze(-1).to(probs.dtype)
-        mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
-        return categorical_kl_probs(mean_q, self.sparsity_log_probs).mean(-1)
-
     def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
         """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
         step_logits [B, E, T, K] -> [B, E, S, K]."""
         return seg.pool(step_logits) if self.posterior_readout == "mean" else seg.gather(step_logits)
 
     def schedule(self, progress: Progress = Progress()) -> dict[str, float]:
-        """The annealed weights at ``progress``: the KL weight w (warm-up), the capacities C_e, C_d and, for
-        a duration plugin that has one, the soft-step temperature."""
-        ramp = progress.ramp_steps(self.capacity_ramp)
-        out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup)),
-               "capacity_edge": capacity(progress.step, self.capacity_edge, ramp),
-               "capacity_duration": capacity(progress.step, self.capacity_duration, ramp)}
+        """The annealed weights at ``progress``: the objective's (the KL weight, the capacities) and, for a
+        duration plugin that has one, the soft-step temperature ``tau``."""
+        out = self.objective.schedule(progress)
         if hasattr(self.duration, "tau"):
             out["tau"] = self.duration.tau(progress)
         return out
 
     def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:
-        """NLL + w (beta_e |KL_e - C_e| + beta_d |KL_d - C_d|): capacities ramped linearly (beta-VAE, Burgess
-        et al.) and the KL weight w ramped from 0 to 1 over the first ``kl_warmup`` of training (Bowman et
-        al.), so the posterior carries information before the prior may pull it in; the optional prior fit is
-        added with weight prior_fit (times w with ``prior_fit_warmup``). -> scalar terms, and
-        ``nelbo`` = NLL + KL_e + KL_d, the objective free of schedules (for model selection)."""
-        sched = self.schedule(progress)
-        w, c_e, c_d = sched["kl_weight"], sched["capacity_edge"], sched["capacity_duration"]
-        nll, kl_e, kl_d = out.nll.mean(), out.kl_edge.mean(), out.kl_duration.mean()
-        loss = nll + w * (self.beta_edge * (kl_e - c_e).abs() + self.beta_duration * (kl_d - c_d).abs())
-        fit = out.prior_fit.mean()
-        if self.prior_fit > 0:
-            loss = loss + (w if self.prior_fit_warmup else 1.0) * self.prior_fit * fit
-        return {"loss": loss, "nll": nll, "kl_edge": kl_e, "kl_duration": kl_d, "prior_fit": fit,
-                "nelbo": (nll + kl_e + kl_d).detach()}
+        """The objective of a pass at ``progress``: ``loss``, each term's batch mean, and ``nelbo``, the objective
+        free of schedules (for model selection)."""
+        return self.objective(out.terms, progress)
 
     @torch.no_grad()
     def describe(self, out: Inference, mask: torch.Tensor) -> dict[str, torch.Tensor]:

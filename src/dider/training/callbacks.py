@@ -14,7 +14,6 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
-from dider.models.vae import LOSS_TERMS
 from dider.training.rng import rng_state, set_rng_state
 
 log = logging.getLogger(__name__)
@@ -62,7 +61,7 @@ class FiniteGuard(L.Callback):
     batch and the loss term: for a gradient, the step is replayed (same batch, same random state) and each
     term differentiated on its own. Costs one device sync per step for the loss and one for the gradients.
 
-    The module's ``training_step`` returns its loss terms (:data:`LOSS_TERMS` and ``loss``) and offers
+    The module's ``training_step`` returns its loss terms (the objective's, ``loss`` and ``nelbo``) and offers
     ``loss_terms(batch)``, which recomputes them."""
 
     def __init__(self) -> None:
@@ -95,7 +94,7 @@ class FiniteGuard(L.Callback):
                            batch_idx: int) -> None:
         if self._loss_finite or not isinstance(outputs, dict):
             return
-        names = [k for k in (*LOSS_TERMS, "loss") if k in outputs]
+        names = [*(k for k in outputs if k not in ("loss", "nelbo")), "loss"]  # the terms, then their weighted sum
         values = torch.stack([outputs[k].detach().float() for k in names]).tolist()
         bad = {k: v for k, v in zip(names, values, strict=True) if not math.isfinite(v)}
         culprits = [k for k in bad if k != "loss"] or ["loss"]
@@ -117,8 +116,8 @@ class FiniteGuard(L.Callback):
         with torch.enable_grad(), trainer.precision_plugin.forward_context():
             terms = pl_module.loss_terms(batch)
         culprits = []
-        for name in LOSS_TERMS:
-            if not terms[name].requires_grad:
+        for name in terms:
+            if name == "loss" or not terms[name].requires_grad:
                 continue
             grads = torch.autograd.grad(terms[name], params, retain_graph=True, allow_unused=True)
             if any(g is not None and not bool(torch.isfinite(g).all()) for g in grads):

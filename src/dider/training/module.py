@@ -110,9 +110,9 @@ class RelationalVAEModule(L.LightningModule):
 
     def on_fit_start(self) -> None:
         """What is fitted to a training batch before the first optimiser step: a kinematic decoder's step
-        (:class:`~dider.models.decoders.KinematicStep`) and, with ``nll_variance: fit``, the NLL's variance per
-        feature. A resumed run keeps its trained values (the weights are restored before this hook, the step
-        count after it: a checkpoint being loaded is the sign)."""
+        (:class:`~dider.models.decoders.KinematicStep`) and, with ``objective.nll.variance: fit``, the NLL's
+        variance per feature. A resumed run keeps its trained values (the weights are restored before this hook,
+        the step count after it: a checkpoint being loaded is the sign)."""
         step = getattr(self.model.decoder, "kinematic", None)
         likelihood = self.model.likelihood
         if (step is None and not likelihood.to_fit) or self.trainer.ckpt_path is not None:
@@ -120,8 +120,8 @@ class RelationalVAEModule(L.LightningModule):
         dm = getattr(self.trainer, "datamodule", None)
         if dm is None:
             if likelihood.to_fit:
-                raise ValueError("model.nll_variance=fit fits the variance to a training batch of the data module: "
-                                 "train through trainer.fit(model, datamodule=...) or give a number")
+                raise ValueError("model.objective.nll.variance=fit fits the variance to a training batch of the data "
+                                 "module: train through trainer.fit(model, datamodule=...) or give a number")
             return
         with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
             batch = next(iter(dm.train_dataloader()))

@@ -15,7 +15,7 @@ from dider import __version__
 from dider.data.batch import Normalizer
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
-from dider.validation import RULES, ConfigError, problem
+from dider.validation import RULES, ConfigError, problem, settings_problems
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +41,11 @@ def validate_config(cfg: DictConfig) -> None:
         value = get(key)
         if value is not None and (found := problem(key, value)) is not None:
             problems.append(found)
+    if (model := get("model")) is not None:  # the settings that the model's classes declare (SETTINGS)
+        try:
+            problems += settings_problems(OmegaConf.to_container(model, resolve=True), "model")
+        except Exception as e:  # noqa: BLE001 (an interpolation that cannot resolve: named here, not later)
+            problems.append(f"model: cannot resolve ({e})")
     mode = get("mode")
     if mode not in MODES:
         problems.append(f"mode={mode!r}: expected one of {list(MODES)}")

@@ -1,0 +1,175 @@
+"""The relational VAE's objective, built from term objects chosen in the ``model/objective`` config group.
+
+Each term reads a teacher-forced pass (:class:`~dider.models.inference.Inference`) and its batch and returns one
+value per clip; the objective weighs them:
+
+    loss = NLL + sum_i weight_i * w_i * |term_i - C_i|
+
+where w_i is the KL warm-up's weight (ramped 0 -> 1 over ``kl_warmup`` of training, Bowman et al.) for the terms
+that warm up, 1 for the NLL, and C_i a capacity ramped 0 -> ``capacity`` over ``capacity_ramp`` of training
+(beta-VAE, Burgess et al.; 0 by default). A new term is one class here (or anywhere importable) and one entry
+in a ``conf/model/objective`` file. Each term declares its settings' checks once (``SETTINGS``): the
+constructor applies them, and the preflight applies them to the config before any work starts.
+
+Shapes: B batch, E edges, T-1 transitions, K edge types, S segment slots.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import ClassVar
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dider.models.inference import Inference
+from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
+from dider.models.plugins import Progress
+from dider.models.prior import fixed_log_probs
+from dider.validation import FRACTION_OF_TRAINING, Rule, at_least, check_settings, one_of, within_open
+
+Batch = Mapping[str, torch.Tensor]
+
+
+class Term(nn.Module):
+    """One term of the objective: ``forward(out, batch) -> [B]``, counted with ``weight`` (and ``capacity``).
+
+    ``warms_up``: weighted by the KL warm-up (the KL terms and what is fitted to the posterior). ``in_nelbo``:
+    counted, at its weight and without schedules, in ``nelbo``, the objective that selects checkpoints."""
+
+    warms_up: ClassVar[bool] = True
+    in_nelbo: ClassVar[bool] = True
+    SETTINGS: ClassVar[dict[str, Rule]] = {"weight": at_least(0), "capacity": at_least(0)}
+
+    def __init__(self, weight: float = 1.0, capacity: float = 0.0) -> None:
+        super().__init__()
+        check_settings(self, {k: v for k, v in {"weight": weight, "capacity": capacity}.items()
+                              if k in self.SETTINGS})  # the NLL has neither
+        self.weight, self.capacity = float(weight), float(capacity)
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        raise NotImplementedError
+
+
+def per_edge_step(values: torch.Tensor, out: Inference) -> torch.Tensor:
+    """values [B, E, T-1] (0 where the edge is absent) -> their sum over a clip's present edge-steps divided by
+    their count [B]: with one-step segments, DNRI's mean over (step, edge)."""
+    return values.flatten(1).sum(1) / out.present.flatten(1).sum(1).clamp_min(1)
+
+
+class EdgeKL(Term):
+    """KL(q || p) of the edge types against the learned (or fixed) prior, per segment, summed over an edge's
+    segments and divided by its present steps. ``count``: a segment's KL once (``per_segment``, the paper's sum
+    over segments) or once per step it holds (``per_step``, the weight DNRI's per-step KL gives a type held that
+    long)."""
+
+    SETTINGS = Term.SETTINGS | {"count": one_of("per_segment", "per_step")}
+
+    def __init__(self, weight: float = 1.0, capacity: float = 0.0, count: str = "per_segment") -> None:
+        super().__init__(weight, capacity)
+        check_settings(self, {"count": count})
+        self.count = count
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        seg = out.seg
+        at_start = out.present.gather(2, seg.start)
+        kl = categorical_kl(out.posterior_logits, out.prior_logits) * at_start * seg.slot_weight  # [B, E, S]
+        if self.count == "per_step":
+            kl = kl * seg.num_steps_per_slot
+        return per_edge_step(kl, out)
+
+
+class DurationKL(Term):
+    """The duration plugin's KL (its posterior against its prior, per edge-step; 0 without a duration latent)."""
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        return out.seg.kl
+
+
+class Sparsity(Term):
+    """A KL against a fixed prior [no_edge_prob, (1 - no_edge_prob) / (K - 1), ...] that makes marking an edge
+    cost. ``form``: ``mean_edges`` (DNRI's: the KL of the edges' mean type distribution at each step, which a
+    step with fewer interacting edges than the budget pays for marking one more) or ``per_edge`` (NRI's: the
+    mean over edge-steps of each one's KL, so every marked edge-step costs log(no_edge_prob / rest) more than an
+    unmarked one, none is paid for)."""
+
+    SETTINGS = Term.SETTINGS | {"no_edge_prob": within_open(0.0, 1.0), "form": one_of("mean_edges", "per_edge")}
+
+    def __init__(self, weight: float = 1.0, no_edge_prob: float = 0.9, form: str = "mean_edges",
+                 num_types: int = 2) -> None:
+        super().__init__(weight)
+        check_settings(self, {"no_edge_prob": no_edge_prob, "form": form})
+        self.form = form
+        self.register_buffer("log_probs", fixed_log_probs(num_types, no_edge_prob), persistent=False)
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        return self.of(out.probs, out.present)
+
+    def of(self, probs: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """probs [B, E, T-1, K] (each step's posterior), present [B, E, T-1] bool -> [B]."""
+        if self.form == "per_edge":
+            kl = categorical_kl_probs(probs, self.log_probs) * present
+            return kl.flatten(1).sum(1) / present.flatten(1).sum(1).clamp_min(1)
+        w = present.unsqueeze(-1).to(probs.dtype)
+        mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
+        return categorical_kl_probs(mean_q, self.log_probs).mean(-1)
+
+
+class PriorFit(Term):
+    """Outside the ELBO: fits the learned prior at every step to the posterior type held there, the posterior's
+    gradient stopped. With segments the ELBO's KL trains the prior at segment starts only; forecasting reads it
+    at every step. Warms up with the KL terms: at full weight from the first step, the fit, through the encoder
+    the prior and posterior share, settles the posterior on a type that does no harm."""
+
+    in_nelbo = False
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        fit = categorical_kl_probs(out.probs.detach(), F.log_softmax(out.prior_step_logits, dim=-1))
+        return per_edge_step(fit * out.present, out)
+
+
+class Objective(nn.Module):
+    """The terms by name (``nll`` required; a term set to None is left out) and the schedules of their weights:
+    ``kl_warmup`` and ``capacity_ramp``, fractions of training."""
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"kl_warmup": FRACTION_OF_TRAINING, "capacity_ramp": FRACTION_OF_TRAINING}
+
+    def __init__(self, kl_warmup: float = 0.0, capacity_ramp: float = 0.5, **terms: Term | None) -> None:
+        super().__init__()
+        check_settings(self, {"kl_warmup": kl_warmup, "capacity_ramp": capacity_ramp})
+        if "nll" not in terms or terms["nll"] is None:
+            raise ValueError("model.objective: needs an `nll` term (the decoder's likelihood)")
+        if wrong := [k for k, v in terms.items() if v is not None and not isinstance(v, Term)]:
+            raise TypeError(f"model.objective: {wrong} are not dider.models.objective.Term objects")
+        self.kl_warmup, self.capacity_ramp = kl_warmup, capacity_ramp
+        self.terms = nn.ModuleDict({k: v for k, v in terms.items() if v is not None})
+
+    def values(self, out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
+        """Every term's value per clip: name -> [B]."""
+        return {name: term(out, batch) for name, term in self.terms.items()}
+
+    def schedule(self, progress: Progress = Progress()) -> dict[str, float]:
+        """The annealed weights at ``progress``: the KL warm-up's ``kl_weight`` and each ``capacity/<term>``
+        that has one."""
+        ramp = progress.ramp_steps(self.capacity_ramp)
+        out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))}
+        return out | {f"capacity/{k}": capacity(progress.step, t.capacity, ramp) for k, t in self.terms.items()
+                      if t.capacity > 0}
+
+    def forward(self, values: Mapping[str, torch.Tensor], progress: Progress = Progress()) -> dict[str, torch.Tensor]:
+        """values: :meth:`values` -> ``loss``, each term's batch mean and ``nelbo``: the objective free of
+        schedules and capacities (the terms ``in_nelbo`` at their weights), what selects checkpoints."""
+        sched = self.schedule(progress)
+        means = {name: v.mean() for name, v in values.items()}
+        loss = means["nll"]
+        nelbo = means["nll"].detach()
+        for name, term in self.terms.items():
+            if name == "nll":
+                continue
+            c = sched.get(f"capacity/{name}", 0.0)
+            loss = loss + term.weight * (sched["kl_weight"] if term.warms_up else 1.0) * (means[name] - c).abs()
+            if term.in_nelbo:
+                nelbo = nelbo + term.weight * means[name].detach()
+        return {"loss": loss, **means, "nelbo": nelbo}
+
