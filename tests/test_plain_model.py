@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from dider.models.plugins import DurationCapabilities
 from dider.run import train
 from dider.training.module import RelationalVAEModule
 
@@ -88,3 +89,20 @@ def test_a_plugin_lacking_its_interface_is_named(make_cfg):
     with pytest.raises(TypeError, match=r"model.decoder: Linear is not a Decoder plugin \(missing \['init_state', "
                                         r"'stateless', 'step'\]"):
         RelationalVAE(**parts, decoder=torch.nn.Linear(2, 2))
+
+
+@pytest.mark.parametrize("model, expected", [
+    ("dnri", DurationCapabilities()),
+    ("dider_paper", DurationCapabilities(observed=4, cut_kl=True, tau=True)),
+    ("dider_gate", DurationCapabilities(boundary=True, cut_kl=True)),
+    ("dider", DurationCapabilities(boundary=True, observed=4, cut_kl=True, online_retype=True)),
+])
+def test_optional_plugin_members_are_read_once_at_build(make_cfg, model, expected):
+    """The duration's optional members (boundary, the burn-in's span, cut scoring, an annealed temperature,
+    online re-typing) are declared Protocols read when the network is built (burn-in 5: a span of 4)."""
+    from dider.models.vae import RelationalVAE
+
+    net = RelationalVAE.from_config(make_cfg([f"model={model}"]).model)
+    assert net.capabilities == expected
+    assert not net.fits_kinematics
+    assert RelationalVAE.from_config(make_cfg(["model.decoder.kinematic=true"]).model).fits_kinematics

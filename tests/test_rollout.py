@@ -1,5 +1,7 @@
 """Forecast protocols: the window's burn-in (global) and each agent's own burn-in (per_agent, DNRI's inD)."""
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -163,23 +165,15 @@ def test_first_scored_horizon_is_the_agents_first_own_prediction():
     assert metric.count.tolist() == [8 * 4, 8 * 4, 7 * 4]  # the late agent's 16th own step: frame 30, outside
 
 
-def test_model_takes_the_mode_from_the_datamodule(make_cfg, tmp_path):
-    net = RelationalVAEModule.from_config(make_cfg(["model=dnri"]).model)
-    assert net.burn_in_mode == "global"  # no datamodule: the window's burn-in
-
-    class DM:
-        burn_in_mode = "per_agent"
-
-    class T:
-        datamodule = DM()
-
-    net._trainer = T()
-    assert net.burn_in_mode == "per_agent"
-    net._trainer = None
+def test_model_takes_the_mode_from_the_data_config(make_cfg, tmp_path):
+    """model.burn_in_mode is the data's (an interpolation): the module is told, not fished from a trainer."""
+    for data, mode in [("synth", "global"), ("ind", "per_agent")]:
+        net = RelationalVAEModule.from_config(make_cfg(["model=dnri", f"data={data}"]).model)
+        assert net.burn_in_mode == mode and net.hparams.burn_in_mode == mode, data
+        net._trainer = SimpleNamespace(datamodule=SimpleNamespace(burn_in_mode="sideways"))
+        assert net.burn_in_mode == mode  # the attached data module is not asked
     dnri = OmegaConf.to_container(make_cfg(["model=dnri"]).model, resolve=True)
-    fixed = RelationalVAEModule.from_config({**dnri, "burn_in_mode": "global"})
-    fixed._trainer = T()
-    assert fixed.burn_in_mode == "global"
+    assert RelationalVAEModule.from_config({**dnri, "burn_in_mode": None}).burn_in_mode == "global"  # older hparams
     with pytest.raises(Exception, match="model.burn_in_mode"):  # Hydra wraps the ValueError
         RelationalVAEModule.from_config({**dnri, "burn_in_mode": "sideways"})
     for data, mode in [("synth", "global"), ("basketball", "global"), ("ind", "per_agent"),

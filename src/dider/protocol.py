@@ -100,3 +100,25 @@ def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, w
     context = "" if seq_len is None else f"the predicted steps after data.burn_in={burn_in} of {clips}"
     if (found := horizons_problem(horizons, longest, context=context, integers=integers)) is not None:
         raise ValueError(found)
+
+
+def observed_inputs(x: torch.Tensor, mask: torch.Tensor, burn_in: int, end: int, mode: str
+                    ) -> tuple[torch.Tensor | None, int, torch.Tensor]:
+    """What a roll-out of ``end`` transitions observes (:meth:`RelationalVAE.rollout`): ``fed`` [B, end, N] bool,
+    the inputs that are ground truth (None in ``global`` mode: the first ``burn_in`` frames), ``t_obs``, the
+    frames before any present agent is rolled out, and ``x_obs`` [B, t_obs, N, D], those frames."""
+    if mode == "per_agent":
+        if x.shape[1] < end or mask.shape[1] < end:
+            raise ValueError(f"rollout(per_agent): need >= {end} frames of states and mask (an agent may "
+                             f"enter late and be observed then), got {x.shape[1]} and {mask.shape[1]}")
+        fed = burn_in_mask(mask[:, :end], burn_in)  # [B, end, N]: inputs that are ground truth
+        # Frames before any present agent has left its burn-in are pure ground truth: one batched LSTM
+        # pass over them, exactly as in the global mode (where this prefix is the burn-in itself).
+        rolled = (mask[:, :end] & ~fed).any(dim=2).any(dim=0)  # [end]
+        t_obs = int(rolled.to(torch.uint8).argmax()) if bool(rolled.any()) else end
+        x_obs = fill_absent(x[:, :t_obs], mask[:, :t_obs])
+    elif mode == "global":
+        fed, t_obs, x_obs = None, burn_in, x[:, :burn_in]
+    else:
+        raise ValueError(f"rollout: mode={mode!r}, expected 'global' or 'per_agent'")
+    return fed, t_obs, x_obs

@@ -8,6 +8,13 @@ import torch
 from torchmetrics import Metric
 
 
+def horizon_list(horizons: Sequence[int]) -> list[int]:
+    """The forecast horizons a metric scores, as ints: at least one, each >= 1 (else ValueError)."""
+    if not horizons or min(horizons) < 1:
+        raise ValueError(f"horizons={list(horizons)}: need at least one horizon, each >= 1")
+    return [int(h) for h in horizons]
+
+
 class HorizonMSE(Metric):
     """MSE at forecast horizons: the h-th predicted step, over present agents and all features.
 
@@ -26,9 +33,7 @@ class HorizonMSE(Metric):
 
     def __init__(self, horizons: Sequence[int], **kwargs) -> None:
         super().__init__(**kwargs)
-        if not horizons or min(horizons) < 1:
-            raise ValueError(f"horizons={list(horizons)}: need at least one horizon, each >= 1")
-        self.horizons = [int(h) for h in horizons]
+        self.horizons = horizon_list(horizons)
         self.add_state("sum_sq", torch.zeros(len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("count", torch.zeros(len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
 
@@ -75,9 +80,7 @@ class HorizonDisplacement(Metric):
 
     def __init__(self, horizons: Sequence[int], **kwargs) -> None:
         super().__init__(**kwargs)
-        if not horizons or min(horizons) < 1:
-            raise ValueError(f"horizons={list(horizons)}: need at least one horizon, each >= 1")
-        self.horizons = [int(h) for h in horizons]
+        self.horizons = horizon_list(horizons)
         self.add_state("sums", torch.zeros(2, len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
         self.add_state("counts", torch.zeros(2, len(horizons), dtype=torch.float64), dist_reduce_fx="sum")
 

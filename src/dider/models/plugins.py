@@ -61,9 +61,10 @@ class Prior(Protocol):
 class Duration(Protocol):
     """How each edge's time axis is cut into segments of one type.
 
-    Optional: ``boundary(h_t, t, end) -> [B, E] bool``, where a segment ends early online (the roll-out's state
-    machine starts a new one there as when its duration runs out; a hold gate's is the only one). Where an edge
-    enters, the state machine reads a new type for every plugin and the duration runs on."""
+    Optional capabilities, each a Protocol below, read once when the network is built
+    (:class:`DurationCapabilities`): :class:`EarlyBoundary`, :class:`ObservedSpan`, :class:`ScoresCuts`,
+    :class:`Annealed`, :class:`RetypesOnline`. Where an edge enters, the roll-out's state machine reads a new type
+    for every plugin and the duration runs on."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
@@ -76,6 +77,64 @@ class Duration(Protocol):
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         """Online: an edge whose segment ended at step t starts one lasting [B, E] long steps (past only)."""
         ...
+
+
+class EarlyBoundary(Protocol):
+    """A duration plugin whose segments may end before their duration runs out, online (a hazard's or a hold
+    gate's boundary): the roll-out's state machine starts a new segment there."""
+
+    def boundary(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
+        """h_t [B, E, R] at step t of ``end`` -> [B, E] bool, where a new segment starts at t."""
+        ...
+
+
+class ObservedSpan(Protocol):
+    """A duration plugin that makes the burn-in one segment: transitions 0..observed-1 (0: none)."""
+
+    observed: int
+
+
+class ScoresCuts(Protocol):
+    """A duration plugin that can score a given cut (``dider.analysis.diagnose``)."""
+
+    def cut_kl(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, gate: torch.Tensor, free: torch.Tensor,
+               steps: torch.Tensor) -> torch.Tensor:
+        """The duration KL of a posterior certain of the cut ``gate`` [B, E, T] bool over the ``free`` steps
+        [B, E, T] bool, per present edge-step (steps [B]) -> [B]."""
+        ...
+
+
+class Annealed(Protocol):
+    """A duration plugin with a soft-step temperature annealed over training (logged as ``schedule/tau``)."""
+
+    def tau(self, progress: Progress) -> float: ...
+
+
+class RetypesOnline(Protocol):
+    """A duration plugin whose online segments also end where the prior, after the burn-in, reads another type
+    than the one held (when ``online_retype`` is true)."""
+
+    online_retype: bool
+
+
+@dataclass(frozen=True)
+class DurationCapabilities:
+    """What a duration plugin can do beyond :class:`Duration`, read once when the network is built."""
+
+    boundary: bool = False  # EarlyBoundary
+    observed: int = 0  # ObservedSpan's span (0 without one)
+    cut_kl: bool = False  # ScoresCuts
+    tau: bool = False  # Annealed
+    online_retype: bool = False  # RetypesOnline, and on
+
+    @classmethod
+    def of(cls, duration: object) -> DurationCapabilities:
+        def has(interface: type) -> bool:
+            return not missing_members(duration, interface)
+
+        return cls(boundary=has(EarlyBoundary), observed=int(duration.observed) if has(ObservedSpan) else 0,
+                   cut_kl=has(ScoresCuts), tau=has(Annealed),
+                   online_retype=has(RetypesOnline) and bool(duration.online_retype))
 
 
 class Decoder(Protocol):
@@ -93,6 +152,13 @@ class Decoder(Protocol):
              mask_t: torch.Tensor | None = None) -> tuple[torch.Tensor, Any]:
         """x_t [B, N, D], z_t [B, E, K] -> the next frame [B, N, D] and the new state."""
         ...
+
+
+class KinematicDecoder(Protocol):
+    """A decoder whose positions move by the predicted velocity through a step fitted to a training batch before
+    the first optimiser step (``kinematic``: a :class:`~dider.models.decoders.KinematicStep`, or None: off)."""
+
+    kinematic: Any
 
 
 def missing_members(plugin: object, interface: type) -> list[str]:

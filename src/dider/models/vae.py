@@ -27,9 +27,18 @@ from dider.models.inference import Inference, pick_types, plain_config  # noqa: 
 from dider.models.legacy import rename_likelihood, upgrade_model_config
 from dider.models.likelihood import GaussianNLL
 from dider.models.objective import Objective
-from dider.models.plugins import Decoder, Duration, Encoder, Prior, Progress, missing_members
+from dider.models.plugins import (
+    Decoder,
+    Duration,
+    DurationCapabilities,
+    Encoder,
+    KinematicDecoder,
+    Prior,
+    Progress,
+    missing_members,
+)
 from dider.models.segments import Segmentation, entries, forced_boundaries
-from dider.protocol import burn_in_mask, fill_absent
+from dider.protocol import fill_absent, observed_inputs
 from dider.validation import require
 
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
@@ -80,6 +89,9 @@ class RelationalVAE(nn.Module):
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
         self.forecast_edges, self.decoder_edges = forecast_edges, decoder_edges
+        self.capabilities = DurationCapabilities.of(duration)  # the duration's optional members, read once
+        # a decoder with a kinematic step to fit before training (not kept as a module here: one state-dict key)
+        self.fits_kinematics = not missing_members(decoder, KinematicDecoder) and decoder.kinematic is not None
         self.register_load_state_dict_pre_hook(rename_likelihood)
 
     @property
@@ -134,11 +146,11 @@ class RelationalVAE(nn.Module):
         with the duration KL of a posterior certain of the cut (the plugin's ``cut_kl``; 0 for a plugin without
         a duration latent)."""
         b, e, t, _ = h_fwd.shape
-        fixed, value = forced_boundaries(t, getattr(self.duration, "observed", 0), h_fwd.device, present)
+        fixed, value = forced_boundaries(t, self.capabilities.observed, h_fwd.device, present)
         gate = torch.where(fixed, value, cut)
         steps = present.flatten(1).sum(1).clamp_min(1)
-        if (cut_kl := getattr(self.duration, "cut_kl", None)) is not None:
-            kl = cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps)
+        if self.capabilities.cut_kl:
+            kl = self.duration.cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps)
         else:
             kl = h_fwd.new_zeros(b, dtype=torch.float32)
         slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
@@ -153,7 +165,7 @@ class RelationalVAE(nn.Module):
         """The annealed weights at ``progress``: the objective's (the KL weight, the capacities) and, for a
         duration plugin that has one, the soft-step temperature ``tau``."""
         out = self.objective.schedule(progress)
-        if hasattr(self.duration, "tau"):
+        if self.capabilities.tau:
             out["tau"] = self.duration.tau(progress)
         return out
 
@@ -189,10 +201,11 @@ class RelationalVAE(nn.Module):
         at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's duration
         runs on, as training splits a slot at an entry (``Segmentation.split_at``)."""
         need = left <= 0
-        if (boundary := getattr(self.duration, "boundary", None)) is not None:
-            need = need | boundary(h_t, t, end)
+        caps = self.capabilities
+        if caps.boundary:
+            need = need | self.duration.boundary(h_t, t, end)
         logits = self.prior(h_t)
-        if getattr(self.duration, "online_retype", False) and t > getattr(self.duration, "observed", 0):
+        if caps.online_retype and t > caps.observed:
             need = need | (logits.argmax(-1) != etype)  # the past shows another type than the one held
         retype = need if entered is None else need | entered
         etype = torch.where(retype, pick_types(logits, sample), etype)
@@ -258,20 +271,7 @@ class RelationalVAE(nn.Module):
         b, n = x.shape[0], x.shape[2]
         end = burn_in + num_pred - 1  # transitions covered
         sample = self.rollout_edges == "sample"
-        if mode == "per_agent":
-            if x.shape[1] < end or mask.shape[1] < end:
-                raise ValueError(f"rollout(per_agent): need >= {end} frames of states and mask (an agent may "
-                                 f"enter late and be observed then), got {x.shape[1]} and {mask.shape[1]}")
-            fed = burn_in_mask(mask[:, :end], burn_in)  # [B, end, N]: inputs that are ground truth
-            # Frames before any present agent has left its burn-in are pure ground truth: one batched LSTM
-            # pass over them, exactly as in the global mode (where this prefix is the burn-in itself).
-            rolled = (mask[:, :end] & ~fed).any(dim=2).any(dim=0)  # [end]
-            t_obs = int(rolled.to(torch.uint8).argmax()) if bool(rolled.any()) else end
-            x_obs = fill_absent(x[:, :t_obs], mask[:, :t_obs])
-        elif mode == "global":
-            fed, t_obs, x_obs = None, burn_in, x[:, :burn_in]
-        else:
-            raise ValueError(f"rollout: mode={mode!r}, expected 'global' or 'per_agent'")
+        fed, t_obs, x_obs = observed_inputs(x, mask, burn_in, end, mode)
         if edges is None and self.forecast_edges == "burn_in":
             edges = self.burn_in_edges(x_obs, mask[:, :t_obs], end)
         online = edges is None  # the prior picks the edges as the roll-out goes

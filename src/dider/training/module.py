@@ -55,9 +55,11 @@ class RelationalVAEModule(L.LightningModule):
         check_finite: bool = True,
     ) -> None:
         """model: the network's config (``_target_`` and plugins, as in ``conf/model``); optimizer, scheduler:
-        configs of partial factories (``_partial_: true``). burn_in_mode: ``global``, ``per_agent`` or None,
-        the attached datamodule's (``global`` without one). eval_seed: validation and test draw from it, so
-        their metrics depend on the weights only. check_finite: stop on a NaN/inf loss term or gradient."""
+        configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the forecast
+        protocol, the data's (``conf/model`` interpolates them; a None burn_in_mode, in hyper-parameters saved
+        before it was, is ``global``: ``load_from_checkpoint(path, burn_in_mode="per_agent")`` sets another).
+        eval_seed: validation and test draw from it, so their metrics depend on the weights only. check_finite:
+        stop on a NaN/inf loss term or gradient."""
         super().__init__()
         require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite})
         # Configs only (plain containers): the checkpoint rebuilds the module and loads with weights_only.
@@ -84,11 +86,8 @@ class RelationalVAEModule(L.LightningModule):
 
     @property
     def burn_in_mode(self) -> str:
-        """The forecast protocol in force: the module's own setting, else the attached datamodule's."""
-        if self.hparams.burn_in_mode is not None:
-            return self.hparams.burn_in_mode
-        dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
-        return getattr(dm, "burn_in_mode", None) or "global"
+        """The forecast protocol's burn-in mode (:mod:`dider.protocol`)."""
+        return self.hparams.burn_in_mode or "global"
 
     def progress(self) -> Progress:
         """The schedules' clock: optimiser steps taken, out of the run's total (when the Trainer knows it)."""
@@ -113,7 +112,7 @@ class RelationalVAEModule(L.LightningModule):
         (:class:`~dider.models.decoders.KinematicStep`) and, with ``objective.nll.variance: fit``, the NLL's
         variance per feature. A resumed run keeps its trained values (the weights are restored before this hook,
         the step count after it: a checkpoint being loaded is the sign)."""
-        step = getattr(self.model.decoder, "kinematic", None)
+        step = self.model.decoder.kinematic if self.model.fits_kinematics else None
         likelihood = self.model.likelihood
         if (step is None and not likelihood.to_fit) or self.trainer.ckpt_path is not None:
             return
