@@ -4,17 +4,7 @@ import pytest
 import torch
 
 from dider.models.durations import LearnedDuration
-from dider.models.vae import RelationalVAE
-
-
-def build(make_cfg, *overrides):
-    torch.manual_seed(0)
-    return RelationalVAE.from_config(make_cfg(list(overrides)).model)
-
-
-def clip(b=4, t=30, n=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+from helpers.models import build, clip
 
 
 @pytest.mark.parametrize("source", ["past", "future"])
@@ -196,7 +186,7 @@ def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
 
 
 def test_bad_duration_values_name_the_key():
-    with pytest.raises(ValueError, match="model.duration.source"):
+    with pytest.raises(ValueError, match="LearnedDuration: source='sideways'"):
         LearnedDuration(source="sideways")
 
 
@@ -207,7 +197,7 @@ def test_duration_head_starts_at_the_prior_mean_with_sigma_init():
     mu, sigma = dur.gaussian(torch.randn(3, 8))
     assert torch.allclose(mu, torch.full_like(mu, -0.6), atol=1e-6)
     assert torch.allclose(sigma, torch.full_like(sigma, 0.2), atol=1e-6)
-    with pytest.raises(ValueError, match="model.duration.sigma_init"):
+    with pytest.raises(ValueError, match="LearnedDuration: sigma_init=0.005: must lie in"):
         LearnedDuration(sigma_init=0.005)
 
 

@@ -8,19 +8,14 @@ import torch
 from dider.graph import edge_index
 from dider.models.gate import HoldGate, bernoulli_kl, hold_assignment
 from dider.models.segments import entries
-from dider.models.vae import RelationalVAE
 from dider.validation import ConfigError
 from helpers.fixtures import comings_and_goings
+from helpers.models import build as build_net
+from helpers.models import clip
 
 
 def build(make_cfg, *overrides):
-    torch.manual_seed(0)
-    return RelationalVAE.from_config(make_cfg(["model=dider_gate", *overrides]).model)
-
-
-def clip(b=4, t=30, n=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+    return build_net(make_cfg, "model=dider_gate", *overrides)
 
 
 def constant_gates(gate: HoldGate, posterior: float, prior: float) -> None:
@@ -124,7 +119,7 @@ def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
 @pytest.mark.parametrize(("key", "value"), [("rate", 0.0), ("rate_mix", 1.5), ("temperature", 0.0),
                                             ("online_threshold", 1.0)])
 def test_bad_gate_values_name_the_key(key, value):
-    with pytest.raises(ConfigError, match=f"model.duration.{key}"):
+    with pytest.raises(ConfigError, match=f"HoldGate: {key}={value}"):
         HoldGate(**{key: value})
 
 

@@ -14,16 +14,7 @@ from dider.models.vae import RelationalVAE
 from dider.training.preflight import validate_config
 from dider.validation import ConfigError
 from helpers import NO_SPARSITY
-
-
-def build(make_cfg, *overrides):
-    torch.manual_seed(0)
-    return RelationalVAE.from_config(make_cfg(list(overrides)).model)
-
-
-def clip(b=4, t=30, n=3, seed=0):
-    g = torch.Generator().manual_seed(seed)
-    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+from helpers.models import build, clip
 
 
 def test_each_model_reads_its_objective_from_the_config_group(make_cfg):

@@ -10,11 +10,7 @@ from dider.models.vae import RelationalVAE
 from dider.outputs.clips import write_clips_npz
 from dider.perf import native_bf16
 from dider.run import train
-
-
-def _clip(b: int = 3, t: int = 20, n: int = 3) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(0)
-    return {"states": torch.rand(b, t, n, 4, generator=g) * 2 - 1, "mask": torch.ones(b, t, n, dtype=torch.bool)}
+from helpers.models import clip
 
 
 @pytest.mark.parametrize("model", ["dider", "dider_skid", "dnri", "dider_gate"])
@@ -23,7 +19,7 @@ def test_autocast_keeps_edge_and_segment_arithmetic_in_fp32(make_cfg, model):
     in quarter steps and the prior's small probabilities round away. The GNN itself does run in bf16."""
     torch.manual_seed(0)
     net = RelationalVAE.from_config(make_cfg([f"model={model}"]).model).train()
-    batch = _clip()
+    batch = clip(b=3, t=20)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         out = net.infer(batch, hard=False)
         said = net.describe(net.infer(batch, hard=True), batch["mask"])

@@ -1,8 +1,11 @@
-"""One way to validate settings: each rule is written once, under its full config key.
+"""One way to validate settings: each rule is written once.
 
-Constructors call :func:`require` with the values they receive; ``dider.training.preflight.validate_config`` applies
-every rule to a whole config before any work starts. Either way an error names the key and the value,
-e.g. ``model.num_edges=1: must be >= 2 (...)``, and lists every problem at once.
+A class that a config node builds (the network, its plugins, the objective's terms) declares its settings' rules
+in ``SETTINGS``: its constructor applies them to the values it receives (:func:`check_settings`, naming the class:
+``RelationalVAE: num_edges=1: must be >= 2 (...)``) and ``dider.training.preflight.validate_config`` applies them
+to the node before any work starts (:func:`settings_problems`, naming the key: ``model.num_edges=1: ...``). The
+app's own keys (the seed, the trainer, the LightningModule's, the data's shared ones) have theirs in
+:data:`RULES`, applied by :func:`require` and the preflight alike. Every problem is listed at once.
 """
 
 from __future__ import annotations
@@ -94,11 +97,7 @@ def boolean(value: Any) -> str | None:
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
-# The widths and depths of the networks: whole numbers, checked before the data are read.
-WIDTH_KEYS = ("model.encoder.hidden", "model.encoder.rnn_hidden", "model.encoder.head_hidden",
-              "model.encoder.head_layers", "model.encoder.input_dim", "model.prior.hidden", "model.prior.rnn_hidden",
-              "model.prior.num_layers", "model.decoder.input_dim")
-
+# The settings of the app, the trainer and the LightningModule; the model's classes declare theirs (SETTINGS).
 RULES: dict[str, Rule] = {
     "compile": boolean,
     "predict.force": boolean,
@@ -110,35 +109,8 @@ RULES: dict[str, Rule] = {
     "threads": optional(integer(1, " (null: torch's default)")),
     "trainer.max_epochs": integer(-1, " (-1: no limit)"),
     "model.optimizer.lr": above(0),
-    **{key: integer(1) for key in WIDTH_KEYS},
-    "model.decoder.hidden": optional(integer(1)),  # the constant-velocity baseline has none
-    "model.num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
-    "model.gumbel_tau": above(0),
-    "model.posterior_readout": one_of("start", "mean"),
-    "model.rollout_edges": one_of("sample", "argmax"),
-    "model.forecast_edges": one_of("prior", "burn_in"),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
-    "model.decoder_edges": boolean,
-    "model.encoder.checkpoint": boolean,
-    "model.decoder.checkpoint": boolean,
-    "model.decoder.kinematic": boolean,
-    "model.duration.source": one_of("past", "future"),
-    "model.duration.min_duration": at_least(1, " step"),
-    "model.duration.rho_min": within(0.0, 1.0),
-    "model.duration.sigma_min": within_open(0.0, 1.0),
-    "model.duration.prior_sigma": above(0),
-    "model.duration.tau_start": above(0),
-    "model.duration.tau_end": above(0),
-    "model.duration.fixed_duration": optional(at_least(1)),
-    "model.duration.tau_anneal": FRACTION_OF_TRAINING,
-    "model.duration.burn_in": optional(at_least(1)),
-    "model.duration.sample": boolean,
-    "model.duration.rate": within_open(0.0, 1.0),
-    "model.duration.rate_mix": within(0.0, 1.0),
-    "model.duration.temperature": above(0),
-    "model.duration.online_threshold": within_open(0.0, 1.0),
-    "model.duration.reads": one_of("position", "remaining"),
     "model.burn_in": at_least(1),
     "data.burn_in": at_least(1),
     "data.burn_in_mode": one_of(*BURN_IN_MODES),
@@ -153,12 +125,15 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
         raise ValueError(f"{where}: " + "; ".join(found))
 
 
-def check_settings(owner: object, values: Mapping[str, Any]) -> None:
-    """Check a constructor's arguments by the rules its class declares once (``SETTINGS``: name -> rule); raises
-    :class:`ConfigError` naming the class and every setting that fails. The preflight applies the same rules to
-    the config node that builds the class (:func:`settings_problems`), under the node's keys."""
+def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None
+                   ) -> None:
+    """Check a constructor's arguments by the rules its class declares once (``SETTINGS``: name -> rule), and
+    ``related`` ones whose rule depends on another argument (name -> (value, rule)); raises :class:`ConfigError`
+    naming the class and every setting that fails. The preflight applies ``SETTINGS`` to the config node that
+    builds the class (:func:`settings_problems`), under the node's keys."""
     rules = type(owner).SETTINGS
-    found = [f"{name}={value!r}: {why}" for name, value in values.items() if (why := rules[name](value)) is not None]
+    checks = {name: (value, rules[name]) for name, value in values.items()} | dict(related or {})
+    found = [f"{name}={value!r}: {why}" for name, (value, rule) in checks.items() if (why := rule(value)) is not None]
     if found:
         raise ConfigError(f"{type(owner).__name__}: " + "; ".join(found))
 

@@ -16,7 +16,7 @@ from torch import nn
 from dider.graph import aggregate_to_receivers, edge_mask
 from dider.models.layers import PairLinear, TypedLinear, checkpointed
 from dider.models.losses import line_fit
-from dider.validation import require
+from dider.validation import Rule, boolean, check_settings, integer, within
 
 
 class _MessagePassing(nn.Module):
@@ -82,8 +82,12 @@ class KinematicStep(nn.Module):
         return torch.cat([pos, nxt[..., 2:]], dim=-1)
 
 
+# What the two decoders take alike (checked by each, and by the preflight under model.decoder).
+DECODER_SETTINGS: dict[str, Rule] = {"input_dim": integer(1), "hidden": integer(1), "skip_first": boolean,
+                                     "dropout": within(0.0, 1.0), "checkpoint": boolean, "kinematic": boolean}
+
+
 def _state_update(kinematic: bool, input_dim: int) -> KinematicStep | None:
-    require({"model.decoder.kinematic": kinematic})
     if kinematic and input_dim < 4:
         raise ValueError(f"model.decoder.kinematic=true needs positions and velocities: input_dim={input_dim} < 4")
     return KinematicStep() if kinematic else None
@@ -96,6 +100,7 @@ class MarkovDecoder(nn.Module):
     """
 
     stateless = True
+    SETTINGS = DECODER_SETTINGS
 
     def __init__(
         self,
@@ -108,7 +113,8 @@ class MarkovDecoder(nn.Module):
         kinematic: bool = False,
     ) -> None:
         super().__init__()
-        require({"model.decoder.checkpoint": checkpoint})
+        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "skip_first": skip_first, "dropout": dropout,
+                              "checkpoint": checkpoint, "kinematic": kinematic})
         self.checkpoint = checkpoint
         self.kinematic = _state_update(kinematic, input_dim)
         self.messages = _MessagePassing(num_types, input_dim, hidden, skip_first, nn.ReLU(), dropout)
@@ -156,6 +162,7 @@ class RecurrentDecoder(nn.Module):
     by x_t and the aggregated message, and a residual output MLP."""
 
     stateless = False
+    SETTINGS = DECODER_SETTINGS
 
     def __init__(
         self,
@@ -168,7 +175,8 @@ class RecurrentDecoder(nn.Module):
         kinematic: bool = False,
     ) -> None:
         super().__init__()
-        require({"model.decoder.checkpoint": checkpoint})
+        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "skip_first": skip_first, "dropout": dropout,
+                              "checkpoint": checkpoint, "kinematic": kinematic})
         self.checkpoint = checkpoint
         self.kinematic = _state_update(kinematic, input_dim)
         self.messages = _MessagePassing(num_types, hidden, hidden, skip_first, nn.Tanh(), dropout)

@@ -14,6 +14,7 @@ Shapes: h_fwd, h_rev [B, E, T, R]; x [B, T+1, N, D]; h_t [B, E, R].
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -21,7 +22,18 @@ from torch import nn
 from dider.models.losses import gaussian_kl
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation, entries
-from dider.validation import require, within_open
+from dider.validation import (
+    FRACTION_OF_TRAINING,
+    Rule,
+    above,
+    at_least,
+    check_settings,
+    integer,
+    one_of,
+    optional,
+    within,
+    within_open,
+)
 
 
 class PerStepDuration(nn.Module):
@@ -86,6 +98,13 @@ class LearnedDuration(nn.Module):
     ``fixed_duration`` replaces the latent by a constant number of steps (1 reproduces DNRI exactly).
     """
 
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "rnn_hidden": integer(1), "hidden": integer(1), "source": one_of("past", "future"),
+        "min_duration": at_least(1, " step"), "rho_min": within(0.0, 1.0), "sigma_min": within_open(0.0, 1.0),
+        "prior_sigma": above(0), "tau_start": above(0), "tau_end": above(0),
+        "tau_anneal": FRACTION_OF_TRAINING, "fixed_duration": optional(at_least(1)), "burn_in": optional(at_least(1)),
+    }
+
     def __init__(
         self,
         rnn_hidden: int = 64,
@@ -104,14 +123,12 @@ class LearnedDuration(nn.Module):
         burn_in: int | None = None,
     ) -> None:
         super().__init__()
-        require({
-            "model.duration.source": source,
-            "model.duration.min_duration": min_duration, "model.duration.rho_min": rho_min,
-            "model.duration.sigma_min": sigma_min, "model.duration.prior_sigma": prior_sigma,
-            "model.duration.tau_start": tau_start, "model.duration.tau_end": tau_end,
-            "model.duration.fixed_duration": fixed_duration, "model.duration.tau_anneal": tau_anneal,
-            "model.duration.burn_in": burn_in,
-        }, {"model.duration.sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
+        check_settings(self, {
+            "rnn_hidden": rnn_hidden, "hidden": hidden, "source": source, "min_duration": min_duration,
+            "rho_min": rho_min, "sigma_min": sigma_min, "prior_sigma": prior_sigma,
+            "tau_start": tau_start, "tau_end": tau_end, "tau_anneal": tau_anneal, "fixed_duration": fixed_duration,
+            "burn_in": burn_in,
+        }, {"sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.fixed_duration = source, fixed_duration
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma

@@ -7,6 +7,7 @@ Shapes: B batch, T steps, N agents, E = N(N-1) directed edges, H GNN width, R LS
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import nn
@@ -14,7 +15,7 @@ from torch import nn
 from dider.graph import aggregate_to_receivers, edge_mask
 from dider.models.layers import MLP, PairLinear, checkpointed, head
 from dider.models.rnn import bidirectional_lstm
-from dider.validation import require
+from dider.validation import Rule, boolean, check_settings, integer, within
 
 LSTMState = tuple[torch.Tensor, torch.Tensor]
 
@@ -62,6 +63,10 @@ class GNNEdgeEmbedding(nn.Module):
 class GNNLSTMEncoder(nn.Module):
     """DNRI's encoder: GNN embedding per step, per-edge forward and reverse LSTMs, posterior head."""
 
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        **{k: integer(1) for k in ("input_dim", "hidden", "rnn_hidden", "head_hidden", "head_layers")},
+        "dropout": within(0.0, 1.0), "batch_norm": boolean, "checkpoint": boolean}
+
     def __init__(
         self,
         num_types: int,
@@ -77,7 +82,9 @@ class GNNLSTMEncoder(nn.Module):
         """checkpoint: in training, recompute the GNN embedding's activations in the backward pass instead of
         storing them (less memory for large scenes, one more embedding forward per step; same gradients)."""
         super().__init__()
-        require({"model.encoder.checkpoint": checkpoint})
+        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "rnn_hidden": rnn_hidden,
+                              "head_hidden": head_hidden, "head_layers": head_layers, "dropout": dropout,
+                              "batch_norm": batch_norm, "checkpoint": checkpoint})
         self.checkpoint = checkpoint
         self.embed = GNNEdgeEmbedding(input_dim, hidden, dropout, batch_norm)
         self.forward_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)

@@ -16,7 +16,7 @@ from torch import nn
 from dider.models.hazard import HazardPrior, bernoulli_kl, hold_assignment
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
-from dider.validation import require
+from dider.validation import boolean, check_settings
 
 
 class HoldGate(HazardPrior):
@@ -42,6 +42,8 @@ class HoldGate(HazardPrior):
       divided by the present edge-steps.
     """
 
+    SETTINGS = HazardPrior.SETTINGS | {"sample": boolean}
+
     def __init__(
         self,
         rnn_hidden: int = 64,
@@ -53,9 +55,9 @@ class HoldGate(HazardPrior):
         online_threshold: float = 0.5,
         burn_in: int | None = None,
     ) -> None:
-        require({"model.duration.rate": rate, "model.duration.rate_mix": rate_mix,
-                 "model.duration.temperature": temperature, "model.duration.sample": sample,
-                 "model.duration.online_threshold": online_threshold, "model.duration.burn_in": burn_in})
+        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "rate": rate, "rate_mix": rate_mix,
+                              "temperature": temperature, "sample": sample, "online_threshold": online_threshold,
+                              "burn_in": burn_in})
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
         self.temperature, self.sample = temperature, sample
         self.posterior = nn.Sequential(nn.Linear(2 * rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 1))

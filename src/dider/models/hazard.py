@@ -11,6 +11,7 @@ Shapes: B batch, E edges, T transitions, R LSTM width, S = T slots (slot s is th
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -18,6 +19,7 @@ from torch import nn
 
 from dider.models.losses import categorical_kl
 from dider.models.segments import forced_boundaries
+from dider.validation import Rule, above, at_least, integer, optional, within, within_open
 
 
 def bernoulli_kl(q_logits: torch.Tensor, p_logits: torch.Tensor) -> torch.Tensor:
@@ -59,6 +61,11 @@ class HazardPrior(nn.Module):
     - Agents that come and go (``present``): a segment starts where an edge enters (its two agents present
       again); absent steps have no boundary.
     """
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "rnn_hidden": integer(1), "hidden": integer(1), "rate": within_open(0.0, 1.0), "rate_mix": within(0.0, 1.0),
+        "online_threshold": within_open(0.0, 1.0), "burn_in": optional(at_least(1)), "temperature": above(0),
+    }
 
     def __init__(self, rnn_hidden: int, hidden: int, rate: float, rate_mix: float, online_threshold: float,
                  burn_in: int | None) -> None:

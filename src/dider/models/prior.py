@@ -7,18 +7,23 @@ probabilities in bf16.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import torch
 from torch import nn
 
 from dider.models.layers import head
+from dider.validation import Rule, check_settings, integer
 
 
 class LearnedPrior(nn.Module):
     """DNRI's learned prior: an MLP head on the forward LSTM state (conditions on x_0..x_t only)."""
 
+    SETTINGS: ClassVar[dict[str, Rule]] = {k: integer(1) for k in ("rnn_hidden", "hidden", "num_layers")}
+
     def __init__(self, num_types: int, rnn_hidden: int = 64, hidden: int = 128, num_layers: int = 3) -> None:
         super().__init__()
+        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "num_layers": num_layers})
         self.net = head(rnn_hidden, hidden, num_types, num_layers)
 
     def forward(self, h_fwd: torch.Tensor) -> torch.Tensor:

@@ -36,7 +36,7 @@ from torch import nn
 from dider.models.hazard import HazardPrior, hold_assignment
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
-from dider.validation import require
+from dider.validation import check_settings, one_of
 
 # A log-probability that is 0 in fp32 after exp (finite, so 0 * (log q - log p) stays 0 with its gradient).
 IMPOSSIBLE = -1e4
@@ -88,6 +88,8 @@ class SegmentEnd(HazardPrior):
     :class:`~dider.models.hazard.HazardPrior`.
     """
 
+    SETTINGS = HazardPrior.SETTINGS | {"reads": one_of("position", "remaining")}
+
     def __init__(
         self,
         rnn_hidden: int = 64,
@@ -99,10 +101,9 @@ class SegmentEnd(HazardPrior):
         burn_in: int | None = None,
         reads: str = "position",
     ) -> None:
-        require({"model.duration.rate": rate, "model.duration.rate_mix": rate_mix,
-                 "model.duration.temperature": temperature,
-                 "model.duration.online_threshold": online_threshold, "model.duration.burn_in": burn_in,
-                 "model.duration.reads": reads})
+        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "rate": rate, "rate_mix": rate_mix,
+                              "temperature": temperature, "online_threshold": online_threshold, "burn_in": burn_in,
+                              "reads": reads})
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
         self.temperature = temperature
         # Online, a segment also ends where the prior reads another type than the one held: the prior hazard is

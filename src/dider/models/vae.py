@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -39,7 +39,7 @@ from dider.models.plugins import (
 )
 from dider.models.segments import Segmentation, entries, forced_boundaries
 from dider.protocol import fill_absent, observed_inputs
-from dider.validation import require
+from dider.validation import Rule, above, boolean, check_settings, integer, one_of
 
 # Keys of a model config that configure training and evaluation (the LightningModule), not the network.
 TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
@@ -48,6 +48,13 @@ TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode"
 class RelationalVAE(nn.Module):
     """Encoder -> per-segment edge posterior q and learned prior p -> decoder, trained with the ``objective``'s
     terms (:mod:`dider.models.objective`: the NLL, the edge and duration KLs, and optional terms)."""
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
+        "gumbel_tau": above(0), "posterior_readout": one_of("start", "mean"),
+        "rollout_edges": one_of("sample", "argmax"), "forecast_edges": one_of("prior", "burn_in"),
+        "decoder_edges": boolean,
+    }
 
     def __init__(
         self,
@@ -72,11 +79,9 @@ class RelationalVAE(nn.Module):
         alone, one type per edge held for the whole roll-out: NRI). decoder_edges: False switches every edge off
         for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
         super().__init__()
-        require({
-            "model.num_edges": num_edges, "model.posterior_readout": posterior_readout,
-            "model.rollout_edges": rollout_edges, "model.gumbel_tau": gumbel_tau,
-            "model.forecast_edges": forecast_edges, "model.decoder_edges": decoder_edges,
-        })  # fmt: skip
+        check_settings(self, {"num_edges": num_edges, "posterior_readout": posterior_readout,
+                              "rollout_edges": rollout_edges, "gumbel_tau": gumbel_tau,
+                              "forecast_edges": forecast_edges, "decoder_edges": decoder_edges})
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
         for key, (plugin, interface) in seams.items():
