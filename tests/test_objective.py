@@ -162,3 +162,25 @@ def test_old_loss_settings_build_the_same_objective(make_cfg):
     torch.manual_seed(1)
     lb = b.loss(b.infer(batch, hard=True), Progress(10, 100))
     assert la.keys() == lb.keys() and all(torch.equal(la[k], lb[k]) for k in la)
+
+
+def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_path):
+    """A checkpoint file whose hyper-parameters hold the old flat loss keys and whose weights keep the variance
+    as ``model.likelihood.variance`` loads with ``load_from_checkpoint``, with today's objective and weights."""
+    import lightning
+
+    from dider.training.module import RelationalVAEModule
+
+    new = RelationalVAEModule.from_config(make_cfg(["model=dider"]).model)
+    hparams = dict(new.hparams)
+    hparams["model"] = {k: v for k, v in hparams["model"].items() if k != "objective"} | OLD_DIDER
+    state = {k.replace("objective.terms.nll.", "likelihood."): v for k, v in new.state_dict().items()}
+    path = tmp_path / "old.ckpt"
+    torch.save({"state_dict": state, "hyper_parameters": hparams,
+                "pytorch-lightning_version": lightning.__version__}, path)
+    old = RelationalVAEModule.load_from_checkpoint(path, map_location="cpu", weights_only=False)
+    assert list(old.model.objective.terms) == list(new.model.objective.terms)
+    loaded = old.state_dict()
+    assert loaded.keys() == new.state_dict().keys()
+    assert all(torch.equal(loaded[k], v) for k, v in new.state_dict().items())
+

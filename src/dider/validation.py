@@ -142,7 +142,10 @@ def settings_problems(node: Any, path: str) -> list[str]:
     """The settings of every config node under ``node`` (a plain container) whose ``_target_`` class declares
     ``SETTINGS``, checked by those rules: ``"path.key=value: what is wrong"`` for each that fails."""
     found: list[str] = []
-    if isinstance(node, Mapping):
+    if isinstance(node, list):
+        for i, item in enumerate(node):
+            found += settings_problems(item, f"{path}[{i}]")
+    elif isinstance(node, Mapping):
         rules = getattr(_target_class(node.get("_target_")), "SETTINGS", {})
         for key, value in node.items():
             where = f"{path}.{key}"

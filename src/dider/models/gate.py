@@ -16,7 +16,7 @@ from torch import nn
 from dider.models.hazard import HazardPrior, bernoulli_kl, hold_assignment
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
-from dider.validation import boolean, check_settings
+from dider.validation import above, boolean, check_settings
 
 
 class HoldGate(HazardPrior):
@@ -42,7 +42,7 @@ class HoldGate(HazardPrior):
       divided by the present edge-steps.
     """
 
-    SETTINGS = HazardPrior.SETTINGS | {"sample": boolean}
+    SETTINGS = HazardPrior.SETTINGS | {"temperature": above(0), "sample": boolean}
 
     def __init__(
         self,

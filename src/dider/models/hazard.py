@@ -19,7 +19,7 @@ from torch import nn
 
 from dider.models.losses import categorical_kl
 from dider.models.segments import forced_boundaries
-from dider.validation import Rule, above, at_least, integer, optional, within, within_open
+from dider.validation import Rule, at_least, integer, optional, within, within_open
 
 
 def bernoulli_kl(q_logits: torch.Tensor, p_logits: torch.Tensor) -> torch.Tensor:
@@ -64,7 +64,7 @@ class HazardPrior(nn.Module):
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
         "rnn_hidden": integer(1), "hidden": integer(1), "rate": within_open(0.0, 1.0), "rate_mix": within(0.0, 1.0),
-        "online_threshold": within_open(0.0, 1.0), "burn_in": optional(at_least(1)), "temperature": above(0),
+        "online_threshold": within_open(0.0, 1.0), "burn_in": optional(at_least(1)),
     }
 
     def __init__(self, rnn_hidden: int, hidden: int, rate: float, rate_mix: float, online_threshold: float,

@@ -1,16 +1,20 @@
 """Model configs of checkpoints written before the objective was a config node: their loss settings sat at the
 top of the model config (``nll_variance``, ``beta_edge``, ``sparsity_mix``, ...). They are rebuilt as the
 ``objective`` node that computes the same loss (exactly where no capacity is set; with a capacity the sparsity
-term now sits outside the edge KL's |KL - C|), so such checkpoints keep loading, for prediction and resumed runs.
+term now sits outside the edge KL's |KL - C|; a prior fit at full weight from the first step,
+``prior_fit_warmup: false``, is gone: the fit ramps with the KL warm-up), so such checkpoints keep loading, for
+prediction and resumed runs.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from typing import Any
 
 import torch
 
+log = logging.getLogger(__name__)
 _OBJECTIVE = "dider.models.objective"
 OLD_LOSS_KEYS = ("nll_variance", "beta_edge", "beta_duration", "capacity_edge", "capacity_duration", "capacity_ramp",
                  "kl_warmup", "sparsity_mix", "no_edge_prob", "sparsity_form", "segment_kl", "prior_fit",
@@ -41,6 +45,9 @@ def upgrade_model_config(node: Mapping[str, Any]) -> dict[str, Any]:
                                  "form": get("sparsity_form", "mean_edges"), "num_types": node.get("num_edges", 2)}
     if get("prior_fit", 0.0) > 0:
         objective["prior_fit"] = {"_target_": f"{_OBJECTIVE}.PriorFit", "weight": old["prior_fit"]}
+        if not get("prior_fit_warmup", True) and get("kl_warmup", 0.0) > 0:
+            log.warning("model.prior_fit_warmup=false of an older config is no longer an option: the prior fit "
+                        "ramps with the KL warm-up (a resumed run's loss differs before the warm-up ends)")
     return node | {"objective": objective}
 
 

@@ -94,7 +94,7 @@ class Sparsity(Term):
     mean over edge-steps of each one's KL, so every marked edge-step costs log(no_edge_prob / rest) more than an
     unmarked one, none is paid for)."""
 
-    SETTINGS = Term.SETTINGS | {"no_edge_prob": within_open(0.0, 1.0), "form": one_of("mean_edges", "per_edge")}
+    SETTINGS = {"weight": at_least(0), "no_edge_prob": within_open(0.0, 1.0), "form": one_of("mean_edges", "per_edge")}
 
     def __init__(self, weight: float = 1.0, no_edge_prob: float = 0.9, form: str = "mean_edges",
                  num_types: int = 2) -> None:
@@ -119,8 +119,8 @@ class Sparsity(Term):
 class PriorFit(Term):
     """Outside the ELBO: fits the learned prior at every step to the posterior type held there, the posterior's
     gradient stopped. With segments the ELBO's KL trains the prior at segment starts only; forecasting reads it
-    at every step. Warms up with the KL terms: at full weight from the first step, the fit, through the encoder
-    the prior and posterior share, settles the posterior on a type that does no harm."""
+    at every step. Warms up with the KL terms (at full weight from the first step the fit, through the encoder
+    the prior and posterior share, would settle the posterior on a type that does no harm)."""
 
     in_nelbo = False
 

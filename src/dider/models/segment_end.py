@@ -36,7 +36,7 @@ from torch import nn
 from dider.models.hazard import HazardPrior, hold_assignment
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
-from dider.validation import check_settings, one_of
+from dider.validation import above, check_settings, one_of
 
 # A log-probability that is 0 in fp32 after exp (finite, so 0 * (log q - log p) stays 0 with its gradient).
 IMPOSSIBLE = -1e4
@@ -88,7 +88,7 @@ class SegmentEnd(HazardPrior):
     :class:`~dider.models.hazard.HazardPrior`.
     """
 
-    SETTINGS = HazardPrior.SETTINGS | {"reads": one_of("position", "remaining")}
+    SETTINGS = HazardPrior.SETTINGS | {"temperature": above(0), "reads": one_of("position", "remaining")}
 
     def __init__(
         self,

@@ -1,6 +1,7 @@
-"""The relational VAE as a plain ``nn.Module``: inference, the loss, online edges and the forecast roll-out.
+"""The relational VAE as a plain ``nn.Module``: inference, online edges and the forecast roll-out; its loss is
+the ``objective``'s (:mod:`dider.models.objective`).
 
-DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins the model is built with (see
+DNRI, DIDER, DIDER (with SKID) and NRI differ only in the plugins and objective the model is built with (see
 :mod:`dider.models.plugins`): the duration plugin decides how each edge's time axis is cut into segments,
 and the edge posterior and prior are read once per segment. With one-step segments this is exactly DNRI.
 Nothing here needs Lightning: schedules come in as a :class:`Progress`, the forecast protocol as arguments.

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from dider import __version__
 from dider.data.batch import Normalizer
@@ -44,12 +46,24 @@ def validate_config(cfg: DictConfig) -> None:
     if (model := get("model")) is not None:  # the settings that the model's classes declare (SETTINGS)
         try:
             problems += settings_problems(OmegaConf.to_container(model, resolve=True), "model")
-        except Exception as e:  # noqa: BLE001 (an interpolation that cannot resolve: named here, not later)
+        except OmegaConfBaseException as e:  # an interpolation that cannot resolve: named here, not later
             problems.append(f"model: cannot resolve ({e})")
     mode = get("mode")
+    problems += _checkpoint_problems(mode, get("ckpt_path"))
+    if mode != "predict":  # prediction uses the checkpoint's model and scores no data horizons
+        problems += _protocol_problems(get)
+    problems += _path_problems(get) + _logger_problems(get)
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    for warning in config_warnings(cfg):
+        log.warning(warning)
+
+
+def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
+    """``mode`` and ``ckpt_path``: a known mode, a checkpoint where the mode needs one, and one that exists."""
+    problems = []
     if mode not in MODES:
         problems.append(f"mode={mode!r}: expected one of {list(MODES)}")
-    ckpt = get("ckpt_path")
     if mode in ("eval", "predict") and not ckpt:
         problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
     if mode == "predict" and ckpt == "last":
@@ -58,12 +72,16 @@ def validate_config(cfg: DictConfig) -> None:
     folder_ok = mode == "predict" and ckpt and Path(str(ckpt)).expanduser().is_dir()  # a run folder, as dider.load
     if ckpt and ckpt != "last" and not folder_ok and not Path(str(ckpt)).expanduser().is_file():
         problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if mode == "predict" else ""))
+    return problems
 
+
+def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
+    """The data's and the model's burn-in and horizons against the clip length, where the config states it
+    (``predict.burn_in`` is checked against the clips once they are read)."""
+    problems = []
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
-    # prediction uses the checkpoint's model and scores no data horizons (predict.burn_in is checked against
-    # the clips once they are read)
-    for section in ("data", "model") if mode != "predict" else ():
+    for section in ("data", "model"):
         burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
         burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
@@ -76,7 +94,12 @@ def validate_config(cfg: DictConfig) -> None:
         context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
         if (found := horizons_problem(horizons, longest, f"{section}.horizons", context)) is not None:
             problems.append(found)
+    return problems
 
+
+def _path_problems(get: Callable[[str], Any]) -> list[str]:
+    """The data's input folder or file, where the config names one: it must exist."""
+    problems = []
     for key, kind in (("data.root", "folder"), ("data.path", "file")):
         value = get(key)
         if value is None:
@@ -84,17 +107,18 @@ def validate_config(cfg: DictConfig) -> None:
         path = Path(str(value)).expanduser()
         if not (path.is_dir() if kind == "folder" else path.is_file()):
             problems.append(f"{key}={value}: no such {kind}")
+    return problems
 
-    for name, node in (get("logger") or {}).items():  # a store that cannot be written fails late, after retries
+
+def _logger_problems(get: Callable[[str], Any]) -> list[str]:
+    """The loggers' local tracking stores: one that cannot be written fails late, after retries."""
+    problems = []
+    for name, node in (get("logger") or {}).items():
         for field in ("tracking_uri", "artifact_location"):
             value = get(f"logger.{name}.{field}") if isinstance(node, DictConfig) else None
             if isinstance(value, str) and (found := _store_problem(value)):
                 problems.append(f"logger.{name}.{field}={value}: {found}")
-
-    if problems:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
-    for warning in config_warnings(cfg):
-        log.warning(warning)
+    return problems
 
 
 def _store_problem(uri: str) -> str | None:
