@@ -106,3 +106,19 @@ def test_optional_plugin_members_are_read_once_at_build(make_cfg, model, expecte
     assert net.capabilities == expected
     assert not net.fits_kinematics
     assert RelationalVAE.from_config(make_cfg(["model.decoder.kinematic=true"]).model).fits_kinematics
+
+
+def test_every_declared_setting_is_a_constructor_argument():
+    """A class checks ``locals()`` against its ``SETTINGS``: a rule whose name no argument has would never run
+    (and the preflight would pass a value the constructor refuses)."""
+    import inspect
+
+    from dider.models import decoders, durations, encoder, gate, hazard, likelihood, objective, prior, segment_end, vae
+
+    modules = (decoders, durations, encoder, gate, hazard, likelihood, objective, prior, segment_end, vae)
+    classes = {obj for module in modules
+               for obj in vars(module).values() if isinstance(obj, type) and "SETTINGS" in vars(obj)}
+    assert len(classes) >= 14, sorted(c.__name__ for c in classes)
+    for cls in classes:
+        params = set(inspect.signature(cls.__init__).parameters)
+        assert set(cls.SETTINGS) <= params, (cls.__name__, set(cls.SETTINGS) - params)

@@ -25,7 +25,15 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from dider.evaluation.scoring import cv_verdict
 from dider.io import atomic_write_text
 from dider.outputs.prediction import PredictionWriter, PredictProgress
-from dider.outputs.run_record import format_table, hparams, log_results, overrides, provenance, write_metrics
+from dider.outputs.run_record import (
+    format_table,
+    hparams,
+    log_results,
+    overridden_keys,
+    overrides,
+    provenance,
+    write_metrics,
+)
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
@@ -128,9 +136,8 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
     """The data module of ``mode=predict``: the settings that shape the features taken from the checkpoint
     where the command line does not set them (a differing one refused unless ``predict.force``), the
     checkpoint's normaliser."""
-    set_by_user = {o.split("=", 1)[0].lstrip("+~") for o in overrides()}
     try:
-        take = training_settings(trained, cfg.data, set_by_user, bool(cfg.predict.force))
+        take = training_settings(trained, cfg.data, overridden_keys(), bool(cfg.predict.force))
     except ValueError as e:
         raise ConfigError(str(e)) from None
     for key, value in take.items():

@@ -127,12 +127,13 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
 
 def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None
                    ) -> None:
-    """Check a constructor's arguments by the rules its class declares once (``SETTINGS``: name -> rule), and
-    ``related`` ones whose rule depends on another argument (name -> (value, rule)); raises :class:`ConfigError`
-    naming the class and every setting that fails. The preflight applies ``SETTINGS`` to the config node that
-    builds the class (:func:`settings_problems`), under the node's keys."""
+    """Check a constructor's arguments (``locals()`` at its top) by the rules its class declares once
+    (``SETTINGS``: name -> rule; arguments without one are left alone), and ``related`` ones whose rule depends on
+    another argument (name -> (value, rule)); raises :class:`ConfigError` naming the class and every setting
+    that fails. The preflight applies ``SETTINGS`` to the config node that builds the class
+    (:func:`settings_problems`), under the node's keys."""
     rules = type(owner).SETTINGS
-    checks = {name: (value, rules[name]) for name, value in values.items()} | dict(related or {})
+    checks = {name: (value, rules[name]) for name, value in values.items() if name in rules} | dict(related or {})
     found = [f"{name}={value!r}: {why}" for name, (value, rule) in checks.items() if (why := rule(value)) is not None]
     if found:
         raise ConfigError(f"{type(owner).__name__}: " + "; ".join(found))

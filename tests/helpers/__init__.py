@@ -3,5 +3,4 @@ the explorer's clips and headless-Chromium helpers (:mod:`helpers.explore`) and 
 (:mod:`helpers.baselines`). Importable as ``helpers`` because pytest puts ``tests/`` on the path
 (``pythonpath`` in pyproject.toml)."""
 
-# The overrides that leave the sparsity term out, the edge KL at full weight.
-NO_SPARSITY = ["model.objective.sparsity=null", "model.objective.kl_edge.weight=1"]
+from dider.bench.cases import NO_SPARSITY  # noqa: F401 (the overrides that leave the sparsity term out)

@@ -32,6 +32,7 @@ OUTPUT_AGENTS = (40, 100)
 SCALE_STEPS = (50, 100, 200)
 # The scaling series: DNRI's step with narrower networks (N = 50 has 2450 edges; full width would need
 # tens of GB), so the growth in N and T shows, not the constant.
+# The overrides that leave the sparsity term out, the edge KL at full weight (also the tests').
 NO_SPARSITY = ["model.objective.sparsity=null", "model.objective.kl_edge.weight=1"]
 SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", *NO_SPARSITY]
 

@@ -113,8 +113,7 @@ class MarkovDecoder(nn.Module):
         kinematic: bool = False,
     ) -> None:
         super().__init__()
-        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "skip_first": skip_first, "dropout": dropout,
-                              "checkpoint": checkpoint, "kinematic": kinematic})
+        check_settings(self, locals())
         self.checkpoint = checkpoint
         self.kinematic = _state_update(kinematic, input_dim)
         self.messages = _MessagePassing(num_types, input_dim, hidden, skip_first, nn.ReLU(), dropout)
@@ -175,8 +174,7 @@ class RecurrentDecoder(nn.Module):
         kinematic: bool = False,
     ) -> None:
         super().__init__()
-        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "skip_first": skip_first, "dropout": dropout,
-                              "checkpoint": checkpoint, "kinematic": kinematic})
+        check_settings(self, locals())
         self.checkpoint = checkpoint
         self.kinematic = _state_update(kinematic, input_dim)
         self.messages = _MessagePassing(num_types, hidden, hidden, skip_first, nn.Tanh(), dropout)

@@ -123,12 +123,7 @@ class LearnedDuration(nn.Module):
         burn_in: int | None = None,
     ) -> None:
         super().__init__()
-        check_settings(self, {
-            "rnn_hidden": rnn_hidden, "hidden": hidden, "source": source, "min_duration": min_duration,
-            "rho_min": rho_min, "sigma_min": sigma_min, "prior_sigma": prior_sigma,
-            "tau_start": tau_start, "tau_end": tau_end, "tau_anneal": tau_anneal, "fixed_duration": fixed_duration,
-            "burn_in": burn_in,
-        }, {"sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
+        check_settings(self, locals(), {"sigma_init": (sigma_init, within_open(sigma_min, 1.0))})
         self.source, self.fixed_duration = source, fixed_duration
         self.min_duration, self.rho_min, self.sigma_min = float(min_duration), rho_min, sigma_min
         self.prior_mu, self.prior_sigma = prior_mu, prior_sigma

@@ -82,9 +82,7 @@ class GNNLSTMEncoder(nn.Module):
         """checkpoint: in training, recompute the GNN embedding's activations in the backward pass instead of
         storing them (less memory for large scenes, one more embedding forward per step; same gradients)."""
         super().__init__()
-        check_settings(self, {"input_dim": input_dim, "hidden": hidden, "rnn_hidden": rnn_hidden,
-                              "head_hidden": head_hidden, "head_layers": head_layers, "dropout": dropout,
-                              "batch_norm": batch_norm, "checkpoint": checkpoint})
+        check_settings(self, locals())
         self.checkpoint = checkpoint
         self.embed = GNNEdgeEmbedding(input_dim, hidden, dropout, batch_norm)
         self.forward_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)

@@ -55,9 +55,7 @@ class HoldGate(HazardPrior):
         online_threshold: float = 0.5,
         burn_in: int | None = None,
     ) -> None:
-        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "rate": rate, "rate_mix": rate_mix,
-                              "temperature": temperature, "sample": sample, "online_threshold": online_threshold,
-                              "burn_in": burn_in})
+        check_settings(self, locals())
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
         self.temperature, self.sample = temperature, sample
         self.posterior = nn.Sequential(nn.Linear(2 * rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 1))

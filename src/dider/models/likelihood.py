@@ -26,7 +26,7 @@ class GaussianNLL(Term):
 
     def __init__(self, variance: float | str = 5e-5) -> None:
         super().__init__()
-        check_settings(self, {"variance": variance})
+        check_settings(self, locals())
         self.to_fit = variance == "fit"
         self.value = 1.0 if self.to_fit else float(variance)  # a single variance as a number: no device sync
         self.register_buffer("variance", torch.tensor(self.value))

@@ -44,18 +44,17 @@ class Term(nn.Module):
 
     def __init__(self, weight: float = 1.0, capacity: float = 0.0) -> None:
         super().__init__()
-        check_settings(self, {k: v for k, v in {"weight": weight, "capacity": capacity}.items()
-                              if k in self.SETTINGS})  # the NLL has neither
+        check_settings(self, locals())  # those its class declares: the NLL has neither
         self.weight, self.capacity = float(weight), float(capacity)
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
         raise NotImplementedError
 
 
-def per_edge_step(values: torch.Tensor, out: Inference) -> torch.Tensor:
-    """values [B, E, T-1] (0 where the edge is absent) -> their sum over a clip's present edge-steps divided by
-    their count [B]: with one-step segments, DNRI's mean over (step, edge)."""
-    return values.flatten(1).sum(1) / out.present.flatten(1).sum(1).clamp_min(1)
+def per_edge_step(values: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    """values [B, E, ...] (0 where the edge is absent) -> their sum over a clip divided by its present edge-steps
+    (present [B, E, T-1] bool) [B]: with one-step segments, DNRI's mean over (step, edge)."""
+    return values.flatten(1).sum(1) / present.flatten(1).sum(1).clamp_min(1)
 
 
 class EdgeKL(Term):
@@ -68,7 +67,7 @@ class EdgeKL(Term):
 
     def __init__(self, weight: float = 1.0, capacity: float = 0.0, count: str = "per_segment") -> None:
         super().__init__(weight, capacity)
-        check_settings(self, {"count": count})
+        check_settings(self, locals())
         self.count = count
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
@@ -77,7 +76,7 @@ class EdgeKL(Term):
         kl = categorical_kl(out.posterior_logits, out.prior_logits) * at_start * seg.slot_weight  # [B, E, S]
         if self.count == "per_step":
             kl = kl * seg.num_steps_per_slot
-        return per_edge_step(kl, out)
+        return per_edge_step(kl, out.present)
 
 
 class DurationKL(Term):
@@ -99,7 +98,7 @@ class Sparsity(Term):
     def __init__(self, weight: float = 1.0, no_edge_prob: float = 0.9, form: str = "mean_edges",
                  num_types: int = 2) -> None:
         super().__init__(weight)
-        check_settings(self, {"no_edge_prob": no_edge_prob, "form": form})
+        check_settings(self, locals())
         self.form = form
         self.register_buffer("log_probs", fixed_log_probs(num_types, no_edge_prob), persistent=False)
 
@@ -109,8 +108,7 @@ class Sparsity(Term):
     def of(self, probs: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """probs [B, E, T-1, K] (each step's posterior), present [B, E, T-1] bool -> [B]."""
         if self.form == "per_edge":
-            kl = categorical_kl_probs(probs, self.log_probs) * present
-            return kl.flatten(1).sum(1) / present.flatten(1).sum(1).clamp_min(1)
+            return per_edge_step(categorical_kl_probs(probs, self.log_probs) * present, present)
         w = present.unsqueeze(-1).to(probs.dtype)
         mean_q = (probs * w).sum(1) / w.sum(1).clamp_min(1)  # [B, T-1, K]
         return categorical_kl_probs(mean_q, self.log_probs).mean(-1)
@@ -126,7 +124,7 @@ class PriorFit(Term):
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
         fit = categorical_kl_probs(out.probs.detach(), F.log_softmax(out.prior_step_logits, dim=-1))
-        return per_edge_step(fit * out.present, out)
+        return per_edge_step(fit * out.present, out.present)
 
 
 class Objective(nn.Module):
@@ -137,7 +135,7 @@ class Objective(nn.Module):
 
     def __init__(self, kl_warmup: float = 0.0, capacity_ramp: float = 0.5, **terms: Term | None) -> None:
         super().__init__()
-        check_settings(self, {"kl_warmup": kl_warmup, "capacity_ramp": capacity_ramp})
+        check_settings(self, locals())
         if "nll" not in terms or terms["nll"] is None:
             raise ValueError("model.objective: needs an `nll` term (the decoder's likelihood)")
         if wrong := [k for k, v in terms.items() if v is not None and not isinstance(v, Term)]:

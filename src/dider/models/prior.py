@@ -23,7 +23,7 @@ class LearnedPrior(nn.Module):
 
     def __init__(self, num_types: int, rnn_hidden: int = 64, hidden: int = 128, num_layers: int = 3) -> None:
         super().__init__()
-        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "num_layers": num_layers})
+        check_settings(self, locals())
         self.net = head(rnn_hidden, hidden, num_types, num_layers)
 
     def forward(self, h_fwd: torch.Tensor) -> torch.Tensor:

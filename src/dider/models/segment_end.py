@@ -101,9 +101,7 @@ class SegmentEnd(HazardPrior):
         burn_in: int | None = None,
         reads: str = "position",
     ) -> None:
-        check_settings(self, {"rnn_hidden": rnn_hidden, "hidden": hidden, "rate": rate, "rate_mix": rate_mix,
-                              "temperature": temperature, "online_threshold": online_threshold, "burn_in": burn_in,
-                              "reads": reads})
+        check_settings(self, locals())
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
         self.temperature = temperature
         # Online, a segment also ends where the prior reads another type than the one held: the prior hazard is

@@ -80,9 +80,7 @@ class RelationalVAE(nn.Module):
         alone, one type per edge held for the whole roll-out: NRI). decoder_edges: False switches every edge off
         for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
         super().__init__()
-        check_settings(self, {"num_edges": num_edges, "posterior_readout": posterior_readout,
-                              "rollout_edges": rollout_edges, "gumbel_tau": gumbel_tau,
-                              "forecast_edges": forecast_edges, "decoder_edges": decoder_edges})
+        check_settings(self, locals())
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
                  "decoder": (decoder, Decoder)}
         for key, (plugin, interface) in seams.items():

@@ -59,6 +59,11 @@ def overrides() -> list[str]:
         return []
 
 
+def overridden_keys() -> set[str]:
+    """The config keys set on the command line (``+`` and ``~`` stripped), e.g. ``{"data.frame_rate"}``."""
+    return {o.split("=", 1)[0].lstrip("+~") for o in overrides()}
+
+
 def hparams(cfg: DictConfig) -> dict[str, Any]:
     """The scalar settings worth comparing across runs, flattened with '/'."""
     keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
@@ -75,7 +80,7 @@ def hparams_tab(cfg: DictConfig) -> dict[str, Any]:
     and every model and data setting given on the command line, so that the metrics are in view (all 63-71
     settings pushed them off the screen; the other loggers get them all)."""
     every = hparams(cfg)
-    given = {o.split("=", 1)[0].lstrip("+~").replace(".", "/") for o in overrides()}
+    given = {key.replace(".", "/") for key in overridden_keys()}
     return {k: v for k, v in every.items()
             if k in ("model", "data", "seed", "model/num_edges") or k in given}
 
