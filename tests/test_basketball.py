@@ -12,7 +12,7 @@ from helpers.fixtures import write_dnri_bball, write_zhan
 
 
 def make_dm(root: Path, **kw) -> BasketballDataModule:
-    dm = BasketballDataModule(root=None if root is None else str(root), **{"batch_size": 8, **kw})
+    dm = BasketballDataModule(root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
     dm.prepare_data()
     dm.setup()
     return dm

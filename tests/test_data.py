@@ -7,7 +7,7 @@ from dider.data.synth import SynthDataModule
 
 
 def make_dm(tmp_path, **kw) -> SynthDataModule:
-    params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), batch_size=8)
+    params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), loader={"batch_size": 8})
     params.update(kw)
     dm = SynthDataModule(**params)
     dm.prepare_data()
@@ -47,6 +47,40 @@ def test_cache_is_keyed_and_reused(tmp_path):
 def test_bad_config_names_the_key(tmp_path, kw, key):
     with pytest.raises(ValueError, match=key):
         SynthDataModule(cache_dir=str(tmp_path), **kw)
+
+
+def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
+    from dider.data.basketball import BasketballDataModule
+    from dider.data.loader import Loader
+
+    dm = make_dm(tmp_path, loader={"batch_size": 5})
+    assert dm.loader == Loader(batch_size=5, eval_batch_size=256)  # the synthetic set's evaluation batch kept
+    assert dm.train_dataloader().batch_size == 5 and dm.test_dataloader().batch_size == 256
+    assert BasketballDataModule().loader == Loader(batch_size=128, eval_batch_size=128)
+    with pytest.raises(ValueError, match=r"data.loader.pin_memory='yes': expected true or false"):
+        SynthDataModule(cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
+    with pytest.raises(ValueError, match=r"data.loader.workers: no such setting"):
+        SynthDataModule(cache_dir=str(tmp_path), loader={"workers": 2})
+
+
+def test_every_data_setting_is_a_constructor_argument():
+    """The data modules check ``locals()`` against their ``SETTINGS`` (a rule no argument has would never run)."""
+    import importlib
+    import inspect
+
+    from dider.data.common import ClipDataModule
+
+    for name in ("basketball", "dnri_files", "ind", "soccer", "synth", "table", "trajectories"):
+        importlib.import_module(f"dider.data.{name}")
+    classes = set()
+    todo = [ClipDataModule]
+    while todo:
+        todo += (subclasses := todo.pop().__subclasses__())
+        classes.update(subclasses)
+    assert len(classes) >= 7, sorted(c.__name__ for c in classes)
+    for cls in classes:
+        params = set(inspect.signature(cls.__init__).parameters)
+        assert set(cls.SETTINGS) <= params, (cls.__name__, set(cls.SETTINGS) - params)
 
 
 def test_normalizer_roundtrip_and_errors():

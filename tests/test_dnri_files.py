@@ -12,7 +12,7 @@ from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 
 SIZES = {"train": 8, "val": 3, "test": 5}
 STEPS = 30
-SMALL = dict(burn_in=5, horizons=(1, 10), batch_size=4, eval_batch_size=4)
+SMALL = dict(burn_in=5, horizons=(1, 10), loader={"batch_size": 4, "eval_batch_size": 4})
 
 
 def write_dnri(root: Path, sizes: dict[str, int] = SIZES, steps: int = STEPS) -> dict[str, tuple]:

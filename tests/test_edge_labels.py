@@ -10,7 +10,8 @@ from dider.evaluation.metrics import BoundaryF1, EdgeAccuracy
 
 
 def first_test_batch(tmp_path) -> dict[str, torch.Tensor]:
-    dm = SynthDataModule(num_train=8, num_val=4, num_test=200, eval_batch_size=200, cache_dir=str(tmp_path), seed=5)
+    dm = SynthDataModule(num_train=8, num_val=4, num_test=200, loader={"eval_batch_size": 200},
+                         cache_dir=str(tmp_path), seed=5)
     dm.prepare_data()
     dm.setup()
     return next(iter(dm.test_dataloader()))

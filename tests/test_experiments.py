@@ -11,7 +11,7 @@ from dider.run import train
 from helpers.fixtures import write_ind_root, write_zhan
 
 EXPERIMENTS = sorted(p.stem for p in (Path(dider.conf.__file__).parent / "experiment").glob("*.yaml"))
-SMALL_SYNTH = ["data.num_train=32", "data.num_val=8", "data.num_test=8", "data.batch_size=8"]
+SMALL_SYNTH = ["data.num_train=32", "data.num_val=8", "data.num_test=8", "data.loader.batch_size=8"]
 
 
 def fake_data(data: str, tmp: Path) -> list[str]:
@@ -25,7 +25,7 @@ def fake_data(data: str, tmp: Path) -> list[str]:
         return [f"data.root={tmp / 'bball'}"]
     if data == "soccer":  # kloppy's own sample files, which the experiment names: the first 3000 frames
         pytest.importorskip("kloppy")
-        return ["+data.options={limit:3000}", "data.batch_size=4", "data.eval_batch_size=4"]
+        return ["+data.options={limit:3000}", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
     return SMALL_SYNTH
 
 

@@ -18,7 +18,8 @@ from dider.protocol import burn_in_mask
 from helpers.fixtures import edit_csv, write_background, write_ind_root
 
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
-SMALL = dict(split=(2, 1, 1), seq_len=20, burn_in=5, horizons=(1, 5, 15), batch_size=4, eval_batch_size=4)
+SMALL = dict(split=(2, 1, 1), seq_len=20, burn_in=5, horizons=(1, 5, 15),
+             loader={"batch_size": 4, "eval_batch_size": 4})
 
 
 @pytest.fixture

@@ -75,7 +75,7 @@ def crowd_table(tmp: Path) -> list[str]:
     pd.DataFrame({"scene": [f"s{i}" for i in s.ravel()], "agent": [f"p{i}" for i in a.ravel()], "frame": f.ravel(),
                   "x": walk[..., 0].ravel(), "y": walk[..., 1].ravel()}).to_csv(tmp / "crowd.csv", index=False)
     return ["data=table", f"data.path={tmp / 'crowd.csv'}", "data.seq_len=12", "data.stride=12", "data.burn_in=4",
-            "model.burn_in=4", "data.horizons=[1,4]", "data.batch_size=2", "data.eval_batch_size=2",
+            "model.burn_in=4", "data.horizons=[1,4]", "data.loader.batch_size=2", "data.loader.eval_batch_size=2",
             "model.num_edges=2"]
 
 
@@ -118,7 +118,7 @@ class Row:
 
 
 def timelines_drawn(tmp: Path) -> None:
-    """The figures come from the first test batch: data.eval_batch_size=2 clips of 40 agents."""
+    """The figures come from the first test batch: data.loader.eval_batch_size=2 clips of 40 agents."""
     assert len(list((tmp / "out" / "figures").glob("timeline_*.png"))) == 2
 
 
@@ -256,7 +256,7 @@ def test_a_long_prediction_reports_progress_and_stops_on_sigterm(trained, tmp_pa
     arrays = write_trajectories(tmp_path / "many.npz", num=6000, steps=16, agents=4, seed=2)
     assert arrays["positions"].shape[0] == 6000
     args = _predict(tmp_path, trained, tmp_path / "many.npz", "predict.forecast_steps=5", "predict.progress_s=0.5",
-                    "data.eval_batch_size=8")
+                    "data.loader.eval_batch_size=8")
     proc = subprocess.Popen([sys.executable, "-m", "dider.run", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, cwd=tmp_path)
     lines = []

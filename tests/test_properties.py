@@ -133,7 +133,7 @@ def test_trajectory_reader_fails_cleanly(spec):
             assert out["edges"].shape == (s, t - 1, num_edges(n)) and (out["edges"] >= 0).all()
         # ...and the whole DataModule on top of it also fails only cleanly.
         dm = TrajectoryDataModule(path=str(path), burn_in=1, horizons=[1], frame_rate=spec["frame_rate"],
-                                  batch_size=2, eval_batch_size=2)
+                                  loader={"batch_size": 2, "eval_batch_size": 2})
         try:
             dm.setup()
         except Exception as e:  # noqa: BLE001
@@ -254,7 +254,7 @@ SYNTH = st.fixed_dictionaries({
 def test_synthetic_data_rejects_bad_parameters_by_key(params):
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            dm = SynthDataModule(cache_dir=tmp, batch_size=4, **params)
+            dm = SynthDataModule(cache_dir=tmp, loader={"batch_size": 4}, **params)
             dm.prepare_data()
         except Exception as e:  # noqa: BLE001
             assert_clean(e, "data.", "push_factor")
@@ -273,7 +273,7 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
     run regenerates the missing ones and everything loads."""
     with tempfile.TemporaryDirectory() as tmp:
         dm = SynthDataModule(num_train=num_train, num_val=3, num_test=2, num_steps=8, burn_in=2,
-                             horizons=[1], cache_dir=tmp, batch_size=4)
+                             horizons=[1], cache_dir=tmp, loader={"batch_size": 4})
         real_save, calls = torch.save, []
 
         def dying_save(obj, f, *args, **kwargs):

@@ -15,7 +15,7 @@ from helpers import NO_SPARSITY
 from helpers.fixtures import write_background, write_ind_root, write_trajectories, write_zhan
 
 SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", *NO_SPARSITY,
-         "model/decoder=recurrent", "data.batch_size=4", "data.eval_batch_size=4"]
+         "model/decoder=recurrent", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
 
 
 @pytest.fixture(scope="module")

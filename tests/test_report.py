@@ -31,7 +31,7 @@ def sweep(tmp_path_factory: pytest.TempPathFactory, cache_dir: Path) -> Path:
     out = tmp_path_factory.mktemp("sweep")
     cmd = [sys.executable, "-m", "dider.run", "-m", "experiment=smoke", "model=dnri,dider", "seed=1,2",
            f"hydra.sweep.dir={out}", f"data.cache_dir={cache_dir}", "logger=csv", "trainer.enable_progress_bar=false",
-           "data.num_train=32", "data.num_val=8", "data.num_test=8", "data.eval_batch_size=8"]
+           "data.num_train=32", "data.num_val=8", "data.num_test=8", "data.loader.eval_batch_size=8"]
     proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

@@ -202,7 +202,7 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
 
     monkeypatch.setattr(Metric, "update", spy)
     cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
-                    "data.horizons=[1,5,15]", "data.batch_size=4", "data.eval_batch_size=4", "model=dnri",
+                    "data.horizons=[1,5,15]", "data.loader.batch_size=4", "data.loader.eval_batch_size=4", "model=dnri",
                     "model/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],
                    out=tmp_path / "run")
     metrics = train(cfg)

@@ -111,7 +111,7 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     DIDER's learning test, which shares the encoder, the posterior and the decoder.
     """
     cfg = make_cfg(
-        ["data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
+        ["data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.loader.batch_size=32",
          "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "model.decoder.hidden=256",
          "model=dnri", "trainer.max_epochs=6", "model.optimizer.lr=1e-3", "model.scheduler.step_size=8", "logger=none",
          "callbacks=none"],
@@ -140,7 +140,7 @@ def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     seeds 1 (the default, run here) to 4, none recall 0.987-0.999.
     """
     cfg = make_cfg(
-        ["model=dider", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.batch_size=32",
+        ["model=dider", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.loader.batch_size=32",
          "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "trainer.max_epochs=6",
          "model.optimizer.lr=1e-3", "logger=none", "callbacks=none"],
         tiny=False, out=tmp_path / "run",

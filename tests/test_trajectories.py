@@ -12,7 +12,7 @@ from helpers.fixtures import write_trajectories
 
 
 def make_dm(path: Path | None, **kw) -> TrajectoryDataModule:
-    dm = TrajectoryDataModule(path=None if path is None else str(path), **{"batch_size": 8, **kw})
+    dm = TrajectoryDataModule(path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
     dm.setup()
     return dm
 
@@ -138,7 +138,7 @@ def test_bad_input(tmp_path):
 @pytest.mark.parametrize("kw, key", [({"split": (0.5, 0.5)}, "data.split"),
                                      ({"frame_rate": 0}, "data.frame_rate"),
                                      ({"burn_in": 0}, "data.burn_in"),
-                                     ({"batch_size": 0}, "data.batch_size")])
+                                     ({"loader": {"batch_size": 0}}, "data.loader.batch_size")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
         TrajectoryDataModule(**kw)

@@ -1,16 +1,20 @@
 """One way to validate settings: each rule is written once.
 
-A class that a config node builds (the network, its plugins, the objective's terms) declares its settings' rules
-in ``SETTINGS``: its constructor applies them to the values it receives (:func:`check_settings`, naming the class:
-``RelationalVAE: num_edges=1: must be >= 2 (...)``) and ``dider.training.preflight.validate_config`` applies them
-to the node before any work starts (:func:`settings_problems`, naming the key: ``model.num_edges=1: ...``). The
-app's own keys (the seed, the trainer, the LightningModule's, the data's shared ones) have theirs in
-:data:`RULES`, applied by :func:`require` and the preflight alike. Every problem is listed at once.
+A class that a config node builds (the network, its plugins, the objective's terms, the data modules) declares its
+settings' rules in ``SETTINGS``: its constructor applies them to the values it receives (:func:`check_settings`,
+naming the class, ``RelationalVAE: num_edges=1: must be >= 2 (...)``, or the key, ``data.num_train=0: must be
+>= 1``) and ``dider.training.preflight.validate_config`` applies them to the node before any work starts
+(:func:`settings_problems`, naming the key: ``model.num_edges=1: ...``). A setting that is a node of its own
+(the data's ``loader``) names its class as its rule. The app's own keys (the seed, the trainer, the
+LightningModule's) have theirs in :data:`RULES`, applied by :func:`require` and the preflight alike. Every
+problem is listed at once.
 """
 
 from __future__ import annotations
 
 import importlib
+import math
+import numbers
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -25,7 +29,7 @@ class ConfigError(ValueError):
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _numeric(ok: Callable[[float], bool], why: str) -> Rule:
@@ -51,13 +55,17 @@ def integer(low: int, note: str = "", high: int | None = None) -> Rule:
     """A whole number in [low, high] (2.5, "abc" and true are refused: they fail late and unnamed otherwise)."""
 
     def rule(value: Any) -> str | None:
-        if not isinstance(value, int) or isinstance(value, bool):
+        if not isinstance(value, numbers.Integral) or isinstance(value, bool):  # numpy's integers too
             return "must be an integer"
         if high is not None and not low <= value <= high:
             return f"must lie in [{low}, {high}]{note}"
         return None if value >= low else f"must be >= {low}{note}"
 
     return rule
+
+
+def finite(value: Any) -> str | None:
+    return None if _is_number(value) and math.isfinite(value) else "must be a finite number"
 
 
 def within(low: float, high: float, what: str = "must lie in") -> Rule:
@@ -97,7 +105,8 @@ def boolean(value: Any) -> str | None:
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
-# The settings of the app, the trainer and the LightningModule; the model's classes declare theirs (SETTINGS).
+# The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare
+# theirs (SETTINGS).
 RULES: dict[str, Rule] = {
     "compile": boolean,
     "predict.force": boolean,
@@ -112,8 +121,6 @@ RULES: dict[str, Rule] = {
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.burn_in": at_least(1),
-    "data.burn_in": at_least(1),
-    "data.burn_in_mode": one_of(*BURN_IN_MODES),
 }
 
 
@@ -125,18 +132,44 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
         raise ValueError(f"{where}: " + "; ".join(found))
 
 
-def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None
-                   ) -> None:
+def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None,
+                   *, key: str | None = None) -> None:
     """Check a constructor's arguments (``locals()`` at its top) by the rules its class declares once
-    (``SETTINGS``: name -> rule; arguments without one are left alone), and ``related`` ones whose rule depends on
-    another argument (name -> (value, rule)); raises :class:`ConfigError` naming the class and every setting
-    that fails. The preflight applies ``SETTINGS`` to the config node that builds the class
-    (:func:`settings_problems`), under the node's keys."""
-    rules = type(owner).SETTINGS
-    checks = {name: (value, rules[name]) for name, value in values.items() if name in rules} | dict(related or {})
-    found = [f"{name}={value!r}: {why}" for name, (value, rule) in checks.items() if (why := rule(value)) is not None]
+    (``SETTINGS``: name -> rule, or name -> a class with ``SETTINGS`` of its own for a nested node; arguments
+    without one are left alone), and ``related`` ones whose rule depends on another argument (name -> (value,
+    rule)); raises :class:`ConfigError` listing every setting that fails, named by the class
+    (``RelationalVAE: num_edges=1: ...``) or, given ``key``, by the config key (``data.num_train=0: ...``). The
+    preflight applies ``SETTINGS`` to the config node that builds the class (:func:`settings_problems`)."""
+    prefix = f"{key}." if key else ""
+    found = _problems(type(owner).SETTINGS, values, prefix)
+    found += [f"{prefix}{name}={value!r}: {why}" for name, (value, rule) in (related or {}).items()
+              if (why := rule(value)) is not None]
     if found:
-        raise ConfigError(f"{type(owner).__name__}: " + "; ".join(found))
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(found) if key
+                          else f"{type(owner).__name__}: " + "; ".join(found))
+
+
+def _problems(rules: Mapping[str, Rule | type], values: Mapping[str, Any], prefix: str) -> list[str]:
+    """``values`` checked by ``rules`` (see :func:`check_settings`): ``"prefix+name=value: why"`` for each."""
+    found = []
+    for name, value in values.items():
+        rule = rules.get(name)
+        if isinstance(rule, type):
+            found += _node_problems(rule, value, f"{prefix}{name}")
+        elif rule is not None and (why := rule(value)) is not None:
+            found.append(f"{prefix}{name}={value!r}: {why}")
+    return found
+
+
+def _node_problems(cls: type, node: Any, where: str) -> list[str]:
+    """A nested settings node (e.g. the data's ``loader``) built into ``cls``: unknown keys and its rules."""
+    if node is None:
+        return []
+    names = list(getattr(cls, "__dataclass_fields__", cls.SETTINGS))
+    if not isinstance(node, Mapping):
+        return [f"{where}={node!r}: expected a mapping of {names}"]
+    unknown = [f"{where}.{k}: no such setting (expected one of {names})" for k in node if k not in names]
+    return unknown + _problems(cls.SETTINGS, node, f"{where}.")
 
 
 def settings_problems(node: Any, path: str) -> list[str]:
@@ -148,12 +181,10 @@ def settings_problems(node: Any, path: str) -> list[str]:
             found += settings_problems(item, f"{path}[{i}]")
     elif isinstance(node, Mapping):
         rules = getattr(_target_class(node.get("_target_")), "SETTINGS", {})
+        found += _problems(rules, node, f"{path}.")
         for key, value in node.items():
-            where = f"{path}.{key}"
-            if key in rules and (why := rules[key](value)) is not None:
-                found.append(f"{where}={value!r}: {why}")
-            else:
-                found += settings_problems(value, where)
+            if key not in rules:
+                found += settings_problems(value, f"{path}.{key}")
     return found
 
 

@@ -57,8 +57,9 @@ def data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[
     from dider.data.synth import SynthDataModule
 
     with tempfile.TemporaryDirectory(dir=tmpdir) as cache:
-        dm = SynthDataModule(num_train=2000, num_val=16, num_test=16, batch_size=case.batch, cache_dir=cache,
-                             num_workers=case.settings["num_workers"], pin_memory=device == "cuda")
+        dm = SynthDataModule(num_train=2000, num_val=16, num_test=16, cache_dir=cache,
+                             loader={"batch_size": case.batch, "num_workers": case.settings["num_workers"],
+                                     "pin_memory": device == "cuda"})
         dm.prepare_data()
         dm.setup()
         loader = dm.train_dataloader()

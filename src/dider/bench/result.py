@@ -27,8 +27,8 @@ RESULT_METRICS = ("test/edge_acc/posterior/none", "test/edge_acc/posterior/inter
                   "test/edge_acc/prior/interaction", "test/mse/h15", "test/mse/h25")
 
 # Seconds-long versions of the jobs, for the test of the measurement itself.
-QUICK = ["data.num_train=64", "data.num_val=16", "data.num_test=16", "data.batch_size=16", "trainer.max_epochs=1",
-         "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.decoder.hidden=32",
+QUICK = ["data.num_train=64", "data.num_val=16", "data.num_test=16", "data.loader.batch_size=16",
+         "trainer.max_epochs=1", "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.decoder.hidden=32",
          "callbacks.timelines.num_clips=1"]
 
 

@@ -16,15 +16,18 @@ the training split (DNRI's scheme). All agents are present at every step (mask a
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.common import ClipDataModule, ClipDataset, check_counts, check_finite, spread_indices
+from dider.data.common import ClipDataModule, ClipDataset, check_finite, spread_indices
+from dider.data.loader import Loader
 from dider.protocol import check_horizons
+from dider.validation import Rule, above, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +133,12 @@ class BasketballDataModule(ClipDataModule):
 
     units = "ft"
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "format": one_of("auto", "zhan", "dnri"), "agents": one_of(*AGENT_COLUMNS), "val_fraction": within_open(0, 1),
+        "frame_rate": above(0), "train_len": optional(integer(2)),
+    }
+    LOADER = Loader(batch_size=128, eval_batch_size=128)  # DNRI's basketball batch
+
     def __init__(
         self,
         root: str | None = None,
@@ -144,24 +153,12 @@ class BasketballDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        batch_size: int = 128,
-        eval_batch_size: int = 128,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
-        if format not in ("auto", "zhan", "dnri"):
-            raise ValueError(f"data.format={format!r}: expected 'auto', 'zhan' or 'dnri'")
-        if agents not in AGENT_COLUMNS:
-            raise ValueError(f"data.agents={agents!r}: expected one of {list(AGENT_COLUMNS)}")
-        if not 0 < val_fraction < 1:
-            raise ValueError(f"data.val_fraction={val_fraction}: must lie in (0, 1)")
-        if not frame_rate > 0:
-            raise ValueError(f"data.frame_rate={frame_rate}: must be > 0")
-        check_counts(train_len=(train_len, 2), num_train=(num_train, 1), num_val=(num_val, 1),
-                     num_test=(num_test, 1))
+        check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
         self.init_shared()  # the clip length is known once the files are read: horizons checked in setup
         self.format: str | None = None

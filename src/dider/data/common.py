@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
+from typing import ClassVar
 
 import lightning as L
 import torch
@@ -23,9 +25,10 @@ from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from torch.utils.data import DataLoader, Dataset
 
 from dider.data.batch import Batch, Normalizer
+from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
-from dider.protocol import check_horizons
-from dider.validation import at_least, require
+from dider.protocol import BURN_IN_MODES, check_horizons
+from dider.validation import Rule, integer, one_of, optional
 
 SPLITS = ("train", "val", "test")
 # The per-agent features of every batch, in order (raw units before normalisation).
@@ -155,12 +158,6 @@ def spread_indices(n: int, cap: int | None) -> torch.Tensor:
     return torch.linspace(0, n - 1, cap).round().long().unique()
 
 
-def check_counts(**values: tuple[int | None, int]) -> None:
-    """values: ``data.<name>`` -> (value, minimum); None values are skipped. Raises a
-    :class:`~dider.validation.ConfigError` (a ValueError) naming each key."""
-    require({}, {f"data.{key}": (value, at_least(low)) for key, (value, low) in values.items() if value is not None})
-
-
 def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = None) -> None:
     """Raise naming ``name`` and the first bad index if any (selected) value is NaN or infinite.
 
@@ -191,14 +188,22 @@ def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:
 class ClipDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
-    Every subclass takes, with defaults of its own, ``batch_size`` / ``eval_batch_size`` (clips per
-    training / evaluation batch), ``num_workers``, ``pin_memory`` (the DataLoaders'), ``burn_in``,
-    ``horizons``, ``burn_in_mode`` (the forecast protocol, :mod:`dider.protocol`) and ``cache_dir``. Its
-    ``__init__`` calls ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments
-    of the ``__init__`` that calls it, so hparams, and the checkpoints, hold every argument of the
-    subclass) and then :meth:`init_shared`, which checks the shared ones from ``self.hparams``. Subclasses
-    fill ``self.datasets`` and ``self.normalizer`` in ``setup``.
+    Every subclass takes ``loader`` (the DataLoaders' settings, :class:`~dider.data.loader.Loader`: a mapping
+    that overrides its class's ``LOADER`` defaults key by key), ``burn_in``, ``horizons``, ``burn_in_mode``
+    (the forecast protocol, :mod:`dider.protocol`), ``num_train`` / ``num_val`` / ``num_test`` and
+    ``cache_dir``, with defaults of its own. Its ``__init__`` checks its arguments by its class's ``SETTINGS``
+    (``check_settings(self, locals(), key="data")``: errors name ``data.<key>``), calls
+    ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments of the ``__init__``
+    that calls it, so hparams, and the checkpoints, hold every argument of the subclass) and then
+    :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``.
     """
+
+    # The rules of the shared arguments; a subclass adds its own (``ClipDataModule.SETTINGS | {...}``).
+    SETTINGS: ClassVar[dict[str, Rule | type]] = {
+        "loader": Loader, "burn_in": integer(1), "burn_in_mode": one_of(*BURN_IN_MODES),
+        "num_train": optional(integer(1)), "num_val": optional(integer(1)), "num_test": optional(integer(1)),
+    }
+    LOADER = Loader()  # this data set's loader defaults
 
     collate_fn = None  # None: torch's default collate (fixed agent count)
     units: str | None = None  # the positions' unit ("m", "ft"), for scale bars; None: unknown
@@ -230,16 +235,14 @@ class ClipDataModule(L.LightningDataModule):
 
     def init_shared(self, clip_len: int | None = None, *, length_key: str | None = None,
                     integer_horizons: bool = False) -> None:
-        """Check the shared arguments in ``self.hparams`` and set ``cache_dir``.
+        """Check the horizons in ``self.hparams`` and set ``loader`` and ``cache_dir``.
 
         clip_len: the clip length in steps, which the horizons must fit in, or None when it is known only
         once the data are read (the subclass then calls :func:`dider.protocol.check_horizons` in
         ``setup``). length_key, integer_horizons: see :func:`dider.protocol.check_horizons`.
         """
         h = self.hparams
-        require({"data.burn_in_mode": h.burn_in_mode})
-        check_counts(burn_in=(h.burn_in, 1), batch_size=(h.batch_size, 1),
-                     eval_batch_size=(h.eval_batch_size, 1), num_workers=(h.num_workers, 0))
+        self.loader = replace(self.LOADER, **dict(h.loader or {}))
         check_horizons(h.horizons, clip_len, h.burn_in, length_key=length_key, integers=integer_horizons)
         self.cache_dir = Path(h.cache_dir) if h.cache_dir else default_cache_dir()
 
@@ -256,7 +259,6 @@ class ClipDataModule(L.LightningDataModule):
     def _loader(self, split: str, train: bool) -> DataLoader:
         if split not in self.datasets:
             raise RuntimeError(f"{type(self).__name__}: call setup() before asking for the {split} loader")
-        h = self.hparams
         sampler = None
         if not train and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
             # DDP evaluation: each clip exactly once (Lightning's default sampler pads the shards by
@@ -264,13 +266,13 @@ class ClipDataModule(L.LightningDataModule):
             sampler = UnrepeatedDistributedSampler(self.datasets[split], shuffle=False)
         return DataLoader(
             self.datasets[split],
-            batch_size=h.batch_size if train else h.eval_batch_size,
+            batch_size=self.loader.batch_size if train else self.loader.eval_batch_size,
             shuffle=train,
             sampler=sampler,
             drop_last=False,
-            num_workers=h.num_workers,
-            pin_memory=h.pin_memory,
-            persistent_workers=h.num_workers > 0,
+            num_workers=self.loader.num_workers,
+            pin_memory=self.loader.pin_memory,
+            persistent_workers=self.loader.num_workers > 0,
             collate_fn=self.collate_fn,
         )
 

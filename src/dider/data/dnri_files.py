@@ -32,16 +32,18 @@ from __future__ import annotations
 
 import logging
 import pickle
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any, ClassVar
 
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_counts, check_finite, spread_indices
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_finite, spread_indices
+from dider.data.loader import Loader
 from dider.graph import num_edges
 from dider.protocol import check_horizons
-from dider.validation import one_of, require
+from dider.validation import Rule, check_settings, one_of
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +126,11 @@ class DNRIFilesDataModule(ClipDataModule):
 
     predicts = True
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "normalization": one_of(*NORMALIZATIONS), "predict_split": one_of(*SPLITS),
+    }
+    LOADER = Loader(batch_size=16, eval_batch_size=256)
+
     def __init__(
         self,
         root: str | None = None,
@@ -134,17 +141,12 @@ class DNRIFilesDataModule(ClipDataModule):
         num_test: int | None = None,
         burn_in: int = 5,
         horizons: Sequence[int] = (1, 15, 25),
-        batch_size: int = 16,
-        eval_batch_size: int = 256,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
-        check_counts(num_train=(num_train, 1), num_val=(num_val, 1), num_test=(num_test, 1))
-        require({}, {"data.normalization": (normalization, one_of(*NORMALIZATIONS)),
-                     "data.predict_split": (predict_split, one_of(*SPLITS))})
+        check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
         self.init_shared()  # the clip length is known once the files are read: horizons checked in setup
         self.frame_step = 1

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import matplotlib.image as plt_image
 import numpy as np
@@ -37,12 +37,14 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
 from dider.data.columns import csv_header, read_columns
-from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, check_counts, pad_collate, spread_indices
+from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.levelx.reading import DEFAULT_FEATURES, WindowParams
 from dider.data.levelx.recordings import RecordingFiles, discover_recordings, pattern_regex, split_counts
 from dider.data.levelx.windows import concat_windows, preprocess_recording, select_windows
+from dider.data.loader import Loader
 from dider.data.pairs import PairRules, find_pairs
 from dider.protocol import fill_absent
+from dider.validation import Rule, check_settings, integer, optional
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +64,13 @@ class InDDataModule(ClipDataModule):
     units = "m"
 
     collate_fn = staticmethod(pad_collate)
+
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "downsample": integer(1), "seq_len": integer(2), "stride": optional(integer(1)),
+        "eval_stride": optional(integer(1)), "min_agent_steps": integer(1), "min_agents": integer(1),
+        "max_agents": optional(integer(1)),
+    }
+    LOADER = Loader(batch_size=8, eval_batch_size=8)  # DNRI's inD batch
 
     def __init__(
         self,
@@ -90,10 +99,7 @@ class InDDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        batch_size: int = 8,
-        eval_batch_size: int = 8,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
         pairs: dict[str, Any] | None = None,
@@ -103,17 +109,14 @@ class InDDataModule(ClipDataModule):
         """pairs: the consistency check's rules (:class:`dider.data.pairs.PairRules` fields); test batches
         carry ``pair_kind``."""
         super().__init__()
+        check_settings(self, locals(), key="data")
         try:
             self.pair_rules = PairRules(**{k: tuple(v) if isinstance(v, list | tuple) else v
                                            for k, v in dict(pairs or {}).items()})
         except TypeError as e:
             raise ValueError(f"data.pairs: {e} (fields: {list(PairRules.__dataclass_fields__)})") from None
-        check_counts(
-            downsample=(downsample, 1), seq_len=(seq_len, 2), stride=(stride, 1),
-            eval_stride=(eval_stride, 1), min_agent_steps=(min_agent_steps, 1), min_agents=(min_agents, 1),
-            max_agents=(max_agents, min_agents), num_train=(num_train, 1), num_val=(num_val, 1),
-            num_test=(num_test, 1),
-        )
+        if max_agents is not None and max_agents < min_agents:
+            raise ValueError(f"data.max_agents={max_agents}: must be >= data.min_agents={min_agents}")
         if min_agent_steps > seq_len:
             raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
         if len(features) != 4:

@@ -16,11 +16,12 @@ import importlib
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from dider.data.table import TableDataModule, table_windows
+from dider.validation import Rule, check_settings, one_of
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +117,11 @@ class SoccerDataModule(TableDataModule):
     attributes as :class:`~dider.data.table.TableDataModule`'s; ``agent_class`` is each agent's team (or the
     ball); after reading, ``hparams.frame_rate`` is the provider's rate, which the features were computed at."""
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = TableDataModule.SETTINGS | {
+        "provider": one_of(*sorted(PROVIDERS)),
+        "frame_rate": lambda value: None if value is None or TableDataModule.SETTINGS["frame_rate"](value) is None
+        else "must be null (the provider's) or a number > 0",
+    }
     units = "m"  # kloppy's metric pitch coordinates
 
     def __init__(
@@ -137,23 +143,17 @@ class SoccerDataModule(TableDataModule):
         num_test: int | None = None,
         burn_in: int = 5,
         horizons: Sequence[int] = (1, 5, 10),
-        batch_size: int = 16,
-        eval_batch_size: int = 64,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
         max_speed: float | None = 12.0,
     ) -> None:
         """options: further keyword arguments of the kloppy loader (e.g. ``sample_rate``, ``limit``,
         ``only_alive``). frame_rate: null takes the provider's (a value given must match it)."""
-        if provider not in PROVIDERS:
-            raise ValueError(f"data.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
-        if frame_rate is not None and not (isinstance(frame_rate, int | float) and 0 < frame_rate < float("inf")):
-            raise ValueError(f"data.frame_rate={frame_rate!r}: must be null (the provider's) or a number > 0")
+        check_settings(self, locals(), key="data")
         super().__init__(None, None, frame_rate or 1.0, downsample, seq_len, stride, min_agent_steps, min_agents,
-                         split, seed, num_train, num_val, num_test, burn_in, horizons, batch_size, eval_batch_size,
-                         num_workers, pin_memory, cache_dir, burn_in_mode, max_speed)
+                         split, seed, num_train, num_val, num_test, burn_in, horizons, loader, cache_dir,
+                         burn_in_mode, max_speed)
         self._rows: dict[str, Any] | None = None
 
     def _source(self) -> str:

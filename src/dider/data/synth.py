@@ -3,16 +3,18 @@
 from __future__ import annotations
 
 import logging
-import math
-import numbers
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any, ClassVar
 
 import torch
 
 from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
-from dider.data.common import SPLITS, ClipDataModule, ClipDataset, check_counts, default_cache_dir
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
+from dider.data.loader import Loader
 from dider.data.simulate import simulate_push
+from dider.validation import Rule, check_settings, finite, integer
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +30,12 @@ class SynthDataModule(ClipDataModule):
     parameter, written atomically.
     """
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "num_train": integer(1), "num_val": integer(1), "num_test": integer(1), "num_steps": integer(2),
+        "push_factor": finite, "seed": integer(-(2**53) + 1, " (magnitude < 2**53)", 2**53 - 1),
+    }
+    LOADER = Loader(batch_size=16, eval_batch_size=256)
+
     def __init__(
         self,
         num_train: int = 40000,
@@ -36,28 +44,14 @@ class SynthDataModule(ClipDataModule):
         num_steps: int = 50,
         burn_in: int = 5,
         push_factor: float = 0.05,
-        batch_size: int = 16,
-        eval_batch_size: int = 256,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         seed: int = 1,
         cache_dir: str | None = None,
         horizons: tuple[int, ...] = (1, 15, 25),
         burn_in_mode: str = "global",
     ) -> None:
         super().__init__()
-        # Counts must be integers here, not only large enough (bools and floats such as 1.5 are rejected).
-        for key, value in [("num_train", num_train), ("num_val", num_val), ("num_test", num_test),
-                           ("num_steps", num_steps), ("burn_in", burn_in), ("batch_size", batch_size),
-                           ("eval_batch_size", eval_batch_size), ("num_workers", num_workers)]:
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-                raise ValueError(f"data.{key}={value!r}: must be an integer")
-        check_counts(num_train=(num_train, 1), num_val=(num_val, 1), num_test=(num_test, 1),
-                     num_steps=(num_steps, 2))
-        if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not abs(seed) < 2**53:
-            raise ValueError(f"data.seed={seed!r}: must be an integer of magnitude < 2**53")
-        if isinstance(push_factor, bool) or not isinstance(push_factor, (int, float)) or not math.isfinite(push_factor):
-            raise ValueError(f"data.push_factor={push_factor!r}: must be a finite number")
+        check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
         self.init_shared(num_steps, length_key="data.num_steps", integer_horizons=True)
 

@@ -29,7 +29,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -39,7 +39,6 @@ from dider.data.common import (
     SPLITS,
     ClipDataModule,
     PackedClipDataset,
-    check_counts,
     pad_collate,
     ragged_rows,
     spread_indices,
@@ -48,7 +47,7 @@ from dider.data.table_reading import check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.data.windowing import MAX_GRID_CELLS, cut_windows
 from dider.protocol import fill_absent
-from dider.validation import above, optional, require
+from dider.validation import Rule, above, check_settings, finite, integer, optional
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +176,12 @@ class TableDataModule(ClipDataModule):
 
     collate_fn = staticmethod(pad_collate)
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "frame_rate": lambda value: above(0)(value) or finite(value), "downsample": integer(1),
+        "seq_len": integer(2), "stride": optional(integer(1)), "min_agent_steps": integer(1),
+        "min_agents": integer(1), "max_speed": optional(above(0)),
+    }
+
     def __init__(
         self,
         path: str | None = None,
@@ -194,27 +199,15 @@ class TableDataModule(ClipDataModule):
         num_test: int | None = None,
         burn_in: int = 5,
         horizons: Sequence[int] = (1, 5, 10),
-        batch_size: int = 16,
-        eval_batch_size: int = 64,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
         max_speed: float | None = None,
     ) -> None:
         """stride: null means seq_len (windows do not overlap); max_speed: null keeps every step."""
         super().__init__()
+        check_settings(self, locals(), key="data")
         self.columns = check_columns(columns)
-        counts = {"downsample": (downsample, 1), "seq_len": (seq_len, 2), "stride": (stride, 1),
-                  "min_agent_steps": (min_agent_steps, 1), "min_agents": (min_agents, 1),
-                  "num_train": (num_train, 1), "num_val": (num_val, 1), "num_test": (num_test, 1)}
-        for key, (value, _) in counts.items():  # 2.5 steps would pass the minimum yet break the windows
-            if value is not None and (isinstance(value, bool) or not isinstance(value, int | np.integer)):
-                raise ValueError(f"data.{key}={value!r}: must be an integer")
-        check_counts(**counts)
-        require({}, {"data.frame_rate": (frame_rate, above(0)), "data.max_speed": (max_speed, optional(above(0)))})
-        if not np.isfinite(frame_rate):
-            raise ValueError(f"data.frame_rate={frame_rate}: must be finite")
         if min_agent_steps > seq_len:
             raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
         split_indices(10**4, split, seed)  # the form of split (10**6 would cost 0.4 s); the window count comes later

@@ -19,17 +19,18 @@ from __future__ import annotations
 import logging
 import zipfile
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.common import ClipDataModule, ClipDataset, check_counts, check_finite, spread_indices
+from dider.data.common import ClipDataModule, ClipDataset, check_finite, spread_indices
 from dider.graph import num_edges
 from dider.protocol import check_horizons, fill_absent
+from dider.validation import Rule, above, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -168,6 +169,8 @@ class TrajectoryDataModule(ClipDataModule):
 
     predicts = True
 
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"frame_rate": above(0)}
+
     def __init__(
         self,
         path: str | None = None,
@@ -179,17 +182,12 @@ class TrajectoryDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        batch_size: int = 16,
-        eval_batch_size: int = 64,
-        num_workers: int = 0,
-        pin_memory: bool = False,
+        loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
     ) -> None:
         super().__init__()
-        check_counts(num_train=(num_train, 1), num_val=(num_val, 1), num_test=(num_test, 1))
-        if not frame_rate > 0:
-            raise ValueError(f"data.frame_rate={frame_rate}: must be > 0")
+        check_settings(self, locals(), key="data")
         split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup
         self.save_hyperparameters(logger=False)
         self.init_shared()  # the clip length is known once the file is read: horizons checked in setup

@@ -43,11 +43,12 @@ def validate_config(cfg: DictConfig) -> None:
         value = get(key)
         if value is not None and (found := problem(key, value)) is not None:
             problems.append(found)
-    if (model := get("model")) is not None:  # the settings that the model's classes declare (SETTINGS)
-        try:
-            problems += settings_problems(OmegaConf.to_container(model, resolve=True), "model")
-        except OmegaConfBaseException as e:  # an interpolation that cannot resolve: named here, not later
-            problems.append(f"model: cannot resolve ({e})")
+    for section in ("model", "data"):  # the settings that their classes declare (SETTINGS)
+        if (node := get(section)) is not None:
+            try:
+                problems += settings_problems(OmegaConf.to_container(node, resolve=True), section)
+            except OmegaConfBaseException as e:  # an interpolation that cannot resolve: named here, not later
+                problems.append(f"{section}: cannot resolve ({e})")
     mode = get("mode")
     problems += _checkpoint_problems(mode, get("ckpt_path"))
     if mode != "predict":  # prediction uses the checkpoint's model and scores no data horizons
@@ -82,8 +83,8 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
     for section in ("data", "model"):
-        burn_in = get(f"{section}.burn_in")  # its own rule (>= 1) is among RULES
-        burn_in = burn_in if problem(f"{section}.burn_in", burn_in) is None else None
+        burn_in = get(f"{section}.burn_in")  # its own rule (an integer >= 1) is the data's and RULES'
+        burn_in = burn_in if isinstance(burn_in, int) and burn_in >= 1 else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
             problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
         horizons = get(f"{section}.horizons")
