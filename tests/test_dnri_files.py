@@ -158,7 +158,7 @@ def test_bad_config_names_the_key(kw, key):
 
 def test_hydra_config_instantiates(root, make_cfg):
     write_dnri(root)
-    cfg = make_cfg(["data=dnri_files", f"data.root={root}", "data.horizons=[1,10]"])
+    cfg = make_cfg(["data=dnri_files", f"data.root={root}", "protocol.horizons=[1,10]"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.setup()
     assert dm.hparams.normalization == "separate" and "edges" in next(iter(dm.val_dataloader()))

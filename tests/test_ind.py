@@ -244,7 +244,7 @@ def test_extra_columns_ignored_and_custom_patterns(root, tmp_path):
 
 def test_hydra_config_instantiates(root, make_cfg):
     cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
-                    "data.horizons=[1,5,15]"])
+                    "protocol.horizons=[1,5,15]"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.prepare_data()
     dm.setup()

@@ -166,7 +166,7 @@ def test_horizon_mse_empty_is_nan() -> None:
 
 
 def test_horizon_mse_single_horizon_keeps_its_dimension() -> None:
-    """data.horizons=[h] passes config validation; val/test logging reads the values with horizon_values
+    """protocol.horizons=[h] passes config validation; val/test logging reads the values with horizon_values
     (torchmetrics squeezes a one-element compute() to 0-d)."""
     from dider.evaluation.scoring import horizon_values
 

@@ -26,7 +26,7 @@ from helpers.fixtures import write_trajectories
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 API_PAGE = Path(__file__).resolve().parents[1] / "docs" / "api.md"
-TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "data.horizons=[1,5]", "data.frame_rate=10",
+TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]", "data.frame_rate=10",
         "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0"]
 
 

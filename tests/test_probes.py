@@ -23,7 +23,7 @@ import torch
 import dider
 from helpers.fixtures import write_ind_root, write_trajectories
 
-TINY_RUN = ["experiment=smoke", "data=trajectories", "data.num_val=4", "data.horizons=[1,5]", "data.frame_rate=10",
+TINY_RUN = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]", "data.frame_rate=10",
             "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0", "seed=1"]
 
 
@@ -74,8 +74,8 @@ def crowd_table(tmp: Path) -> list[str]:
     walk = rng.normal(0, 0.3, (4, 40, 26, 2)).cumsum(2) + rng.uniform(0, 50, (4, 40, 1, 2))
     pd.DataFrame({"scene": [f"s{i}" for i in s.ravel()], "agent": [f"p{i}" for i in a.ravel()], "frame": f.ravel(),
                   "x": walk[..., 0].ravel(), "y": walk[..., 1].ravel()}).to_csv(tmp / "crowd.csv", index=False)
-    return ["data=table", f"data.path={tmp / 'crowd.csv'}", "data.seq_len=12", "data.stride=12", "data.burn_in=4",
-            "model.burn_in=4", "data.horizons=[1,4]", "data.loader.batch_size=2", "data.loader.eval_batch_size=2",
+    return ["data=table", f"data.path={tmp / 'crowd.csv'}", "data.seq_len=12", "data.stride=12", "protocol.burn_in=4",
+            "protocol.horizons=[1,4]", "data.loader.batch_size=2", "data.loader.eval_batch_size=2",
             "model.num_edges=2"]
 
 

@@ -35,7 +35,7 @@ def data_overrides(name: str, roots: dict[str, Path]) -> list[str]:
         "basketball": ["data=basketball", f"data.root={roots['bball']}", "data.num_train=16", "data.num_val=4",
                        "data.num_test=4"],
         "trajectories": ["data=trajectories", f"data.path={roots['traj']}", "data.num_train=16", "data.num_val=4",
-                         "data.num_test=4", "data.horizons=[1,5]"],
+                         "data.num_test=4", "protocol.horizons=[1,5]"],
     }[name]
 
 

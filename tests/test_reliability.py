@@ -230,9 +230,10 @@ def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypat
 
 BAD_CONFIGS = [
     (["model.num_edges=1"], r"model.num_edges=1: must be >= 2"),
+    (["protocol.burn_in=50"], r"protocol.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
     (["data.burn_in=50"], r"data.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
-    (["data.num_steps=20", "data.horizons=[1,5,16]"], r"data.horizons=\[1, 5, 16\]: each must lie in 1..15"),
-    (["data.horizons=[0,5]"], r"data.horizons=\[0, 5\]"),
+    (["data.num_steps=20", "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
+    (["protocol.horizons=[0,5]"], r"protocol.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
     (["model=dider", "model.duration.rate=1.5"], r"model.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
     (["model.objective.kl_edge.capacity=-0.5"], r"model.objective.kl_edge.capacity=-0.5: must be >= 0"),
@@ -243,6 +244,8 @@ BAD_CONFIGS = [
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
     (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
+    (["protocol.burn_in_mode=sideways"], r"configuration:\n  - protocol.burn_in_mode='sideways': expected one of "
+                                         r"\['global', 'per_agent'\]$"),  # once, not again as data.* and model.*
     (["data.num_train=0"], r"data.num_train=0: must be >= 1"),
     (["data.loader.batch_size=0"], r"data.loader.batch_size=0: must be >= 1"),
     (["data.loader.num_workers=1.5"], r"data.loader.num_workers=1.5: must be an integer"),
@@ -293,7 +296,7 @@ def test_valid_configs_pass(make_cfg, tmp_path):
 
 
 def test_horizons_of_one_run_to_the_end(make_cfg, tmp_path):
-    metrics = train(make_cfg(["data.horizons=[1]", "model=dnri", "logger=none", "trainer.max_epochs=2"],
+    metrics = train(make_cfg(["protocol.horizons=[1]", "model=dnri", "logger=none", "trainer.max_epochs=2"],
                              out=tmp_path / "run"))
     assert "test/mse/h01" in metrics and not any(k.startswith("test/mse/h15") for k in metrics)
 
@@ -346,7 +349,7 @@ def test_warnings_name_suspicious_settings(make_cfg, caplog):
     with caplog.at_level("WARNING"):
         validate_config(make_cfg(["trainer.max_epochs=0", "model.burn_in=4", "+foo=1"]))
     assert "trainer.max_epochs=0: nothing is trained" in caplog.text
-    assert "model.burn_in=4 differs from data.burn_in=5" in caplog.text
+    assert "model.burn_in=4 differs from data.burn_in=5" in caplog.text and "set protocol.burn_in" in caplog.text
     assert "foo: top-level key(s) that nothing reads" in caplog.text
 
 
@@ -418,7 +421,7 @@ def _bad_npz(tmp: Path) -> list[str]:
     pos = np.random.default_rng(0).normal(size=(20, 12, 3, 2))
     pos[3, 4, 1, 0] = 1e300  # finite in float64, inf in float32
     np.savez(tmp / "big.npz", positions=pos)
-    return ["data=trajectories", f"data.path={tmp / 'big.npz'}", "data.horizons=[1,5]"]
+    return ["data=trajectories", f"data.path={tmp / 'big.npz'}", "protocol.horizons=[1,5]"]
 
 
 def _bad_csv(tmp: Path) -> list[str]:

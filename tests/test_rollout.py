@@ -165,8 +165,9 @@ def test_first_scored_horizon_is_the_agents_first_own_prediction():
     assert metric.count.tolist() == [8 * 4, 8 * 4, 7 * 4]  # the late agent's 16th own step: frame 30, outside
 
 
-def test_model_takes_the_mode_from_the_data_config(make_cfg, tmp_path):
-    """model.burn_in_mode is the data's (an interpolation): the module is told, not fished from a trainer."""
+def test_model_takes_the_mode_from_the_protocol(make_cfg, tmp_path):
+    """model.burn_in_mode is the protocol's (an interpolation, as the data's): the module is told, not fished from a
+    trainer."""
     for data, mode in [("synth", "global"), ("ind", "per_agent")]:
         net = RelationalVAEModule.from_config(make_cfg(["model=dnri", f"data={data}"]).model)
         assert net.burn_in_mode == mode and net.hparams.burn_in_mode == mode, data
@@ -179,7 +180,7 @@ def test_model_takes_the_mode_from_the_data_config(make_cfg, tmp_path):
     for data, mode in [("synth", "global"), ("basketball", "global"), ("ind", "per_agent"),
                        ("ind200", "per_agent"), ("round", "per_agent"), ("trajectories", "per_agent")]:
         cfg = make_cfg([f"data={data}"])
-        assert cfg.data.burn_in_mode == mode, data
+        assert cfg.protocol.burn_in_mode == cfg.data.burn_in_mode == cfg.model.burn_in_mode == mode, data
     assert instantiate(make_cfg([]).data, _convert_="all").burn_in_mode == "global"
     with pytest.raises(Exception, match="data.burn_in_mode"):
         instantiate(make_cfg(["data.burn_in_mode=first"]).data, _convert_="all")
@@ -202,7 +203,8 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
 
     monkeypatch.setattr(Metric, "update", spy)
     cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
-                    "data.horizons=[1,5,15]", "data.loader.batch_size=4", "data.loader.eval_batch_size=4", "model=dnri",
+                    "protocol.horizons=[1,5,15]", "data.loader.batch_size=4", "data.loader.eval_batch_size=4",
+                    "model=dnri",
                     "model/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],
                    out=tmp_path / "run")
     metrics = train(cfg)

@@ -107,7 +107,7 @@ def test_train_then_predict_on_another_half(make_cfg, tmp_path):
     from dider.run import predict, train
 
     common = ["experiment=smoke", "data=soccer", "data.downsample=8", "data.seq_len=12", "data.stride=6",
-              "data.burn_in=5", "model.burn_in=5", "data.horizons=[1,5]", "logger=none",
+              "protocol.burn_in=5", "protocol.horizons=[1,5]", "logger=none",
               "trainer.enable_progress_bar=false", "callbacks.timelines.num_clips=0"]
     metrics = train(make_cfg([*common, files_override(HAWKEYE)], tiny=False, out=tmp_path / "run"))
     assert 0 < metrics["test/ade/h05"] and 0 < metrics["test/cv/ade/h05"]

@@ -344,7 +344,8 @@ def test_command_line_run(tmp_path):
     cmd = [sys.executable, "-m", "dider.run", "data=table", f"data.path={path}", "experiment=smoke",
            "trainer.max_epochs=1", f"hydra.run.dir={tmp_path / 'run'}", "logger=none",
            "trainer.enable_progress_bar=false", "data.columns.scene=place", "data.columns.agent=who",
-           "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=12", "data.horizons=[1,5]"]
+           "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=12",
+           "protocol.horizons=[1,5]"]
     proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -369,7 +370,7 @@ def test_a_window_too_long_fails_before_the_trainer_starts(make_cfg, tmp_path, m
     monkeypatch.setattr(L.Trainer, "fit", started)
     cfg = make_cfg(["data=table", f"data.path={path}", "data.columns.scene=place", "data.columns.agent=who",
                     "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=13",
-                    "data.burn_in=4", "model.burn_in=4", "data.horizons=[1,5]"])
+                    "protocol.burn_in=4", "protocol.horizons=[1,5]"])
     with pytest.raises(ValueError, match=r"a scene spanning >= 14 frames, and the longest scene has 13 step\(s\): "
                                          r"set data.seq_len <= 12"):
         train(cfg)

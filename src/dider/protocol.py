@@ -11,8 +11,8 @@ rolls out from its own predictions. There are two ways to place the burn-in (``b
 
 A horizon h is the h-th predicted step after the burn-in: for ``global`` the frame ``burn_in + h - 1`` of
 every agent, for ``per_agent`` the agent's h-th present frame after its own burn-in. Test errors are
-reported at a few such horizons (``data.horizons``), each of which must therefore lie in
-1..T - burn_in.
+reported at a few such horizons (``protocol.horizons``, which the data and the model configs read), each of
+which must therefore lie in 1..T - burn_in.
 
 Absent agents (mask False) get zero states, the centre of the normalised range, so no NaN ever reaches
 a model. Shapes: B clips, T frames, N agents.

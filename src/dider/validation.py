@@ -105,8 +105,8 @@ def boolean(value: Any) -> str | None:
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
-# The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare
-# theirs (SETTINGS).
+# The settings of the app, the trainer, the LightningModule and the forecast protocol; the model's and the data's
+# classes declare theirs (SETTINGS).
 RULES: dict[str, Rule] = {
     "compile": boolean,
     "predict.force": boolean,
@@ -121,6 +121,8 @@ RULES: dict[str, Rule] = {
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.burn_in": at_least(1),
+    "protocol.burn_in": integer(1),
+    "protocol.burn_in_mode": one_of(*BURN_IN_MODES),
 }
 
 

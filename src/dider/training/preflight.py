@@ -55,9 +55,17 @@ def validate_config(cfg: DictConfig) -> None:
         problems += _protocol_problems(get)
     problems += _path_problems(get) + _logger_problems(get)
     if problems:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(_once(problems)))
     for warning in config_warnings(cfg):
         log.warning(warning)
+
+
+def _once(problems: list[str]) -> list[str]:
+    """The problems, less the data's and the model's copies of a protocol value reported as ``protocol.*``
+    (both read the protocol: one mistake, one line)."""
+    protocol = {p.removeprefix("protocol.").split(":")[0] for p in problems if p.startswith("protocol.")}
+    return [p for p in problems if not (p.startswith(("data.", "model.")) and p.split(".", 1)[1].split(":")[0]
+                                        in protocol)]
 
 
 def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
@@ -77,23 +85,27 @@ def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
 
 
 def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
-    """The data's and the model's burn-in and horizons against the clip length, where the config states it
-    (``predict.burn_in`` is checked against the clips once they are read)."""
+    """The forecast protocol's burn-in and horizons against the clip length, where the config states it, and the
+    data's or the model's own where an override set them apart from the protocol (``predict.burn_in`` is checked
+    against the clips once they are read)."""
     problems = []
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
-    for section in ("data", "model"):
-        burn_in = get(f"{section}.burn_in")  # its own rule (an integer >= 1) is the data's and RULES'
+    protocol = {key: get(f"protocol.{key}") for key in ("burn_in", "horizons")}
+    for section in ("protocol", "data", "model"):
+        values = {key: get(f"{section}.{key}") for key in ("burn_in", "horizons")}
+        if section != "protocol" and values == protocol:
+            continue  # the protocol's, checked above
+        burn_in = values["burn_in"]  # its own rule (an integer >= 1) is among the data's SETTINGS and RULES
         burn_in = burn_in if isinstance(burn_in, int) and burn_in >= 1 else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
             problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
-        horizons = get(f"{section}.horizons")
-        if horizons is None:
+        if values["horizons"] is None:
             continue
         longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
         longest = longest if longest is not None and longest >= 1 else None  # else burn_in is reported above
         context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
-        if (found := horizons_problem(horizons, longest, f"{section}.horizons", context)) is not None:
+        if (found := horizons_problem(values["horizons"], longest, f"{section}.horizons", context)) is not None:
             problems.append(found)
     return problems
 
@@ -144,7 +156,7 @@ def _store_problem(uri: str) -> str | None:
 
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
 TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
-                  "optimized_metric", "predict", "data", "model", "trainer", "logger", "callbacks", "hydra",
+                  "optimized_metric", "predict", "protocol", "data", "model", "trainer", "logger", "callbacks", "hydra",
                   "hparams_search", "edges_per_model"}
 
 
@@ -154,10 +166,11 @@ def config_warnings(cfg: DictConfig) -> list[str]:
     found = []
     if cfg.get("mode") == "train" and OmegaConf.select(cfg, "trainer.max_epochs") == 0:
         found.append("trainer.max_epochs=0: nothing is trained; the test scores the initial weights")
-    model_b, data_b = OmegaConf.select(cfg, "model.burn_in"), OmegaConf.select(cfg, "data.burn_in")
-    if model_b is not None and data_b is not None and model_b != data_b:
-        found.append(f"model.burn_in={model_b} differs from data.burn_in={data_b}: the model forecasts after "
-                     f"{model_b} frames, the data module's horizons count from {data_b}")
+    for key in ("burn_in", "horizons", "burn_in_mode"):  # both read protocol.<key>, unless one was overridden
+        model_v, data_v = OmegaConf.select(cfg, f"model.{key}"), OmegaConf.select(cfg, f"data.{key}")
+        if model_v is not None and data_v is not None and model_v != data_v:
+            found.append(f"model.{key}={model_v} differs from data.{key}={data_v}: the model forecasts and scores "
+                         f"by its own, the data module checks its clips by the data's; set protocol.{key} for both")
     precision, accelerator = OmegaConf.select(cfg, "trainer.precision"), OmegaConf.select(cfg, "trainer.accelerator")
     if "bf16" in str(precision) and trains_on_cpu(accelerator) and not native_bf16("cpu"):
         found.append(f"trainer.precision={precision}: this CPU has no native bf16 (no AVX-512), so autocast "
