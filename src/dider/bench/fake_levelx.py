@@ -76,8 +76,27 @@ def write_levelx_recording(
     width = np.vectorize(lambda c: _CLASS_SIZE[c][0])(cls)
     length = np.vectorize(lambda c: _CLASS_SIZE[c][1])(cls)
 
-    # One row per (track, frame), tracks contiguous and sorted as in the real files; all vectorised.
-    track = np.repeat(k, life)
+    tracks = _tracks_table(recording_id, life, initial, speed, yaw_rate, head0, x0, y0, width, length, frame_rate)
+    meta = pd.DataFrame({
+        "recordingId": recording_id, "trackId": k, "initialFrame": initial, "finalFrame": initial + life - 1,
+        "numFrames": life, "width": width, "length": length, "class": cls,
+    })[TRACKS_META_COLUMNS]
+    rec = _recording_meta(recording_id, location_id, frame_rate, num_frames, cls)
+    name = f"{recording_id:02d}"
+    paths = {"tracks": root / f"{name}_tracks.csv", "tracks_meta": root / f"{name}_tracksMeta.csv",
+             "recording_meta": root / f"{name}_recordingMeta.csv"}
+    tracks.to_csv(paths["tracks"], index=False, float_format="%.5f")
+    meta.to_csv(paths["tracks_meta"], index=False, float_format="%.2f")
+    rec.to_csv(paths["recording_meta"], index=False)
+    return paths
+
+
+def _tracks_table(recording_id: int, life: np.ndarray, initial: np.ndarray, speed: np.ndarray, yaw_rate: np.ndarray,
+                  head0: np.ndarray, x0: np.ndarray, y0: np.ndarray, width: np.ndarray, length: np.ndarray,
+                  frame_rate: float) -> pd.DataFrame:
+    """``XX_tracks.csv``: one row per (track, frame), tracks contiguous and sorted as in the real files, each
+    track driving at its constant speed and yaw rate from its start (per-track arrays [K]); all vectorised."""
+    track = np.repeat(np.arange(len(life)), life)
     starts = np.concatenate([[0], np.cumsum(life)[:-1]])
     age = np.arange(track.size) - np.repeat(starts, life)
     frame = initial[track] + age
@@ -91,29 +110,22 @@ def write_levelx_recording(
     x = x0[track] + cx - cx[first]
     y = y0[track] + cy - cy[first]
     lat_acc = v * yaw_rate[track]  # centripetal
-    tracks = pd.DataFrame({
+    return pd.DataFrame({
         "recordingId": recording_id, "trackId": track, "frame": frame, "trackLifetime": age,
         "xCenter": x, "yCenter": y, "heading": np.degrees(head) % 360.0, "width": width[track],
         "length": length[track], "xVelocity": vx, "yVelocity": vy,
         "xAcceleration": -lat_acc * np.sin(head), "yAcceleration": lat_acc * np.cos(head),
         "lonVelocity": v, "latVelocity": 0.0, "lonAcceleration": 0.0, "latAcceleration": lat_acc,
     })[TRACKS_COLUMNS]
-    meta = pd.DataFrame({
-        "recordingId": recording_id, "trackId": k, "initialFrame": initial, "finalFrame": initial + life - 1,
-        "numFrames": life, "width": width, "length": length, "class": cls,
-    })[TRACKS_META_COLUMNS]
+
+
+def _recording_meta(recording_id: int, location_id: int, frame_rate: float, num_frames: int,
+                    cls: np.ndarray) -> pd.DataFrame:
+    """``XX_recordingMeta.csv``: one row; the fixed fields are a real recording's."""
     num_vru = int(np.isin(cls, VRU_CLASSES).sum())
-    rec = pd.DataFrame([{
+    return pd.DataFrame([{
         "recordingId": recording_id, "locationId": location_id, "frameRate": frame_rate, "speedLimit": 13.89,
-        "weekday": "Tuesday", "startTime": 8, "duration": num_frames / frame_rate, "numTracks": num_tracks,
-        "numVehicles": num_tracks - num_vru, "numVRUs": num_vru, "latLocation": 50.782, "lonLocation": 6.071,
+        "weekday": "Tuesday", "startTime": 8, "duration": num_frames / frame_rate, "numTracks": len(cls),
+        "numVehicles": len(cls) - num_vru, "numVRUs": num_vru, "latLocation": 50.782, "lonLocation": 6.071,
         "xUtmOrigin": 293487.5, "yUtmOrigin": 5629711.5, "orthoPxToMeter": 0.0081464,
     }])[RECORDING_META_COLUMNS]
-
-    name = f"{recording_id:02d}"
-    paths = {"tracks": root / f"{name}_tracks.csv", "tracks_meta": root / f"{name}_tracksMeta.csv",
-             "recording_meta": root / f"{name}_recordingMeta.csv"}
-    tracks.to_csv(paths["tracks"], index=False, float_format="%.5f")
-    meta.to_csv(paths["tracks_meta"], index=False, float_format="%.2f")
-    rec.to_csv(paths["recording_meta"], index=False)
-    return paths

@@ -108,16 +108,7 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
     scene, frame [W] long (source ids), scene_index [W] long (the scene's reading-order index), names and
     has_scene.
     """
-    bounds = np.flatnonzero(np.diff(t["scene"])) + 1
-    lo_hi = list(zip([0, *bounds.tolist()], [*bounds.tolist(), len(t["scene"])], strict=True))
-    first_frame = np.minimum.reduceat(t["frame"], np.array([lo for lo, _ in lo_hi]))  # [Z]
-    offset = t["frame"] - first_frame[t["scene"]]
-    keep = offset % downsample == 0
-    step = offset // downsample
-    hint = ""
-    if (gap := int(np.gcd.reduce(step[keep]))) > 1:  # e.g. frames numbered 0, 10, 20 with downsample=1
-        hint = f" (frames step by {gap * downsample}: set data.downsample={gap * downsample}?)"
-        log.warning("%s: %d of every %d steps are absent%s", path, gap - 1, gap, hint)
+    lo_hi, first_frame, keep, step, hint = _scene_steps(t, path, downsample)
     drop = 1 if t["vel"] is None else 0
     parts: list[dict[str, np.ndarray]] = []
     longest = steps_kept = steps_fast = 0
@@ -147,11 +138,33 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
                     100 * steps_fast / (steps_kept + steps_fast), max_speed)
     if longest < seq_len:
         raise ValueError(_too_few_frames(path, seq_len, downsample, drop, longest))
-    out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts]))
-           for k in ("states", "mask", "agent", "scene_index", "frame")}
-    if len(out["frame"]) == 0:
+    if not sum(len(p["frame"]) for p in parts):
         raise ValueError(f"{path}: no window of data.seq_len={seq_len} steps has >= data.min_agents={min_agents} "
                          f"agents present in >= data.min_agent_steps={min_agent_steps} of its steps{hint}")
+    return _packed(parts, t)
+
+
+def _scene_steps(t: dict[str, Any], path: Path | str, downsample: int
+                 ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, np.ndarray, str]:
+    """Each scene's row range, its first frame [Z], which rows fall on a kept step [R] bool, their step [R] and a
+    hint for the messages when the frames step by more than one (a warning names it)."""
+    bounds = np.flatnonzero(np.diff(t["scene"])) + 1
+    lo_hi = list(zip([0, *bounds.tolist()], [*bounds.tolist(), len(t["scene"])], strict=True))
+    first_frame = np.minimum.reduceat(t["frame"], np.array([lo for lo, _ in lo_hi]))  # [Z]
+    offset = t["frame"] - first_frame[t["scene"]]
+    keep = offset % downsample == 0
+    step = offset // downsample
+    hint = ""
+    if (gap := int(np.gcd.reduce(step[keep]))) > 1:  # e.g. frames numbered 0, 10, 20 with downsample=1
+        hint = f" (frames step by {gap * downsample}: set data.downsample={gap * downsample}?)"
+        log.warning("%s: %d of every %d steps are absent%s", path, gap - 1, gap, hint)
+    return lo_hi, first_frame, keep, step, hint
+
+
+def _packed(parts: list[dict[str, np.ndarray]], t: dict[str, Any]) -> dict[str, Any]:
+    """The scenes' windows (one part per scene) concatenated in reading order: :func:`table_windows`' dict."""
+    out = {k: torch.from_numpy(np.concatenate([p[k] for p in parts]))
+           for k in ("states", "mask", "agent", "scene_index", "frame")}
     counts = torch.from_numpy(np.concatenate([p["counts"] for p in parts]))
     out["offsets"] = torch.cat([torch.zeros(1, dtype=torch.long), counts.cumsum(0)])
     out["agent_class"] = None if t["agent_class"] is None else torch.from_numpy(

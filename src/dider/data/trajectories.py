@@ -94,56 +94,65 @@ def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rat
     s, t, n, _ = pos.shape
     if n < 2:
         raise ValueError(f"{path}: key 'positions' has {n} agent(s) per clip; relations need >= 2")
-    pos = _float32(pos)
-
-    if "mask" in arrays:
-        m = arrays["mask"]
-        if m.shape != (s, t, n):
-            raise ValueError(f"{path}: key 'mask' has shape {m.shape}; expected [S, T, N] = {(s, t, n)}")
-        if m.dtype != bool and not np.isin(m, (0, 1)).all():
-            raise ValueError(f"{path}: key 'mask' must be bool or 0/1 (dtype {m.dtype})")
-        mask = torch.from_numpy(m.astype(bool))
-    else:
-        mask = torch.ones(s, t, n, dtype=torch.bool)
+    pos, mask = _float32(pos), _mask(arrays, path, (s, t, n))
     hint = "" if "mask" in arrays else " (mark absent agents with a 'mask' key)"
     check_finite(f"{path}: key 'positions'{hint}", pos, mask[..., None])
+    pos, vel, mask, drop = _velocities(arrays, path, pos, mask, frame_rate, hint)
+    # first_frame: the file's time index of the clip's step 0 (1 when the first step went to differencing)
+    out = {"states": fill_absent(torch.cat([pos, vel], dim=-1), mask), "mask": mask, "first_frame": drop}
+    if "edges" in arrays:
+        # edges[t] produced step t from t-1, so the clip's transition j -> j+1 (raw step drop+j -> drop+j+1)
+        # is labelled by raw edges[drop + j + 1].
+        out["edges"] = _edges(arrays["edges"], path, (s, t, num_edges(n)))[:, drop + 1:]
+    return out
 
+
+def _mask(arrays: dict[str, np.ndarray], path: str | Path, shape: tuple[int, int, int]) -> torch.Tensor:
+    """The ``mask`` key as [S, T, N] bool (every agent present without one)."""
+    if "mask" not in arrays:
+        return torch.ones(shape, dtype=torch.bool)
+    m = arrays["mask"]
+    if m.shape != shape:
+        raise ValueError(f"{path}: key 'mask' has shape {m.shape}; expected [S, T, N] = {shape}")
+    if m.dtype != bool and not np.isin(m, (0, 1)).all():
+        raise ValueError(f"{path}: key 'mask' must be bool or 0/1 (dtype {m.dtype})")
+    return torch.from_numpy(m.astype(bool))
+
+
+def _velocities(arrays: dict[str, np.ndarray], path: str | Path, pos: torch.Tensor, mask: torch.Tensor,
+                frame_rate: float, hint: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """(positions, velocities, mask, steps dropped): the ``velocities`` key, or finite differences of the
+    positions x frame_rate, which drop the first step. pos: [S, T, N, 2], mask: [S, T, N]."""
     if "velocities" in arrays:
         v = arrays["velocities"]
-        if v.shape != (s, t, n, 2):
-            raise ValueError(f"{path}: key 'velocities' has shape {v.shape}; expected {(s, t, n, 2)} like "
+        if v.shape != pos.shape:
+            raise ValueError(f"{path}: key 'velocities' has shape {v.shape}; expected {tuple(pos.shape)} like "
                              f"positions")
         vel = _float32(v)
         check_finite(f"{path}: key 'velocities'{hint}", vel, mask[..., None])
-        drop = 0
-    else:
-        if t < 2:
-            raise ValueError(f"{path}: key 'positions' has {t} step(s): finite-difference velocities need "
-                             f">= 2")
-        # A velocity needs the agent at both ends of the step.
-        vel = (pos[:, 1:] - pos[:, :-1]) * frame_rate
-        pos, mask, drop = pos[:, 1:], mask[:, 1:] & mask[:, :-1], 1
-        check_finite(f"{path}: key 'positions' (finite-difference velocities x data.frame_rate={frame_rate})",
-                     vel, mask[..., None])
-    states = torch.cat([pos, vel], dim=-1)
-    # first_frame: the file's time index of the clip's step 0 (1 when the first step went to differencing)
-    out = {"states": fill_absent(states, mask), "mask": mask, "first_frame": drop}
+        return pos, vel, mask, 0
+    if pos.shape[1] < 2:
+        raise ValueError(f"{path}: key 'positions' has {pos.shape[1]} step(s): finite-difference velocities need "
+                         f">= 2")
+    # A velocity needs the agent at both ends of the step.
+    vel = (pos[:, 1:] - pos[:, :-1]) * frame_rate
+    pos, mask = pos[:, 1:], mask[:, 1:] & mask[:, :-1]
+    check_finite(f"{path}: key 'positions' (finite-difference velocities x data.frame_rate={frame_rate})",
+                 vel, mask[..., None])
+    return pos, vel, mask, 1
 
-    if "edges" in arrays:
-        e = arrays["edges"]
-        if e.shape != (s, t, num_edges(n)):
-            raise ValueError(f"{path}: key 'edges' has shape {e.shape}; expected [S, T, N(N-1)] = "
-                             f"{(s, t, num_edges(n))}")
-        if e.dtype.kind == "f" and not (np.isfinite(e).all() and (e == np.round(e)).all()):
-            raise ValueError(f"{path}: key 'edges' must hold integer edge types (dtype {e.dtype})")
-        if (e < 0).any():
-            raise ValueError(f"{path}: key 'edges' has negative edge types")
-        if e.size and e.max() >= 2**31:
-            raise ValueError(f"{path}: key 'edges' has edge type {e.max()}: implausibly large")
-        # edges[t] produced step t from t-1, so the clip's transition j -> j+1 (raw step drop+j -> drop+j+1)
-        # is labelled by raw edges[drop + j + 1].
-        out["edges"] = torch.from_numpy(e.astype(np.int64))[:, drop + 1:]
-    return out
+
+def _edges(e: np.ndarray, path: str | Path, shape: tuple[int, int, int]) -> torch.Tensor:
+    """The ``edges`` key as [S, T, E] long, checked to hold non-negative integer edge types."""
+    if e.shape != shape:
+        raise ValueError(f"{path}: key 'edges' has shape {e.shape}; expected [S, T, N(N-1)] = {shape}")
+    if e.dtype.kind == "f" and not (np.isfinite(e).all() and (e == np.round(e)).all()):
+        raise ValueError(f"{path}: key 'edges' must hold integer edge types (dtype {e.dtype})")
+    if (e < 0).any():
+        raise ValueError(f"{path}: key 'edges' has negative edge types")
+    if e.size and e.max() >= 2**31:
+        raise ValueError(f"{path}: key 'edges' has edge type {e.max()}: implausibly large")
+    return torch.from_numpy(e.astype(np.int64))
 
 
 def split_indices(num: int, fractions: Sequence[float], seed: int) -> dict[str, torch.Tensor]:
