@@ -30,7 +30,7 @@ REFERENCE_COMMIT = "ab7125c"  # the snapshot of cgraber/cvpr_dNRI the golden fil
 B, T, N, D = 2, 12, 3, 4
 BURN_IN, NUM_PRED = 6, 6  # the roll-out reads x_0..x_5 and predicts x_6..x_11
 ENC_HIDDEN, RNN_HIDDEN, HEAD_HIDDEN, DEC_HIDDEN = 32, 16, 16, 32
-NO_EDGE_PRIOR = 0.9  # DNRI synth's --add_uniform_prior --no_edge_prior 0.9 (ours: model/objective=dnri)
+NO_EDGE_PRIOR = 0.9  # DNRI synth's --add_uniform_prior --no_edge_prior 0.9 (ours: model/net/objective=dnri)
 # Smallest allowed gap between the top two logits of any argmax edge decision: ~500x the logit differences
 # measured between the implementations (~2e-7), so that the exact edge comparison cannot flip.
 MIN_MARGIN = 1e-4
@@ -44,12 +44,12 @@ VARIANT_SETTINGS = {  # variant -> (our decoder config, reference decoder_type, 
 def our_overrides(decoder: str, num_types: int) -> list[str]:
     """Hydra overrides of our model matching the reference built by ``reference_params``."""
     return [
-        "model=dnri", f"model/decoder={decoder}", f"model.num_edges={num_types}",
-        f"model.encoder.hidden={ENC_HIDDEN}", f"model.encoder.rnn_hidden={RNN_HIDDEN}",
-        f"model.encoder.head_hidden={HEAD_HIDDEN}", f"model.prior.hidden={HEAD_HIDDEN}",
-        f"model.decoder.hidden={DEC_HIDDEN}", "model.rollout_edges=argmax",
-        "model/objective=dnri", f"model.objective.sparsity.no_edge_prob={NO_EDGE_PRIOR}",
-        "model.objective.nll.variance=5e-5",
+        "model=dnri", f"model/net/decoder={decoder}", f"model.num_edges={num_types}",
+        f"model.net.encoder.hidden={ENC_HIDDEN}", f"model.net.encoder.rnn_hidden={RNN_HIDDEN}",
+        f"model.net.encoder.head_hidden={HEAD_HIDDEN}", f"model.net.prior.hidden={HEAD_HIDDEN}",
+        f"model.net.decoder.hidden={DEC_HIDDEN}", "model.net.rollout_edges=argmax",
+        "model/net/objective=dnri", f"model.net.objective.sparsity.no_edge_prob={NO_EDGE_PRIOR}",
+        "model.net.objective.nll.variance=5e-5",
     ]  # fmt: skip
 
 
@@ -158,7 +158,7 @@ def reference_to_ours(ref_sd: dict[str, torch.Tensor], decoder: str, num_types: 
 @contextlib.contextmanager
 def argmax_edges(model_utils: object) -> Iterator[list[float]]:
     """Make the reference's edge sampler return the argmax one-hot, so its loss and roll-out are deterministic
-    (DNRI samples hard Gumbel-softmax edges at evaluation; ours: ``model.rollout_edges=argmax``). Yields a
+    (DNRI samples hard Gumbel-softmax edges at evaluation; ours: ``model.net.rollout_edges=argmax``). Yields a
     list that collects, per call, the smallest gap between the two largest logits: an argmax decided by less
     than the float error between the two implementations could flip on another machine."""
     margins: list[float] = []

@@ -39,7 +39,7 @@ def test_constant_velocity_teacher_forced_and_masked():
 
 
 def test_static_decoder_ignores_the_edges(make_cfg):
-    cfg = make_cfg(["model=static_decoder", "model/decoder=recurrent"])
+    cfg = make_cfg(["model=static_decoder", "model/net/decoder=recurrent"])
     model = RelationalVAE.from_config(cfg.model).eval()
     x, mask = torch.randn(2, 8, 3, 4), torch.ones(2, 8, 3, dtype=torch.bool)
     edges = torch.randint(0, 2, (2, 6, 7))
@@ -51,7 +51,7 @@ def test_static_decoder_ignores_the_edges(make_cfg):
 
 @pytest.mark.parametrize("model", ["constant_velocity", "static_decoder"])
 def test_baselines_run_through_the_test_loop(make_cfg, tmp_path, model):
-    metrics = train(make_cfg([f"model={model}", "model/decoder=recurrent"], out=tmp_path / "run"))
+    metrics = train(make_cfg([f"model={model}", "model/net/decoder=recurrent"], out=tmp_path / "run"))
     horizons = sorted(k.rsplit("/", 1)[1] for k in metrics if k.startswith("test/ade/h"))
     assert len(horizons) >= 2 and "test/mse/h01" in metrics
     ade, fde = (np.array([metrics[f"test/{m}/{h}"] for h in horizons]) for m in ("ade", "fde"))

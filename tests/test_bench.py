@@ -27,7 +27,8 @@ def test_gemm_case_reports_its_arithmetic():
 
 def test_step_gflop_counts_without_training_the_model():
     torch.manual_seed(0)
-    model = bench_steps.build_model(["model=dnri", "model.encoder.hidden=16", "model.decoder.hidden=16"])[0].train()
+    model = bench_steps.build_model(["model=dnri", "model.net.encoder.hidden=16",
+                                     "model.net.decoder.hidden=16"])[0].train()
     before = {k: v.clone() for k, v in model.state_dict().items()}
     states = torch.rand(2, 6, 3, 4)
     batch = {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool)}

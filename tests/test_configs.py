@@ -24,9 +24,9 @@ def test_groups_exist():
 
 
 @pytest.mark.parametrize("model", options("model"))
-@pytest.mark.parametrize("decoder", options("model/decoder"))
+@pytest.mark.parametrize("decoder", options("model/net/decoder"))
 def test_models_instantiate(make_cfg, model, decoder):
-    cfg = make_cfg([f"model={model}", f"model/decoder={decoder}"])
+    cfg = make_cfg([f"model={model}", f"model/net/decoder={decoder}"])
     net = RelationalVAE.from_config(cfg.model)
     assert sum(p.numel() for p in net.parameters()) > 0
     b = {"states": torch.rand(2, 10, 3, 4), "mask": torch.ones(2, 10, 3, dtype=torch.bool)}
@@ -35,9 +35,10 @@ def test_models_instantiate(make_cfg, model, decoder):
 
 @pytest.mark.parametrize("group", ["encoder", "prior", "duration", "decoder"])
 def test_plugin_options_instantiate(make_cfg, group):
-    for option in options(f"model/{group}"):
-        cfg = make_cfg([f"model/{group}={option}"])
-        assert isinstance(instantiate(cfg.model[group]), torch.nn.Module)
+    assert options(f"model/net/{group}"), group
+    for option in options(f"model/net/{group}"):
+        cfg = make_cfg([f"model/net/{group}={option}"])
+        assert isinstance(instantiate(cfg.model.net[group]), torch.nn.Module)
 
 
 @pytest.mark.parametrize("trainer", options("trainer"))

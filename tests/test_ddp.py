@@ -17,7 +17,7 @@ from helpers.fixtures import write_trajectories
 
 # Deterministic evaluation: argmax edges in the roll-out; posterior types are argmaxes, so segments.json is
 # deterministic too. 15 test clips: 8 on rank 0, 7 on rank 1, none counted twice.
-COMMON = ["experiment=smoke", "model=dider", "model.rollout_edges=argmax", "data.num_test=15", "logger=none",
+COMMON = ["experiment=smoke", "model=dider", "model.net.rollout_edges=argmax", "data.num_test=15", "logger=none",
           "trainer.enable_progress_bar=false"]
 
 

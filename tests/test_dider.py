@@ -48,8 +48,8 @@ def test_short_segments_are_not_forced_into_one_last_slot():
 
 def test_unit_durations_reproduce_dnri_exactly(make_cfg):
     dnri = build(make_cfg, "model=dnri").train()
-    dider = build(make_cfg, "model=dider_paper", "model.duration.fixed_duration=1",  # and DNRI's objective
-                  "model/objective=dnri").train()
+    dider = build(make_cfg, "model=dider_paper", "model.net.duration.fixed_duration=1",  # and DNRI's objective
+                  "model/net/objective=dnri").train()
     missing, unexpected = dider.load_state_dict(dnri.state_dict(), strict=False)
     assert not unexpected and all(k.startswith("duration.") for k in missing)
     batch = clip()
@@ -109,7 +109,7 @@ def test_online_duration_reads_only_the_past():
 
 @pytest.mark.parametrize("model", ["dider", "dider_skid", "dider_paper", "dider_paper_skid", "dider_gate"])
 def test_rollout_and_online_types_are_causal(make_cfg, model):
-    net = build(make_cfg, f"model={model}", "model/decoder=recurrent").eval()
+    net = build(make_cfg, f"model={model}", "model/net/decoder=recurrent").eval()
     if model == "dider_gate":  # a prior gate that fires at some steps and not at others
         with torch.no_grad():
             logits = net.duration.prior(net.encoder(clip()["states"]).h_fwd)
@@ -130,7 +130,7 @@ def test_rollout_and_online_types_are_causal(make_cfg, model):
 
 
 def test_rollout_holds_types_for_their_duration(make_cfg):
-    net = build(make_cfg, "model=dider_paper", "model.rollout_edges=argmax").eval()
+    net = build(make_cfg, "model=dider_paper", "model.net.rollout_edges=argmax").eval()
     with torch.no_grad():
         net.duration.head[-1].bias.copy_(torch.tensor([5.0, 0.0]))  # rho -> 1: one segment to the end
     _, types = net.rollout(clip()["states"], clip()["mask"], 5, 20)
@@ -149,7 +149,7 @@ def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
     """The paper's t_1 = 0, d_0 = T_obs: the burn-in is its own segment, and the first forecast segment's
     type and duration are read at its end, in training (segment) and in the roll-out alike."""
     burn = 6
-    net = build(make_cfg, f"model={model}", f"model.burn_in={burn}", "model.rollout_edges=argmax").eval()
+    net = build(make_cfg, f"model={model}", f"model.burn_in={burn}", "model.net.rollout_edges=argmax").eval()
     batch = clip(t=30)
     enc = net.encoder(batch["states"], batch["mask"])
     seg = net.duration.segment(enc.h_fwd, enc.h_rev, batch["states"])

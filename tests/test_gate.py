@@ -99,8 +99,8 @@ def test_gradients_reach_both_gates(make_cfg):
 
 @pytest.mark.parametrize("burn_in", [None, 6])
 def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
-    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.duration.burn_in=${model.burn_in}"]
-    net = build(make_cfg, "model.rollout_edges=argmax", *over).eval()
+    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.net.duration.burn_in=${model.burn_in}"]
+    net = build(make_cfg, "model.net.rollout_edges=argmax", *over).eval()
     batch = clip()
     h_fwd = net.encoder(batch["states"], batch["mask"]).h_fwd
     prior = net.prior(h_fwd).argmax(-1)
@@ -166,7 +166,7 @@ def test_gate_kl_counts_the_present_free_steps_over_the_present_steps():
 
 
 def test_online_types_restart_where_an_edge_enters(make_cfg):
-    net = build(make_cfg, "model.rollout_edges=argmax").eval()
+    net = build(make_cfg, "model.net.rollout_edges=argmax").eval()
     batch = clip(t=21)
     h_fwd = net.encoder(batch["states"], batch["mask"]).h_fwd
     prior = net.prior(h_fwd).argmax(-1)  # [B, E, T]

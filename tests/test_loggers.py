@@ -50,7 +50,7 @@ def test_callback_configs_compose(make_cfg):
 def test_early_stopping_stops_a_run(make_cfg, tmp_path):
     metrics = train(make_cfg(["callbacks=early_stopping", "callbacks.early_stopping.patience=1",
                               "callbacks.early_stopping.min_delta=1e9", "trainer.max_epochs=6",
-                              "model.objective.kl_warmup=0", "logger=none"], out=tmp_path / "run"))
+                              "model.net.objective.kl_warmup=0", "logger=none"], out=tmp_path / "run"))
     import torch
 
     last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)

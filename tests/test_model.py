@@ -82,7 +82,7 @@ def test_type_zero_sends_no_message(cls):
 @pytest.mark.parametrize("decoder", ["markov", "recurrent"])
 def test_rollout_is_causal(make_cfg, model, decoder):
     """Changing frames after the burn-in never changes the forecast, nor any edge type."""
-    net = build(make_cfg, f"model={model}", f"model/decoder={decoder}").eval()
+    net = build(make_cfg, f"model={model}", f"model/net/decoder={decoder}").eval()
     batch = clip()
     burn = 5
     torch.manual_seed(1)
@@ -135,9 +135,9 @@ def test_bad_model_values_name_the_key(make_cfg):
     with pytest.raises(Exception, match="num_edges=1"):  # the first plugin built with it says so
         build(make_cfg, "model.num_edges=1")
     with pytest.raises(Exception, match="RelationalVAE: gumbel_tau=0: must be > 0"):
-        build(make_cfg, "model.gumbel_tau=0")
+        build(make_cfg, "model.net.gumbel_tau=0")
     with pytest.raises(Exception, match="PriorFit: weight=-1"):
-        build(make_cfg, "model=dider", "model.objective.prior_fit.weight=-1")
+        build(make_cfg, "model=dider", "model.net.objective.prior_fit.weight=-1")
 
 
 @pytest.mark.parametrize("masked", [False, True], ids=["all_present", "masked"])
@@ -146,11 +146,11 @@ def test_checkpointing_keeps_loss_gradients_and_statistics(make_cfg, decoder, ma
     """The memory savers only move work: the loss, every gradient and the batch norms' running statistics
     equal the plain model's. Dropout is on where both paths draw its masks in the same order (the encoder;
     the recurrent decoder, step by step either way), so the re-run must replay the first run's masks."""
-    widths = [f"model/decoder={decoder}", "model.encoder.hidden=16", "model.encoder.rnn_hidden=8",
-              "model.encoder.head_hidden=8", "model.prior.hidden=8", "model.decoder.hidden=16",
-              "model.encoder.dropout=0.1", f"model.decoder.dropout={0.1 if decoder == 'recurrent' else 0.0}"]
+    widths = [f"model/net/decoder={decoder}", "model.net.encoder.hidden=16", "model.net.encoder.rnn_hidden=8",
+              "model.net.encoder.head_hidden=8", "model.net.prior.hidden=8", "model.net.decoder.hidden=16",
+              "model.net.encoder.dropout=0.1", f"model.net.decoder.dropout={0.1 if decoder == 'recurrent' else 0.0}"]
     plain = build(make_cfg, *widths)
-    saver = build(make_cfg, *widths, "model.encoder.checkpoint=true", "model.decoder.checkpoint=true")
+    saver = build(make_cfg, *widths, "model.net.encoder.checkpoint=true", "model.net.decoder.checkpoint=true")
     saver.load_state_dict(plain.state_dict())
     assert saver.encoder.checkpoint and saver.decoder.checkpoint and not plain.encoder.checkpoint
     batch = clip(b=3, t=9, n=4)
@@ -178,9 +178,9 @@ def test_checkpointing_keeps_loss_gradients_and_statistics(make_cfg, decoder, ma
 
 def test_checkpoint_flags_must_be_booleans(make_cfg):
     with pytest.raises(Exception, match="GNNLSTMEncoder: checkpoint='yes'"):
-        build(make_cfg, "model.encoder.checkpoint=yes")
+        build(make_cfg, "model.net.encoder.checkpoint=yes")
     with pytest.raises(Exception, match="MarkovDecoder: checkpoint=1"):
-        build(make_cfg, "model.decoder.checkpoint=1")
+        build(make_cfg, "model.net.decoder.checkpoint=1")
 
 
 def test_prior_per_step_is_dnris_online_prior_and_dider_holds_its_segments(make_cfg):

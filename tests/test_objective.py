@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dider.models.inference import plain_config
-from dider.models.legacy import upgrade_model_config
+from dider.models.legacy import MODULE_KEYS, split_model_config, upgrade_model_config
 from dider.models.objective import EdgeKL, Objective, PriorFit, Sparsity
 from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
@@ -30,8 +30,8 @@ def test_each_model_reads_its_objective_from_the_config_group(make_cfg):
 def test_loss_is_the_weighted_sum_with_warm_up_and_capacities(make_cfg):
     """loss = NLL + sum_i weight_i w |term_i - C_i|: by hand at a quarter of training, with the KL warm-up over
     the first 30% (w = 25/30) and the edge KL's capacity 0.2 ramped over half of training (C = 0.2 * 25/50)."""
-    net = build(make_cfg, "model=dider", "model.objective.kl_warmup=0.3", "model.objective.kl_edge.capacity=0.2",
-                "model.objective.prior_fit.weight=2")
+    net = build(make_cfg, "model=dider", "model.net.objective.kl_warmup=0.3",
+                "model.net.objective.kl_edge.capacity=0.2", "model.net.objective.prior_fit.weight=2")
     out = net.infer(clip(), hard=True)
     progress = Progress(25, total=100)
     terms = net.loss(out, progress)
@@ -51,14 +51,14 @@ def test_edge_kl_per_step_counts_each_segment_once_per_step(make_cfg):
     batch = clip()
     torch.manual_seed(2)
     once = build(make_cfg, "model=dider_paper", *NO_SPARSITY).eval()
-    per_step = build(make_cfg, "model=dider_paper", *NO_SPARSITY, "model.objective.kl_edge.count=per_step").eval()
+    per_step = build(make_cfg, "model=dider_paper", *NO_SPARSITY, "model.net.objective.kl_edge.count=per_step").eval()
     per_step.load_state_dict(once.state_dict())
     with torch.no_grad():
         a, b = once.infer(batch, hard=True), per_step.infer(batch, hard=True)
     assert (a.seg.num_steps_per_slot > 1).any()  # some segment holds several steps: the two weightings differ there
     assert b.terms["kl_edge"].sum() > a.terms["kl_edge"].sum()
     dnri = build(make_cfg, "model=dnri", *NO_SPARSITY).eval()
-    dnri_steps = build(make_cfg, "model=dnri", *NO_SPARSITY, "model.objective.kl_edge.count=per_step").eval()
+    dnri_steps = build(make_cfg, "model=dnri", *NO_SPARSITY, "model.net.objective.kl_edge.count=per_step").eval()
     dnri_steps.load_state_dict(dnri.state_dict())
     with torch.no_grad():  # one-step segments: both are DNRI's mean over (step, edge)
         a, b = dnri.infer(batch, hard=True), dnri_steps.infer(batch, hard=True)
@@ -68,7 +68,7 @@ def test_edge_kl_per_step_counts_each_segment_once_per_step(make_cfg):
 def test_prior_fit_trains_the_prior_at_every_step_and_leaves_the_posterior(make_cfg):
     batch = clip()
     off = build(make_cfg, "model=dider_paper").train()
-    on = build(make_cfg, "model=dider_paper", "model.objective.prior_fit={_target_: "
+    on = build(make_cfg, "model=dider_paper", "model.net.objective.prior_fit={_target_: "
                "dider.models.objective.PriorFit, weight: 0.5}").train()
     on.load_state_dict(off.state_dict())
     torch.manual_seed(3)
@@ -129,13 +129,15 @@ def test_terms_check_their_settings_at_build_and_in_the_preflight(make_cfg, tmp_
         Objective(kl_warmup=1.5, nll=None)
     with pytest.raises(ValueError, match="needs an `nll` term"):
         Objective()
-    cfg = make_cfg(["model.objective.kl_edge.capacity=-0.5", "model.objective.nll.variance=0",
-                    "model.objective.sparsity.form=per_step", "model.objective.kl_warmup=2"], out=tmp_path / "run")
+    cfg = make_cfg(["model.net.objective.kl_edge.capacity=-0.5", "model.net.objective.nll.variance=0",
+                    "model.net.objective.sparsity.form=per_step", "model.net.objective.kl_warmup=2"],
+                   out=tmp_path / "run")
     with pytest.raises(ConfigError) as error:
         validate_config(cfg)
     message = str(error.value)
-    for expected in ("model.objective.kl_edge.capacity=-0.5: must be >= 0", "model.objective.nll.variance=0: must be "
-                     "> 0 or 'fit'", "model.objective.sparsity.form='per_step'", "model.objective.kl_warmup=2"):
+    for expected in ("model.net.objective.kl_edge.capacity=-0.5: must be >= 0",
+                     "model.net.objective.nll.variance=0: must be > 0 or 'fit'",
+                     "model.net.objective.sparsity.form='per_step'", "model.net.objective.kl_warmup=2"):
         assert expected in message
 
 
@@ -146,12 +148,14 @@ OLD_DIDER = {"nll_variance": 5e-5, "beta_edge": 1.0, "beta_duration": 1.0, "capa
 
 
 def test_old_loss_settings_build_the_same_objective(make_cfg):
-    """A checkpoint's model config from before the objective node (its loss settings at the top) builds the
-    objective of today's config, and weights that kept the variance as ``likelihood.variance`` load."""
+    """A model config from before the ``net`` and objective nodes (one flat node, its loss settings at the top)
+    builds the network of today's config, and weights that kept the variance as ``likelihood.variance`` load."""
     new = make_cfg(["model=dider"]).model
     node = plain_config(new)
-    old = {k: v for k, v in node.items() if k != "objective"} | OLD_DIDER
-    assert upgrade_model_config(old)["objective"] == node["objective"]
+    net = {k: v for k, v in node["net"].items() if k != "objective"}
+    old = {k: node[k] for k in MODULE_KEYS} | net | OLD_DIDER
+    assert upgrade_model_config(old)["objective"] == node["net"]["objective"]
+    assert split_model_config(old) == (node["net"], {k: node[k] for k in MODULE_KEYS})
     a, b = RelationalVAE.from_config(new), RelationalVAE.from_config(old)
     state = {("likelihood.variance" if k.endswith("nll.variance") else k): v for k, v in a.state_dict().items()}
     assert "likelihood.variance" in state
@@ -165,21 +169,23 @@ def test_old_loss_settings_build_the_same_objective(make_cfg):
 
 
 def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_path):
-    """A checkpoint file whose hyper-parameters hold the old flat loss keys and whose weights keep the variance
-    as ``model.likelihood.variance`` loads with ``load_from_checkpoint``, with today's objective and weights."""
+    """A checkpoint file whose hyper-parameters name the network's config ``model`` and hold the old flat loss
+    keys, and whose weights keep the variance as ``model.likelihood.variance``, loads with ``load_from_checkpoint``,
+    with today's objective and weights."""
     import lightning
 
     from dider.training.module import RelationalVAEModule
 
     new = RelationalVAEModule.from_config(make_cfg(["model=dider"]).model)
     hparams = dict(new.hparams)
-    hparams["model"] = {k: v for k, v in hparams["model"].items() if k != "objective"} | OLD_DIDER
+    hparams["model"] = {k: v for k, v in hparams.pop("net").items() if k != "objective"} | OLD_DIDER
     state = {k.replace("objective.terms.nll.", "likelihood."): v for k, v in new.state_dict().items()}
     path = tmp_path / "old.ckpt"
     torch.save({"state_dict": state, "hyper_parameters": hparams,
                 "pytorch-lightning_version": lightning.__version__}, path)
     old = RelationalVAEModule.load_from_checkpoint(path, map_location="cpu", weights_only=False)
     assert list(old.model.objective.terms) == list(new.model.objective.terms)
+    assert "model" not in old.hparams and old.hparams.net["objective"] == new.hparams.net["objective"]
     loaded = old.state_dict()
     assert loaded.keys() == new.state_dict().keys()
     assert all(torch.equal(loaded[k], v) for k, v in new.state_dict().items())

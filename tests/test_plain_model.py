@@ -16,8 +16,8 @@ from dider.training.module import RelationalVAEModule
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
-OVERRIDES = ["model=dider", "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.encoder.head_hidden=16",
-             "model.decoder.hidden=32"]
+OVERRIDES = ["model=dider", "model.net.encoder.hidden=32", "model.net.encoder.rnn_hidden=16",
+             "model.net.encoder.head_hidden=16", "model.net.decoder.hidden=32"]
 
 # What a notebook does: compose the config, build the network, load a run's weights, forecast a tensor.
 NOTEBOOK = """
@@ -60,7 +60,7 @@ def test_checkpoint_weights_roll_out_without_a_trainer(make_cfg, tmp_path):
     x = torch.rand(2, 12, 3, 4) * 2 - 1
     pred = module(x, torch.ones(2, 30, 3, dtype=torch.bool), burn_in=10, num_pred=20)
     assert pred.double().sum().item() == pytest.approx(out["sum"], rel=1e-6, abs=1e-6)
-    assert module.hparams.model["num_edges"] == 2 and module.hparams.burn_in == 5
+    assert module.hparams.net["num_edges"] == 2 and module.hparams.burn_in == 5
 
 
 def test_old_checkpoint_layout_loads(make_cfg):
@@ -74,8 +74,8 @@ def test_old_checkpoint_layout_loads(make_cfg):
 
 def test_model_config_keys_are_split(make_cfg):
     module = RelationalVAEModule.from_config(make_cfg(["model=dnri", "model.eval_seed=7"]).model)
-    assert module.hparams.eval_seed == 7 and "eval_seed" not in module.hparams.model
-    assert "optimizer" not in module.hparams.model and module.hparams.optimizer["lr"] == pytest.approx(5e-4)
+    assert module.hparams.eval_seed == 7 and "eval_seed" not in module.hparams.net
+    assert "optimizer" not in module.hparams.net and module.hparams.optimizer["lr"] == pytest.approx(5e-4)
     assert Path(module.model.__class__.__module__.replace(".", "/")).name == "vae"
 
 
@@ -84,9 +84,9 @@ def test_a_plugin_lacking_its_interface_is_named(make_cfg):
 
     from dider.models.vae import RelationalVAE
 
-    cfg = make_cfg(["model=dnri"]).model
+    cfg = make_cfg(["model=dnri"]).model.net
     parts = {k: instantiate(cfg[k]) for k in ("encoder", "prior", "duration", "objective")}
-    with pytest.raises(TypeError, match=r"model.decoder: Linear is not a Decoder plugin \(missing \['init_state', "
+    with pytest.raises(TypeError, match=r"model.net.decoder: Linear is not a Decoder plugin \(missing \['init_state', "
                                         r"'stateless', 'step'\]"):
         RelationalVAE(**parts, decoder=torch.nn.Linear(2, 2))
 
@@ -105,7 +105,7 @@ def test_optional_plugin_members_are_read_once_at_build(make_cfg, model, expecte
     net = RelationalVAE.from_config(make_cfg([f"model={model}"]).model)
     assert net.capabilities == expected
     assert not net.fits_kinematics
-    assert RelationalVAE.from_config(make_cfg(["model.decoder.kinematic=true"]).model).fits_kinematics
+    assert RelationalVAE.from_config(make_cfg(["model.net.decoder.kinematic=true"]).model).fits_kinematics
 
 
 def test_every_declared_setting_is_a_constructor_argument():

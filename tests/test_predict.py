@@ -67,7 +67,7 @@ def test_checkpoint_describes_itself(run):
     dm = TrajectoryDataModule(path=meta["data"]["args"]["path"], frame_rate=10, horizons=[1, 5], num_val=4)
     dm.setup("fit")  # the same file and split refit the same normaliser
     assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
-    assert ckpt["hyper_parameters"]["model"]["name"] == "dider"
+    assert ckpt["hyper_parameters"]["net"]["name"] == "dider"
 
 
 def test_load_gives_a_ready_model(run, new_data):

@@ -85,7 +85,7 @@ def test_static_segment_is_one_per_stretch_of_presence():
 @pytest.mark.parametrize("model", ["dider", "dider_paper", "nri"])
 def test_the_type_held_after_an_entry_is_read_there_and_its_kl_counts(make_cfg, model):
     torch.manual_seed(0)
-    net = RelationalVAE.from_config(make_cfg([f"model={model}", "model.posterior_readout=start"]).model).eval()
+    net = RelationalVAE.from_config(make_cfg([f"model={model}", "model.net.posterior_readout=start"]).model).eval()
     g = torch.Generator().manual_seed(0)
     x = torch.rand(2, 21, 3, 4, generator=g) * 2 - 1
     mask = torch.ones(2, 21, 3, dtype=torch.bool)
@@ -103,7 +103,7 @@ def test_the_type_held_after_an_entry_is_read_there_and_its_kl_counts(make_cfg, 
 
 def test_online_types_reread_at_an_entry_and_keep_the_duration(make_cfg):
     torch.manual_seed(0)
-    net = RelationalVAE.from_config(make_cfg(["model=dider_paper", "model.rollout_edges=argmax"]).model).eval()
+    net = RelationalVAE.from_config(make_cfg(["model=dider_paper", "model.net.rollout_edges=argmax"]).model).eval()
     present = comings_and_goings()
     h_fwd = torch.randn(2, 6, 20, net.duration.head[0].in_features)
     lefts: list[torch.Tensor] = []
@@ -126,7 +126,7 @@ def test_online_types_reread_at_an_entry_and_keep_the_duration(make_cfg):
 
 def test_nri_forecasts_an_edge_that_enters_in_the_burn_in_with_the_type_read_at_its_entry(make_cfg):
     torch.manual_seed(0)
-    net = RelationalVAE.from_config(make_cfg(["model=nri", "model.rollout_edges=argmax"]).model).eval()
+    net = RelationalVAE.from_config(make_cfg(["model=nri", "model.net.rollout_edges=argmax"]).model).eval()
     g = torch.Generator().manual_seed(1)
     x = torch.rand(3, 20, 3, 4, generator=g) * 2 - 1
     mask = torch.ones(3, 20, 3, dtype=torch.bool)

@@ -15,7 +15,7 @@ from helpers import NO_SPARSITY
 from helpers.fixtures import write_background, write_ind_root, write_trajectories, write_zhan
 
 SMALL = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", *NO_SPARSITY,
-         "model/decoder=recurrent", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
+         "model/net/decoder=recurrent", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_ind_command_line(roots, tmp_path, cache_dir, make_cfg):
     cmd = [sys.executable, "-m", "dider.run", "model=dider", "data=ind", "model.num_edges=6",
            f"data.root={roots['ind']}", f"hydra.run.dir={tmp_path}", f"data.cache_dir={cache_dir}",
            "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4", "data.num_test=4", "trainer.max_epochs=1",
-           "trainer.enable_progress_bar=false", "model.encoder.hidden=32", "model.decoder.hidden=32"]
+           "trainer.enable_progress_bar=false", "model.net.encoder.hidden=32", "model.net.decoder.hidden=32"]
     proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]

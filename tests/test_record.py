@@ -36,11 +36,11 @@ def test_record_summarises_and_pairs_by_seed(tmp_path):
 
 
 def test_jobs_that_differ_by_an_override_are_grouped_apart_unless_asked(tmp_path):
-    fake_job(tmp_path / "a", "j1", "dider", 1, 1.0, ["model.objective.prior_fit.weight=2"])
+    fake_job(tmp_path / "a", "j1", "dider", 1, 1.0, ["model.net.objective.prior_fit.weight=2"])
     fake_job(tmp_path / "b", "j2", "dider", 2, 3.0)
     out = tmp_path / "rec.json"
     assert sorted(main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out)])["models"]) == [
-        "dider", "dider [model.objective.prior_fit.weight=2]"]
+        "dider", "dider [model.net.objective.prior_fit.weight=2]"]
     assert list(main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(out), "--by-name"])["models"]) == ["dider"]
     with pytest.raises(FileNotFoundError, match="no such run or sweep folder"):
         main([str(tmp_path / "nothing"), "--out", str(out)])

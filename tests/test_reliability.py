@@ -235,9 +235,9 @@ BAD_CONFIGS = [
     (["data.num_steps=20", "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
     (["protocol.horizons=[0,5]"], r"protocol.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
-    (["model=dider", "model.duration.rate=1.5"], r"model.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
-    (["model.objective.kl_edge.capacity=-0.5"], r"model.objective.kl_edge.capacity=-0.5: must be >= 0"),
-    (["model.objective.kl_duration.weight=-1"], r"model.objective.kl_duration.weight=-1: must be >= 0"),
+    (["model=dider", "model.net.duration.rate=1.5"], r"model.net.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
+    (["model.net.objective.kl_edge.capacity=-0.5"], r"model.net.objective.kl_edge.capacity=-0.5: must be >= 0"),
+    (["model.net.objective.kl_duration.weight=-1"], r"model.net.objective.kl_duration.weight=-1: must be >= 0"),
     (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
     (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
     (["data=ind", "data.seq_len=20", "data.burn_in=20"], r"data.burn_in=20: must be shorter .*data.seq_len=20"),
@@ -256,7 +256,7 @@ BAD_CONFIGS = [
     (["model.optimizer.lr=-1"], r"model.optimizer.lr=-1: must be > 0"),
     (["model.optimizer.lr=0"], r"model.optimizer.lr=0: must be > 0"),
     (["model.num_edges=2.5"], r"model.num_edges=2.5: must be an integer"),
-    (["model.encoder.hidden=abc"], r"model.encoder.hidden='abc': must be an integer"),
+    (["model.net.encoder.hidden=abc"], r"model.net.encoder.hidden='abc': must be an integer"),
     (["seed=abc"], r"seed='abc': must be an integer"),
     (["threads=-1"], r"threads=-1: must be >= 1"),
 ]
@@ -273,19 +273,19 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
         raise AssertionError("work started")
 
     monkeypatch.setattr("dider.run.instantiate", boom)
-    cfg = make_cfg(["model.num_edges=1", "model.objective.kl_edge.capacity=-1", "data.burn_in=60"],
+    cfg = make_cfg(["model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "data.burn_in=60"],
                    out=tmp_path / "run")
     with pytest.raises(ConfigError) as info:
         train(cfg)
     message = str(info.value)  # every problem at once
-    for key in ("model.num_edges=1", "model.objective.kl_edge.capacity=-1", "data.burn_in=60"):
+    for key in ("model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "data.burn_in=60"):
         assert key in message
     assert not (tmp_path / "run").exists()
 
 
 def test_valid_configs_pass(make_cfg, tmp_path):
     for overrides in ([], ["model=dnri"], ["model=nri"], ["data=ind"], ["data=basketball"], ["data=trajectories"],
-                      ["data=ind", f"data.root={tmp_path}"], ["model.duration.rate=0.1"]):
+                      ["data=ind", f"data.root={tmp_path}"], ["model.net.duration.rate=0.1"]):
         validate_config(make_cfg(overrides))
     npz = tmp_path / "t.npz"
     npz.write_bytes(b"")
@@ -328,7 +328,7 @@ def test_a_checkpoint_of_another_model_is_named(make_cfg, tmp_path):
     ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
     for overrides, expected in ((["model=dider_skid"], r"model.name: checkpoint 'dider', config 'dider_skid'"),
                                 (["model=dider", "model.num_edges=4"], r"model.num_edges: checkpoint 2, config 4"),
-                                (["model=dnri"], r"model.duration._target_: checkpoint")):
+                                (["model=dnri"], r"model.net.duration._target_: checkpoint")):
         with pytest.raises(ConfigError, match=expected):
             train(make_cfg([*overrides, "logger=none", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval"))
     notes = tmp_path / "notes.txt"

@@ -201,7 +201,8 @@ def test_experiment_sweeps_compose(experiment: str):
             edges = {m: compose("config", overrides=[f"experiment={experiment}", f"model={m}"]).model.num_edges
                      for m in ("dnri", "dider_skid", "dider")}
             assert edges == {"dnri": 4, "dider_skid": 6, "dider": 6}
-            assert cfg.model.decoder._target_.endswith("RecurrentDecoder") and cfg.model.objective.sparsity is None
+            net = cfg.model.net
+            assert net.decoder._target_.endswith("RecurrentDecoder") and net.objective.sparsity is None
     GlobalHydra.instance().clear()
 
 

@@ -72,7 +72,7 @@ def old_horizon_mse(horizons, pred, target, mask):
 def test_full_masks_every_mode_equals_the_old_path(make_cfg, model, decoder, burn):
     """Synthetic-like data (every agent present throughout): both modes are bit-identical to the old roll-out,
     and per-agent horizons score exactly what the old metric scored."""
-    net = build(make_cfg, f"model={model}", f"model/decoder={decoder}").eval()
+    net = build(make_cfg, f"model={model}", f"model/net/decoder={decoder}").eval()
     x, mask = clip()
     num_pred = x.shape[1] - burn
     outs = {}
@@ -109,7 +109,7 @@ def late_entry(t=30, n=4, enter=10, leave=24):
 def test_per_agent_burn_in_is_causal_for_a_late_agent(make_cfg, model, decoder):
     """An agent entering at frame 10 is observed on frames 10..14 (burn-in 5) and rolled out from there:
     its later states change no prediction and no edge type, while its burn-in states do."""
-    net = build(make_cfg, f"model={model}", f"model/decoder={decoder}").eval()
+    net = build(make_cfg, f"model={model}", f"model/net/decoder={decoder}").eval()
     burn, enter = 5, 10
     x, mask = late_entry(enter=enter)
     num_pred = x.shape[1] - burn
@@ -205,7 +205,7 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
     cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
                     "protocol.horizons=[1,5,15]", "data.loader.batch_size=4", "data.loader.eval_batch_size=4",
                     "model=dnri",
-                    "model/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],
+                    "model/net/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],
                    out=tmp_path / "run")
     metrics = train(cfg)
     assert seen and all(seen)
@@ -214,7 +214,7 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
 
 
 def test_nri_forecasts_with_the_edges_its_encoder_infers_from_the_burn_in(make_cfg):
-    net = build(make_cfg, "model=nri", "model.rollout_edges=argmax").eval()
+    net = build(make_cfg, "model=nri", "model.net.rollout_edges=argmax").eval()
 
     class FollowsTheClip(torch.nn.Module):
         """A posterior head whose type depends on the clip: the sign of a feature, centred over the batch."""
@@ -235,5 +235,5 @@ def test_nri_forecasts_with_the_edges_its_encoder_infers_from_the_burn_in(make_c
     later = x.clone()
     later[:, burn:] = torch.rand_like(later[:, burn:])  # frames after the burn-in are never read
     assert torch.equal(net.rollout(later, mask, burn, 10)[1], types)
-    prior_only = build(make_cfg, "model=nri", "model.rollout_edges=argmax", "model.forecast_edges=prior").eval()
+    prior_only = build(make_cfg, "model=nri", "model.net.rollout_edges=argmax", "model.net.forecast_edges=prior").eval()
     assert (prior_only.rollout(x, mask, burn, 10)[1] == 0).all()  # the old behaviour: [0.9, 0.1] prior argmax

@@ -13,7 +13,7 @@ optuna = pytest.importorskip("optuna")
 
 SMOKE = ["experiment=smoke", "logger=none", "trainer.enable_progress_bar=false", "callbacks.timelines.num_clips=0",
          "data.num_train=32", "data.num_val=8", "data.num_test=8", "trainer.max_epochs=2",
-         "model.objective.kl_warmup=0"]
+         "model.net.objective.kl_warmup=0"]
 
 
 def test_two_trials_on_the_validation_objective(tmp_path, cache_dir):
@@ -23,7 +23,7 @@ def test_two_trials_on_the_validation_objective(tmp_path, cache_dir):
     trials = pd.read_csv(out / "search.csv")
     assert list(trials["trial"]) == [0, 1] and trials["value"].notna().all()
     assert trials["model.optimizer.lr"].between(1e-4, 3e-3).all()
-    assert trials["model.objective.kl_warmup"].between(0, 0.5).all()
+    assert trials["model.net.objective.kl_warmup"].between(0, 0.5).all()
     for _, row in trials.iterrows():
         record = json.loads((out / f"trial_{int(row['trial']):03d}" / "metrics.json").read_text())
         assert record["objective"] == pytest.approx(row["value"])  # the validation metric, not a test metric

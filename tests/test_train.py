@@ -112,7 +112,7 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     """
     cfg = make_cfg(
         ["data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.loader.batch_size=32",
-         "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "model.decoder.hidden=256",
+         "model.net.encoder.hidden=64", "model.net.encoder.rnn_hidden=32", "model.net.decoder.hidden=256",
          "model=dnri", "trainer.max_epochs=6", "model.optimizer.lr=1e-3", "model.scheduler.step_size=8", "logger=none",
          "callbacks=none"],
         tiny=False, out=tmp_path / "run",
@@ -141,7 +141,7 @@ def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     """
     cfg = make_cfg(
         ["model=dider", "data.num_train=2000", "data.num_val=100", "data.num_test=200", "data.loader.batch_size=32",
-         "model.encoder.hidden=64", "model.encoder.rnn_hidden=32", "trainer.max_epochs=6",
+         "model.net.encoder.hidden=64", "model.net.encoder.rnn_hidden=32", "trainer.max_epochs=6",
          "model.optimizer.lr=1e-3", "logger=none", "callbacks=none"],
         tiny=False, out=tmp_path / "run",
     )  # fmt: skip
@@ -184,7 +184,7 @@ def test_best_checkpoint_is_chosen_after_the_kl_warm_up(make_cfg, tmp_path):
     """4 batches x 4 epochs = 16 steps, KL weight 1 from step int(0.6 * 16) = 9: the validations after epochs
     0 and 1 (steps 4, 8) lie inside the warm-up and may not be picked, however low their NLL."""
     out = tmp_path / "run"
-    train(make_cfg(["model=dider", "model.objective.kl_warmup=0.6", "trainer.max_epochs=4", "logger=csv"], out=out))
+    train(make_cfg(["model=dider", "model.net.objective.kl_warmup=0.6", "trainer.max_epochs=4", "logger=csv"], out=out))
     record = json.loads((out / "metrics.json").read_text())
     assert Path(record["checkpoint"]).name in ("epoch_002.ckpt", "epoch_003.ckpt"), record["checkpoint"]
     import csv
@@ -219,37 +219,37 @@ def test_results_card_marks_what_is_missing():
 
 
 def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplog):
-    """model.decoder.kinematic=true: the step is fitted on a training batch before the first optimiser step
+    """model.net.decoder.kinematic=true: the step is fitted on a training batch before the first optimiser step
     (positions move with the velocity on the synthetic set: a positive slope), then trained on."""
     with caplog.at_level(logging.INFO, logger="dider.training.module"):
-        train(make_cfg(["model.decoder.kinematic=true", "logger=none"], out=tmp_path / "run"))
+        train(make_cfg(["model.net.decoder.kinematic=true", "logger=none"], out=tmp_path / "run"))
     fitted = re.search(r"kinematic step fitted on a training batch: slope (\S+), offset (\S+)", caplog.text)
     assert fitted and float(fitted.group(1)) > 0
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    assert float(state["state_dict"]["model.decoder.kinematic.slope"]) > 0
+    assert float(state["state_dict"]["model.net.decoder.kinematic.slope"]) > 0
 
 
 def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_path, caplog):
-    """model.objective.nll.variance=fit: per feature, the constant-velocity residual's variance on a training
+    """model.net.objective.nll.variance=fit: per feature, the constant-velocity residual's variance on a training
     batch, logged, used and saved with the weights (the synthetic set's velocities change more than its positions'
     residual)."""
     with caplog.at_level(logging.INFO, logger="dider.training.module"):
-        train(make_cfg(["model.objective.nll.variance=fit", "logger=none"], out=tmp_path / "run"))
+        train(make_cfg(["model.net.objective.nll.variance=fit", "logger=none"], out=tmp_path / "run"))
     assert "NLL variance fitted on a training batch, per feature" in caplog.text
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    variance = state["state_dict"]["model.objective.terms.nll.variance"]
+    variance = state["state_dict"]["model.net.objective.terms.nll.variance"]
     assert variance.shape == (4,) and bool((variance > 0).all())
 
 
 def test_nothing_is_refitted_on_resume_and_fit_needs_a_datamodule(make_cfg):
     """Lightning restores the weights before on_fit_start and the step count after it: a checkpoint being loaded
     keeps the kinematic step and the variance it holds. Without a data module there is no batch to fit to."""
-    module = RelationalVAEModule.from_config(make_cfg(["model.objective.nll.variance=fit",
-                                                       "model.decoder.kinematic=true"]).model)
+    module = RelationalVAEModule.from_config(make_cfg(["model.net.objective.nll.variance=fit",
+                                                       "model.net.decoder.kinematic=true"]).model)
     slope = float(module.model.decoder.kinematic.slope)
     module._trainer = SimpleNamespace(ckpt_path="checkpoints/last.ckpt", datamodule=None)
     module.on_fit_start()
     assert float(module.model.decoder.kinematic.slope) == slope and module.model.likelihood.variance.dim() == 0
     module._trainer = SimpleNamespace(ckpt_path=None, datamodule=None)
-    with pytest.raises(ValueError, match="model.objective.nll.variance=fit fits the variance to a training batch"):
+    with pytest.raises(ValueError, match="model.net.objective.nll.variance=fit fits the variance to a training batch"):
         module.on_fit_start()

@@ -26,7 +26,8 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.trajectories import trajectory_states
-from dider.models.vae import TRAINING_KEYS, RelationalVAE
+from dider.models.legacy import network_hparams
+from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
 from dider.training.preflight import input_warnings, version_problem
@@ -213,8 +214,9 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     ckpt_path = find_checkpoint(path)
     ckpt = read_checkpoint(ckpt_path)
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
-    config = dict(hparams["model"]) | {k: hparams[k] for k in TRAINING_KEYS if k in hparams}
-    network = RelationalVAE.from_config(hparams["model"])
+    net = network_hparams(hparams)
+    config = {k: v for k, v in hparams.items() if k not in ("net", "model")} | {"net": net}
+    network = RelationalVAE.from_config(net)
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
     network.load_state_dict(state)
     data = ckpt["dider"]["data"]

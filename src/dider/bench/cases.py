@@ -33,13 +33,13 @@ SCALE_STEPS = (50, 100, 200)
 # The scaling series: DNRI's step with narrower networks (N = 50 has 2450 edges; full width would need
 # tens of GB), so the growth in N and T shows, not the constant.
 # The overrides that leave the sparsity term out, the edge KL at full weight (also the tests').
-NO_SPARSITY = ["model.objective.sparsity=null", "model.objective.kl_edge.weight=1"]
-SCALE_MODEL = ["model=dnri", "model.encoder.hidden=64", "model.decoder.hidden=64", *NO_SPARSITY]
+NO_SPARSITY = ["model.net.objective.sparsity=null", "model.net.objective.kl_edge.weight=1"]
+SCALE_MODEL = ["model=dnri", "model.net.encoder.hidden=64", "model.net.decoder.hidden=64", *NO_SPARSITY]
 
 
 # Peak memory of one DNRI step at the paper's widths (batch 8), activation checkpointing off and on.
 MEMORY_AGENTS = (10, 20, 30)
-CHECKPOINTING = ["model.encoder.checkpoint=true", "model.decoder.checkpoint=true"]
+CHECKPOINTING = ["model.net.encoder.checkpoint=true", "model.net.decoder.checkpoint=true"]
 
 
 def memory_case(agents: int, checkpoint: bool) -> Case:
@@ -50,7 +50,7 @@ def memory_case(agents: int, checkpoint: bool) -> Case:
 
 
 def cases() -> list[Case]:
-    recurrent = ["model/decoder=recurrent", *NO_SPARSITY]
+    recurrent = ["model/net/decoder=recurrent", *NO_SPARSITY]
     out = [Case(f"gemm/{dtype}", [], 1, 0, 0, iters=20, warmup=3, kind="gemm", settings={"dtype": dtype})
            for dtype in ("fp32", "bf16")]
     for model in ("dnri", "dider", "dider_skid"):

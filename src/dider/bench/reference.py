@@ -28,8 +28,8 @@ REFERENCE_CASES = ("train/dnri/synth", "train/dnri/recurrent")
 REFERENCE_SIZES: dict[str, dict[str, Any]] = {
     "full": {},
     "tiny": {"batch": 4, "steps": 8, "overrides": [
-        "model.encoder.hidden=16", "model.encoder.rnn_hidden=8", "model.encoder.head_hidden=8",
-        "model.prior.hidden=8", "model.decoder.hidden=16"]},
+        "model.net.encoder.hidden=16", "model.net.encoder.rnn_hidden=8", "model.net.encoder.head_hidden=8",
+        "model.net.prior.hidden=8", "model.net.decoder.hidden=16"]},
 }  # fmt: skip
 # What the reference's decoder_type is for each of our decoder classes.
 REFERENCE_DECODERS = {"MarkovDecoder": "ref_mlp", "RecurrentDecoder": "recurrent"}
@@ -41,7 +41,8 @@ def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dic
     normalised Gaussian NLL and KL, and our objective's edge KL at weight 1, or at 0.5 beside a ``mean_edges``
     sparsity term at 0.5, as its ``add_uniform_prior`` (a fixed 0.5/0.5 mix with KL(mean q || [no_edge_prob,
     ...]))."""
-    enc, dec, prior, objective = model_cfg.encoder, model_cfg.decoder, model_cfg.prior, model_cfg.objective
+    net = model_cfg.net
+    enc, dec, prior, objective = net.encoder, net.decoder, net.prior, net.objective
     decoder_class = str(dec._target_).rsplit(".", 1)[-1]
     sparsity = objective.get("sparsity")
     edge_weight = objective.kl_edge.weight
@@ -49,8 +50,8 @@ def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dic
     if decoder_class not in REFERENCE_DECODERS or not (halves or sparsity is None and edge_weight == 1):
         raise ValueError(f"no reference counterpart of decoder {decoder_class} with objective {objective}")
     if objective.nll.variance == "fit":
-        raise ValueError("no reference counterpart of model.objective.nll.variance=fit: the reference's variance is "
-                         "a number")
+        raise ValueError("no reference counterpart of model.net.objective.nll.variance=fit: the reference's "
+                         "variance is a number")
     return {
         "num_vars": num_agents, "input_size": enc.input_dim, "num_edge_types": model_cfg.num_edges,
         "skip_first": dec.skip_first, "gpu": device == "cuda",
@@ -58,7 +59,7 @@ def reference_params(model_cfg: DictConfig, num_agents: int, device: str) -> dic
         "encoder_mlp_num_layers": enc.head_layers, "encoder_mlp_hidden": enc.head_hidden,
         "encoder_dropout": enc.dropout, "prior_num_layers": prior.num_layers, "prior_hidden_size": prior.hidden,
         "decoder_type": REFERENCE_DECODERS[decoder_class], "decoder_hidden": dec.hidden,
-        "decoder_dropout": dec.dropout, "gumbel_temp": model_cfg.gumbel_tau, "train_hard_sample": False,
+        "decoder_dropout": dec.dropout, "gumbel_temp": net.gumbel_tau, "train_hard_sample": False,
         "teacher_forcing_steps": -1, "val_teacher_forcing_steps": -1, "normalize_kl": True, "normalize_nll": True,
         "nll_loss_type": "gaussian", "prior_variance": objective.nll.variance, "kl_coef": 1.0,
         "add_uniform_prior": halves, "no_edge_prior": sparsity.no_edge_prob if halves else 0.9,

@@ -28,7 +28,8 @@ RESULT_METRICS = ("test/edge_acc/posterior/none", "test/edge_acc/posterior/inter
 
 # Seconds-long versions of the jobs, for the test of the measurement itself.
 QUICK = ["data.num_train=64", "data.num_val=16", "data.num_test=16", "data.loader.batch_size=16",
-         "trainer.max_epochs=1", "model.encoder.hidden=32", "model.encoder.rnn_hidden=16", "model.decoder.hidden=32",
+         "trainer.max_epochs=1", "model.net.encoder.hidden=32", "model.net.encoder.rnn_hidden=16",
+         "model.net.decoder.hidden=32",
          "callbacks.timelines.num_clips=1"]
 
 

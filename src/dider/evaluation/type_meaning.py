@@ -114,8 +114,8 @@ def degenerate_types(values: dict[str, float], prefix: str) -> str | None:
         return None
     named = ", ".join(f"type {k} on {100 * s:.2f}%" for k, s in odd)
     return (f"degenerate edges: {named} of the present edge-steps, so the types tell the pairs apart nowhere. "
-            f"Try a weaker sparsity term (model.objective.sparsity.weight, .no_edge_prob), more epochs, or check that "
-            f"the pairs interact within a clip at data.frame_rate (windows long enough to see a reaction)")
+            f"Try a weaker sparsity term (model.net.objective.sparsity.weight, .no_edge_prob), more epochs, or check "
+            f"that the pairs interact within a clip at data.frame_rate (windows long enough to see a reaction)")
 
 
 def profile_array(values: Mapping[str, float], prefix: str) -> np.ndarray | None:

@@ -82,14 +82,14 @@ class KinematicStep(nn.Module):
         return torch.cat([pos, nxt[..., 2:]], dim=-1)
 
 
-# What the two decoders take alike (checked by each, and by the preflight under model.decoder).
+# What the two decoders take alike (checked by each, and by the preflight under model.net.decoder).
 DECODER_SETTINGS: dict[str, Rule] = {"input_dim": integer(1), "hidden": integer(1), "skip_first": boolean,
                                      "dropout": within(0.0, 1.0), "checkpoint": boolean, "kinematic": boolean}
 
 
 def _state_update(kinematic: bool, input_dim: int) -> KinematicStep | None:
     if kinematic and input_dim < 4:
-        raise ValueError(f"model.decoder.kinematic=true needs positions and velocities: input_dim={input_dim} < 4")
+        raise ValueError(f"model.net.decoder.kinematic=true needs positions and velocities: input_dim={input_dim} < 4")
     return KinematicStep() if kinematic else None
 
 

@@ -1,9 +1,13 @@
-"""Model configs of checkpoints written before the objective was a config node: their loss settings sat at the
-top of the model config (``nll_variance``, ``beta_edge``, ``sparsity_mix``, ...). They are rebuilt as the
-``objective`` node that computes the same loss (exactly where no capacity is set; with a capacity the sparsity
-term now sits outside the edge KL's |KL - C|; a prior fit at full weight from the first step,
-``prior_fit_warmup: false``, is gone: the fit ramps with the KL warm-up), so such checkpoints keep loading, for
-prediction and resumed runs.
+"""Model configs of older checkpoints and run folders, read as today's, so they keep loading for prediction and
+resumed runs.
+
+- Before the network was the model config's ``net`` node, one flat node held the network's settings and the
+  LightningModule's (:data:`MODULE_KEYS`); checkpoints named the network's config ``model``.
+- Before the objective was a config node, its loss settings sat at the top of the network's config
+  (``nll_variance``, ``beta_edge``, ``sparsity_mix``, ...). They are rebuilt as the ``objective`` node that
+  computes the same loss (exactly where no capacity is set; with a capacity the sparsity term now sits outside
+  the edge KL's |KL - C|; a prior fit at full weight from the first step, ``prior_fit_warmup: false``, is gone:
+  the fit ramps with the KL warm-up).
 """
 
 from __future__ import annotations
@@ -19,6 +23,24 @@ _OBJECTIVE = "dider.models.objective"
 OLD_LOSS_KEYS = ("nll_variance", "beta_edge", "beta_duration", "capacity_edge", "capacity_duration", "capacity_ramp",
                  "kl_warmup", "sparsity_mix", "no_edge_prob", "sparsity_form", "segment_kl", "prior_fit",
                  "prior_fit_warmup")
+
+
+# The keys of an older flat model config that configured the LightningModule, not the network.
+MODULE_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
+
+
+def split_model_config(node: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(the network's config, the LightningModule's settings) of a plain model config: today's, whose network
+    is its ``net`` node, an older flat one (every key but :data:`MODULE_KEYS` the network's), or a network's
+    config alone. The network's comes upgraded (:func:`upgrade_model_config`)."""
+    module = {k: node[k] for k in MODULE_KEYS if k in node}
+    net = node["net"] if "net" in node else {k: v for k, v in node.items() if k not in MODULE_KEYS}
+    return upgrade_model_config(net), module
+
+
+def network_hparams(hparams: Mapping[str, Any]) -> Mapping[str, Any] | None:
+    """The network's config in a checkpoint's hyper-parameters (``net``; ``model`` in older ones), or None."""
+    return hparams.get("net", hparams.get("model"))
 
 
 def upgrade_model_config(node: Mapping[str, Any]) -> dict[str, Any]:

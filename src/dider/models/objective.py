@@ -1,4 +1,4 @@
-"""The relational VAE's objective, built from term objects chosen in the ``model/objective`` config group.
+"""The relational VAE's objective, built from term objects chosen in the ``model/net/objective`` config group.
 
 Each term reads a teacher-forced pass (:class:`~dider.models.inference.Inference`) and its batch and returns one
 value per clip; the objective weighs them:
@@ -8,7 +8,7 @@ value per clip; the objective weighs them:
 where w_i is the KL warm-up's weight (ramped 0 -> 1 over ``kl_warmup`` of training, Bowman et al.) for the terms
 that warm up, 1 for the NLL, and C_i a capacity ramped 0 -> ``capacity`` over ``capacity_ramp`` of training
 (beta-VAE, Burgess et al.; 0 by default). A new term is one class here (or anywhere importable) and one entry
-in a ``conf/model/objective`` file. Each term declares its settings' checks once (``SETTINGS``): the
+in a ``conf/model/net/objective`` file. Each term declares its settings' checks once (``SETTINGS``): the
 constructor applies them, and the preflight applies them to the config before any work starts.
 
 Shapes: B batch, E edges, T-1 transitions, K edge types, S segment slots.
@@ -137,9 +137,9 @@ class Objective(nn.Module):
         super().__init__()
         check_settings(self, locals())
         if "nll" not in terms or terms["nll"] is None:
-            raise ValueError("model.objective: needs an `nll` term (the decoder's likelihood)")
+            raise ValueError("model.net.objective: needs an `nll` term (the decoder's likelihood)")
         if wrong := [k for k, v in terms.items() if v is not None and not isinstance(v, Term)]:
-            raise TypeError(f"model.objective: {wrong} are not dider.models.objective.Term objects")
+            raise TypeError(f"model.net.objective: {wrong} are not dider.models.objective.Term objects")
         self.kl_warmup, self.capacity_ramp = kl_warmup, capacity_ramp
         self.terms = nn.ModuleDict({k: v for k, v in terms.items() if v is not None})
 

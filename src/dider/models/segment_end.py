@@ -21,7 +21,7 @@ For an edge's segment k starting at s_k:
 - segment k + 1 exists where segment k ends before the clip's end: its edge KL and duration KL are weighted by
   that straight-through indicator, so the number of segments has a gradient;
 - evaluation takes each segment's median end (the first e with q(end <= e) >= 1/2);
-- the edge type is read at the segment's start and held (``model.posterior_readout: start``); forecasting
+- the edge type is read at the segment's start and held (``model.net.posterior_readout: start``); forecasting
   runs the prior's hazard through the online state machine.
 
 Shapes: B batch, E edges, T transitions, R LSTM width, H hidden width, S = T slots (slot s starts at step s).

@@ -25,7 +25,7 @@ from torch import nn
 from dider.graph import edge_mask
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
-from dider.models.legacy import rename_likelihood, upgrade_model_config
+from dider.models.legacy import rename_likelihood, split_model_config
 from dider.models.likelihood import GaussianNLL
 from dider.models.objective import Objective
 from dider.models.plugins import (
@@ -41,9 +41,6 @@ from dider.models.plugins import (
 from dider.models.segments import Segmentation, entries, forced_boundaries
 from dider.protocol import fill_absent, observed_inputs
 from dider.validation import Rule, above, boolean, check_settings, integer, one_of
-
-# Keys of a model config that configure training and evaluation (the LightningModule), not the network.
-TRAINING_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
 
 
 class RelationalVAE(nn.Module):
@@ -85,10 +82,11 @@ class RelationalVAE(nn.Module):
                  "decoder": (decoder, Decoder)}
         for key, (plugin, interface) in seams.items():
             if missing := missing_members(plugin, interface):  # a user's plugin: say what it lacks, up front
-                raise TypeError(f"model.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
+                raise TypeError(f"model.net.{key}: {type(plugin).__name__} is not a {interface.__name__} plugin "
                                 f"(missing {missing}; see dider.models.plugins)")
         if not isinstance(objective, Objective):
-            raise TypeError(f"model.objective: {type(objective).__name__} is not a dider.models.objective.Objective")
+            raise TypeError(f"model.net.objective: {type(objective).__name__} is not a "
+                            f"dider.models.objective.Objective")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
@@ -105,10 +103,9 @@ class RelationalVAE(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
-        """Build the network from a model config (``cfg.model`` of the Hydra app, or a checkpoint's, whose loss
-        settings may predate the ``objective`` node), ignoring its training keys."""
-        node = upgrade_model_config(plain_config(cfg))
-        return instantiate({k: v for k, v in node.items() if k not in TRAINING_KEYS}, _convert_="all")
+        """Build the network from a model config (``cfg.model`` of the Hydra app: its ``net`` node), or from a
+        network's config (a checkpoint's; older ones are read as today's, :mod:`dider.models.legacy`)."""
+        return instantiate(split_model_config(plain_config(cfg))[0], _convert_="all")
 
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
         """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run) into this model."""

@@ -33,8 +33,9 @@ from dider.evaluation.scoring import (
 from dider.evaluation.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
 from dider.graph import edge_mask
 from dider.models.baselines import ConstantVelocity
+from dider.models.legacy import split_model_config
 from dider.models.plugins import Progress
-from dider.models.vae import TRAINING_KEYS, Inference, RelationalVAE, plain_config
+from dider.models.vae import Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons
 from dider.training.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
 from dider.validation import require
@@ -45,7 +46,7 @@ log = logging.getLogger(__name__)
 class RelationalVAEModule(L.LightningModule):
     def __init__(
         self,
-        model: Mapping[str, Any],
+        net: Mapping[str, Any] | None = None,
         optimizer: Mapping[str, Any] | None = None,
         scheduler: Mapping[str, Any] | None = None,
         burn_in: int = 5,
@@ -53,18 +54,23 @@ class RelationalVAEModule(L.LightningModule):
         burn_in_mode: str | None = None,
         eval_seed: int = 0,
         check_finite: bool = True,
+        model: Mapping[str, Any] | None = None,
     ) -> None:
-        """model: the network's config (``_target_`` and plugins, as in ``conf/model``); optimizer, scheduler:
-        configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the forecast
-        protocol, the data's (``conf/model`` interpolates them; a None burn_in_mode, in hyper-parameters saved
-        before it was, is ``global``: ``load_from_checkpoint(path, burn_in_mode="per_agent")`` sets another).
-        eval_seed: validation and test draw from it, so their metrics depend on the weights only. check_finite:
-        stop on a NaN/inf loss term or gradient."""
+        """net: the network's config (``_target_`` and plugins: the ``net`` node of ``conf/model``), built as
+        ``self.model``; model: the same under its older name (checkpoints written before ``net``). optimizer,
+        scheduler: configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the
+        forecast protocol (``conf/model`` interpolates the ``protocol`` node; a None burn_in_mode, in
+        hyper-parameters saved before it was, is ``global``: ``load_from_checkpoint(path,
+        burn_in_mode="per_agent")`` sets another). eval_seed: validation and test draw from it, so their metrics
+        depend on the weights only. check_finite: stop on a NaN/inf loss term or gradient."""
         super().__init__()
+        if net is None and model is None:
+            raise TypeError("RelationalVAEModule: net, the network's config, is required")
+        net = split_model_config(plain_config(net if net is not None else model))[0]  # today's form, saved as such
         require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite})
         # Configs only (plain containers): the checkpoint rebuilds the module and loads with weights_only.
-        self.save_hyperparameters(logger=False)
-        self.model = RelationalVAE.from_config(model)
+        self.save_hyperparameters(ignore=["model"], logger=False)
+        self.model = RelationalVAE.from_config(net)
         self.val_mse = HorizonMSE(horizons)
         # the forecast in data units beside constant velocity's, so that a recipe is chosen on validation
         self.val_ade = torch.nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
@@ -79,10 +85,10 @@ class RelationalVAEModule(L.LightningModule):
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
-        """From a model config (``cfg.model``): its training keys configure the module, the rest the network."""
-        node = plain_config(cfg)
-        return cls(model={k: v for k, v in node.items() if k not in TRAINING_KEYS},
-                   **{k: node[k] for k in TRAINING_KEYS if k in node})
+        """From a model config (``cfg.model``: the module's settings and the network's ``net`` node; an older flat
+        one is read as today's, :func:`dider.models.legacy.split_model_config`)."""
+        net, settings = split_model_config(plain_config(cfg))
+        return cls(net=net, **settings)
 
     @property
     def burn_in_mode(self) -> str:
@@ -119,8 +125,8 @@ class RelationalVAEModule(L.LightningModule):
         dm = getattr(self.trainer, "datamodule", None)
         if dm is None:
             if likelihood.to_fit:
-                raise ValueError("model.objective.nll.variance=fit fits the variance to a training batch of the data "
-                                 "module: train through trainer.fit(model, datamodule=...) or give a number")
+                raise ValueError("model.net.objective.nll.variance=fit fits the variance to a training batch of the "
+                                 "data module: train through trainer.fit(model, datamodule=...) or give a number")
             return
         with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
             batch = next(iter(dm.train_dataloader()))

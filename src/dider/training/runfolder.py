@@ -22,6 +22,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
+from dider.models.legacy import network_hparams, split_model_config
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -98,12 +99,13 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
         ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception as e:  # torch raises many types for a foreign or damaged file
         raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
-    saved = ckpt.get("hyper_parameters", {}).get("model") if isinstance(ckpt, dict) else None
+    saved = network_hparams(ckpt.get("hyper_parameters", {})) if isinstance(ckpt, dict) else None
     if not isinstance(saved, Mapping):
         raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
                           f"hyper-parameters)")
-    mine, theirs = shape_settings(model), shape_settings(saved)
-    differ = [f"model.{k}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}"
+    mine, theirs = shape_settings(split_model_config(model)[0]), shape_settings(saved)
+    key = lambda k: f"model.{k}" if k in ("name", "num_edges") else f"model.net.{k}"  # noqa: E731 (as users set it)
+    differ = [f"{key(k)}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}"
               for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
     if differ:
         raise ConfigError(f"ckpt_path={path} holds another model than the config's (pass the model it was trained "
