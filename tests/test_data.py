@@ -63,6 +63,14 @@ def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
         SynthDataModule(cache_dir=str(tmp_path), loader={"workers": 2})
 
 
+def test_an_older_data_config_gets_its_loader_node():
+    from dider.data.loader import loader_node
+
+    older = {"_target_": "x", "batch_size": 8, "pin_memory": True, "num_train": 5}
+    assert loader_node(older) == {"_target_": "x", "num_train": 5, "loader": {"batch_size": 8, "pin_memory": True}}
+    assert loader_node({"loader": {"batch_size": 3}}) == {"loader": {"batch_size": 3}}
+
+
 def test_every_data_setting_is_a_constructor_argument():
     """The data modules check ``locals()`` against their ``SETTINGS`` (a rule no argument has would never run)."""
     import importlib

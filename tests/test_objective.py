@@ -168,6 +168,16 @@ def test_old_loss_settings_build_the_same_objective(make_cfg):
     assert la.keys() == lb.keys() and all(torch.equal(la[k], lb[k]) for k in la)
 
 
+def test_the_module_keys_are_the_lightning_modules_arguments():
+    """An older flat config's split (legacy.MODULE_KEYS) takes every LightningModule argument but the network's."""
+    import inspect
+
+    from dider.training.module import RelationalVAEModule
+
+    params = set(inspect.signature(RelationalVAEModule.__init__).parameters) - {"self", "net", "model"}
+    assert set(MODULE_KEYS) == params
+
+
 def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_path):
     """A checkpoint file whose hyper-parameters name the network's config ``model`` and hold the old flat loss
     keys, and whose weights keep the variance as ``model.likelihood.variance``, loads with ``load_from_checkpoint``,

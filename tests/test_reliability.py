@@ -244,6 +244,8 @@ BAD_CONFIGS = [
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
     (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
+    (["protocol.burn_in=0", "model=dider"], r"configuration:\n  - protocol.burn_in=0: must be >= 1$"),  # not again
+    (["+model.gumbel_tau=0.3"], r"model.gumbel_tau: not a setting of .* \(model.net.gumbel_tau\)"),
     (["protocol.burn_in_mode=sideways"], r"configuration:\n  - protocol.burn_in_mode='sideways': expected one of "
                                          r"\['global', 'per_agent'\]$"),  # once, not again as data.* and model.*
     (["data.num_train=0"], r"data.num_train=0: must be >= 1"),

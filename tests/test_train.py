@@ -226,7 +226,7 @@ def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplo
     fitted = re.search(r"kinematic step fitted on a training batch: slope (\S+), offset (\S+)", caplog.text)
     assert fitted and float(fitted.group(1)) > 0
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    assert float(state["state_dict"]["model.net.decoder.kinematic.slope"]) > 0
+    assert float(state["state_dict"]["model.decoder.kinematic.slope"]) > 0
 
 
 def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_path, caplog):
@@ -237,7 +237,7 @@ def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_p
         train(make_cfg(["model.net.objective.nll.variance=fit", "logger=none"], out=tmp_path / "run"))
     assert "NLL variance fitted on a training batch, per feature" in caplog.text
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    variance = state["state_dict"]["model.net.objective.terms.nll.variance"]
+    variance = state["state_dict"]["model.objective.terms.nll.variance"]
     assert variance.shape == (4,) and bool((variance > 0).all())
 
 

@@ -77,10 +77,15 @@ def horizons_problem(horizons: object, longest: int | None, key: str = "data.hor
     return f"{key}={list(horizons)}: each must lie in 1..{longest}" + (f" ({context})" if context else "")  # type: ignore[arg-type]
 
 
+# What the data modules' protocol messages add: the key a config sets them by.
+SET_BY = " (protocol.{0} sets the data's and the model's)"
+
+
 def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, where: str = "", *,
                    length_key: str | None = None, integers: bool = False) -> None:
-    """Raise a ValueError naming ``data.burn_in`` or ``data.horizons`` unless the burn-in is shorter than
-    the clips and every horizon fits after it (:func:`horizons_problem`).
+    """Raise a ValueError naming ``data.burn_in`` or ``data.horizons`` (a data module's arguments, which the
+    ``protocol`` node sets: the message says so) unless the burn-in is shorter than the clips and every horizon
+    fits after it (:func:`horizons_problem`).
 
     seq_len: the clip length in steps, or None while it is unknown (data modules that learn it only when
     they read their files): then only that there is a horizon and none is below 1. where: appended to the
@@ -89,17 +94,17 @@ def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, w
     """
     if seq_len is not None:
         if burn_in < 1:
-            raise ValueError(f"data.burn_in={burn_in}: must be >= 1")
+            raise ValueError(f"data.burn_in={burn_in}: must be >= 1{SET_BY.format('burn_in')}")
         if length_key is None:
             clip, clips = f"the clips ({seq_len} steps{where})", f"{seq_len}-step clips{where}"
         else:
             clip, clips = f"the clip ({length_key}={seq_len})", f"{length_key}={seq_len}"
         if burn_in >= seq_len:
-            raise ValueError(f"data.burn_in={burn_in} must be shorter than {clip}")
+            raise ValueError(f"data.burn_in={burn_in} must be shorter than {clip}{SET_BY.format('burn_in')}")
     longest = None if seq_len is None else seq_len - burn_in
     context = "" if seq_len is None else f"the predicted steps after data.burn_in={burn_in} of {clips}"
     if (found := horizons_problem(horizons, longest, context=context, integers=integers)) is not None:
-        raise ValueError(found)
+        raise ValueError(found + SET_BY.format("horizons"))
 
 
 def observed_inputs(x: torch.Tensor, mask: torch.Tensor, burn_in: int, end: int, mode: str

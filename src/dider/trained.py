@@ -80,7 +80,9 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
 @dataclass
 class TrainedModel:
     """A trained network with what it needs to read new data: the normaliser and the training data's
-    settings (``data``: the data module's arguments, e.g. ``frame_rate``, ``burn_in``)."""
+    settings (``data``: the data module's arguments, e.g. ``frame_rate``, ``burn_in``). ``config`` is the model
+    config as the app's ``cfg.model`` holds it: the LightningModule's settings, ``name``, ``num_edges`` and the
+    network's ``net``."""
 
     network: RelationalVAE
     normalizer: Normalizer
@@ -215,7 +217,8 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     ckpt = read_checkpoint(ckpt_path)
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
     net = network_hparams(hparams)
-    config = {k: v for k, v in hparams.items() if k not in ("net", "model")} | {"net": net}
+    config = ({k: v for k, v in hparams.items() if k not in ("net", "model")}
+              | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
     network = RelationalVAE.from_config(net)
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
     network.load_state_dict(state)

@@ -120,7 +120,7 @@ RULES: dict[str, Rule] = {
     "model.optimizer.lr": above(0),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
-    "model.burn_in": at_least(1),
+    "model.burn_in": integer(1),
     "protocol.burn_in": integer(1),
     "protocol.burn_in_mode": one_of(*BURN_IN_MODES),
 }

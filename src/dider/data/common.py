@@ -195,7 +195,9 @@ class ClipDataModule(L.LightningDataModule):
     (``check_settings(self, locals(), key="data")``: errors name ``data.<key>``), calls
     ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments of the ``__init__``
     that calls it, so hparams, and the checkpoints, hold every argument of the subclass) and then
-    :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``.
+    :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``. A data config
+    picks the forecast protocol that its ``burn_in``, ``horizons`` and ``burn_in_mode`` interpolate, in its
+    defaults list: ``- /protocol@_global_.protocol: NAME`` (``conf/protocol``).
     """
 
     # The rules of the shared arguments; a subclass adds its own (``ClipDataModule.SETTINGS | {...}``).
@@ -256,7 +258,7 @@ class ClipDataModule(L.LightningDataModule):
         ``imshow``), or None (the default: no scene image)."""
         return None
 
-    def _loader(self, split: str, train: bool) -> DataLoader:
+    def _dataloader(self, split: str, train: bool) -> DataLoader:
         if split not in self.datasets:
             raise RuntimeError(f"{type(self).__name__}: call setup() before asking for the {split} loader")
         sampler = None
@@ -277,18 +279,18 @@ class ClipDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", train=True)
+        return self._dataloader("train", train=True)
 
     def val_dataloader(self) -> DataLoader:
-        return self._loader("val", train=False)
+        return self._dataloader("val", train=False)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader("test", train=False)
+        return self._dataloader("test", train=False)
 
     def predict_dataloader(self) -> DataLoader:
         """Every clip of the input, in order (``setup("predict")`` builds it, normalised with the normaliser
         given to :meth:`use_normalizer`)."""
-        return self._loader("predict", train=False)
+        return self._dataloader("predict", train=False)
 
     def predict_normalizer(self, where: str) -> Normalizer:
         """The normaliser a ``predict`` setup must use: a trained model's, never one fitted on the new data."""

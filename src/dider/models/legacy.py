@@ -34,8 +34,20 @@ def split_model_config(node: Mapping[str, Any]) -> tuple[dict[str, Any], dict[st
     is its ``net`` node, an older flat one (every key but :data:`MODULE_KEYS` the network's), or a network's
     config alone. The network's comes upgraded (:func:`upgrade_model_config`)."""
     module = {k: node[k] for k in MODULE_KEYS if k in node}
-    net = node["net"] if "net" in node else {k: v for k, v in node.items() if k not in MODULE_KEYS}
-    return upgrade_model_config(net), module
+    if "net" not in node:
+        return upgrade_model_config({k: v for k, v in node.items() if k not in MODULE_KEYS}), module
+    if stray := stray_keys(node):
+        raise ValueError("; ".join(stray))
+    return upgrade_model_config(node["net"]), module
+
+
+def stray_keys(node: Mapping[str, Any]) -> list[str]:
+    """What is wrong with the top-level keys of a model config with a ``net`` node: a key that is neither the
+    LightningModule's nor ``name`` / ``num_edges`` (a network setting written in the older flat layout, say,
+    which would otherwise be ignored)."""
+    known = {*MODULE_KEYS, "name", "num_edges", "net", "_target_"}
+    return [f"model.{k}: not a setting of the model's top level ({sorted(known)}); the network's settings are "
+            f"under model.net (model.net.{k})" for k in node if k not in known]
 
 
 def network_hparams(hparams: Mapping[str, Any]) -> Mapping[str, Any] | None:

@@ -67,7 +67,9 @@ def overridden_keys() -> set[str]:
 def hparams(cfg: DictConfig) -> dict[str, Any]:
     """The scalar settings worth comparing across runs, flattened with '/'."""
     keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
-    for section in ("model", "data"):
+    for section in ("protocol", "model", "data"):
+        if section not in cfg:
+            continue
         flat = OmegaConf.to_container(cfg[section], resolve=True)
         for key, value in _flatten(flat, section).items():
             if isinstance(value, (int, float, str, bool)) and not key.endswith("_target_"):

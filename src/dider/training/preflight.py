@@ -15,6 +15,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from dider import __version__
 from dider.data.batch import Normalizer
+from dider.models.legacy import stray_keys
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
 from dider.validation import RULES, ConfigError, problem, settings_problems
@@ -46,7 +47,8 @@ def validate_config(cfg: DictConfig) -> None:
     for section in ("model", "data"):  # the settings that their classes declare (SETTINGS)
         if (node := get(section)) is not None:
             try:
-                problems += settings_problems(OmegaConf.to_container(node, resolve=True), section)
+                plain = OmegaConf.to_container(node, resolve=True)
+                problems += settings_problems(plain, section) + (stray_keys(plain) if section == "model" else [])
             except OmegaConfBaseException as e:  # an interpolation that cannot resolve: named here, not later
                 problems.append(f"{section}: cannot resolve ({e})")
     mode = get("mode")
@@ -55,17 +57,32 @@ def validate_config(cfg: DictConfig) -> None:
         problems += _protocol_problems(get)
     problems += _path_problems(get) + _logger_problems(get)
     if problems:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(_once(problems)))
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(_once(problems, cfg)))
     for warning in config_warnings(cfg):
         log.warning(warning)
 
 
-def _once(problems: list[str]) -> list[str]:
-    """The problems, less the data's and the model's copies of a protocol value reported as ``protocol.*``
-    (both read the protocol: one mistake, one line)."""
-    protocol = {p.removeprefix("protocol.").split(":")[0] for p in problems if p.startswith("protocol.")}
-    return [p for p in problems if not (p.startswith(("data.", "model.")) and p.split(".", 1)[1].split(":")[0]
-                                        in protocol)]
+def _once(problems: list[str], cfg: DictConfig) -> list[str]:
+    """One mistake, one line, under the key the user sets: copies of a ``protocol.*`` value that the data and the
+    model interpolate are dropped, and the network's ``name`` and ``num_edges``, which interpolate the model's top,
+    are named ``model.name`` / ``model.num_edges``. Problems read ``key=value: why``."""
+    def head(found: str) -> tuple[str, str]:  # (key, value) of "key=value: why"
+        key, _, value = found.split(": ", 1)[0].partition("=")
+        return key, value
+
+    protocol = {(key.rsplit(".", 1)[-1], value) for key, value in map(head, problems) if key.startswith("protocol.")}
+    out: list[str] = []
+    for found in problems:
+        key, value = head(found)
+        if not key.startswith("protocol.") and (key.rsplit(".", 1)[-1], value) in protocol:
+            continue
+        top = key.removeprefix("model.net.")
+        same = OmegaConf.select(cfg, key, default=0) == OmegaConf.select(cfg, f"model.{top}", default=1)
+        if key.startswith("model.net.") and top in ("name", "num_edges") and same:
+            found = found.replace(key, f"model.{top}", 1)
+        if found not in out:
+            out.append(found)
+    return out
 
 
 def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
