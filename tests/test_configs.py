@@ -161,3 +161,28 @@ def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
     assert (cfg.data.burn_in, list(cfg.model.horizons), cfg.model.burn_in_mode) == (3, [1, 2], "global")
     cfg = make_cfg(["data=synth", "protocol=ind"])
     assert (list(cfg.data.horizons), cfg.model.burn_in_mode) == ([1, 20, 40], "per_agent")
+
+
+def test_a_plugins_defaults_come_from_its_signature(make_cfg):
+    """Each plugin option starts from its class's schema (dider.training.schemas): the settings its YAML leaves
+    out take the constructor's defaults, and a key the class does not take is refused at composition."""
+    import inspect
+
+    from hydra.errors import ConfigCompositionException
+
+    from dider.training.schemas import PLUGINS
+
+    for group in ("encoder", "prior", "duration", "decoder"):
+        for option in options(f"model/net/{group}"):
+            node = make_cfg([f"model/net/{group}={option}"], tiny=False).model.net[group]
+            cls = next(c for c in PLUGINS if f"{c.__module__}.{c.__qualname__}" == node._target_)
+            folder = CONF / "model" / "net" / group
+            text = (folder / f"{option}.yaml").read_text()
+            text += "".join((folder / f"{w}.yaml").read_text() for w in text.split()
+                            if (folder / f"{w}.yaml").is_file())
+            yaml_keys = set(text.split())  # the option's own settings and those of the option it extends
+            for name, p in inspect.signature(cls.__init__).parameters.items():
+                if name != "self" and f"{name}:" not in yaml_keys and p.default is not p.empty:
+                    assert node[name] == (list(p.default) if isinstance(p.default, tuple) else p.default), name
+    with pytest.raises(ConfigCompositionException, match="hiden"):
+        make_cfg(["model.net.encoder.hiden=8"], tiny=False)
