@@ -163,9 +163,10 @@ def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
     assert (list(cfg.data.horizons), cfg.model.burn_in_mode) == ([1, 20, 40], "per_agent")
 
 
-def test_a_plugins_defaults_come_from_its_signature(make_cfg):
+def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):
     """Each plugin option starts from its class's schema (dider.training.schemas): the settings its YAML leaves
-    out take the constructor's defaults, and a key the class does not take is refused at composition."""
+    out take the constructor's defaults, and a key the class does not take is refused at composition, also where
+    an experiment file sets it (without the schema such a file composed and the run failed later)."""
     import inspect
 
     from hydra.errors import ConfigCompositionException
@@ -184,5 +185,8 @@ def test_a_plugins_defaults_come_from_its_signature(make_cfg):
             for name, p in inspect.signature(cls.__init__).parameters.items():
                 if name != "self" and f"{name}:" not in yaml_keys and p.default is not p.empty:
                     assert node[name] == (list(p.default) if isinstance(p.default, tuple) else p.default), name
-    with pytest.raises(ConfigCompositionException, match="hiden"):
-        make_cfg(["model.net.encoder.hiden=8"], tiny=False)
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "typo.yaml").write_text("# @package _global_\nmodel:\n  net:\n    encoder:\n"
+                                                       "      hiden: 8\n")
+    with pytest.raises(ConfigCompositionException, match=r"Key 'hiden' not in 'GNNLSTMEncoderSchema'"):
+        make_cfg([f"hydra.searchpath=[file://{tmp_path}]", "experiment=typo"], tiny=False)

@@ -2,9 +2,9 @@
 signature (every argument, with the signature's default) and registered in Hydra's ConfigStore as
 ``schema/<Class>`` when the config package ``dider.conf`` is imported. A plugin's YAML starts from it
 (``defaults: [/schema@_here_: <Class>, _self_]``) and writes only what differs: an interpolation, a measured
-choice, the variant's own value. Composition refuses a key the class does not take (``model.net.encoder.hiden=8``)
-and shows every setting (``python -m dider.run --cfg job``); the fields are untyped, so a value of the wrong type
-reaches the class's ``SETTINGS`` and the preflight names it by its key.
+choice, the variant's own value. Composition refuses a key the class does not take, also where an experiment
+file sets it, and shows every setting (``python -m dider.run --cfg job``); the fields are untyped, so a value of
+the wrong type reaches the class's ``SETTINGS`` and the preflight names it by its key.
 """
 
 from __future__ import annotations
