@@ -77,8 +77,8 @@ def _once(problems: list[str], cfg: DictConfig) -> list[str]:
         if not key.startswith("protocol.") and (key.rsplit(".", 1)[-1], value) in protocol:
             continue
         top = key.removeprefix("model.net.")
-        same = OmegaConf.select(cfg, key, default=0) == OmegaConf.select(cfg, f"model.{top}", default=1)
-        if key.startswith("model.net.") and top in ("name", "num_edges") and same:
+        if top in ("name", "num_edges") and key != top and (
+                OmegaConf.select(cfg, key, default=0) == OmegaConf.select(cfg, f"model.{top}", default=1)):
             found = found.replace(key, f"model.{top}", 1)
         if found not in out:
             out.append(found)
