@@ -100,8 +100,8 @@ def test_online_duration_reads_only_the_past():
     h_fwd2, h_rev2 = h_fwd.clone(), torch.randn(3, 6, t, 8)  # the future changed: all reverse states move
     h_fwd2[:, :, cut:] = torch.randn(3, 6, t - cut, 8)
     for source, causal in (("past", True), ("future", False)):
-        torch.manual_seed(1)
-        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source).eval()
+        torch.manual_seed(1)  # prior_mu 0: long segments, as many slots for both
+        dur = LearnedDuration(rnn_hidden=8, hidden=8, source=source, prior_mu=0.0).eval()
         a = dur.segment(h_fwd, h_rev, torch.zeros(1)).assign[:, :, :cut]
         b = dur.segment(h_fwd2, h_rev2, torch.zeros(1)).assign[:, :, :cut]
         assert torch.equal(a, b) == causal, source

@@ -157,6 +157,12 @@ class BasketballDataModule(ClipDataModule):
         cache_dir: str | None = None,
         burn_in_mode: str = "global",
     ) -> None:
+        """format: auto (from the files in ``root``) | zhan | dnri.
+        agents: the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (the ball and the 10).
+        frame_rate: the Zhan files' rate in Hz; finite-difference velocities are in feet / second.
+        val_fraction: the training clips carved off for validation when the files have no validation split.
+        seed: the carving seed.
+        train_len: crop training clips to their first steps (DNRI trains on 40); null: whole clips."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)

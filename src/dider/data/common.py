@@ -198,6 +198,11 @@ class ClipDataModule(L.LightningDataModule):
     :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``. A data config
     picks the forecast protocol that its ``burn_in``, ``horizons`` and ``burn_in_mode`` interpolate, in its
     defaults list: ``- /protocol@_global_.protocol: NAME`` (``conf/protocol``).
+
+    num_train, num_val, num_test: a cap on each split's clips (windows), evenly spread; null: all (the synthetic
+    data set generates that many).
+    cache_dir: where generated or preprocessed data are cached; null: $DIDER_CACHE or ~/.cache/dider (a data set
+    that caches nothing takes it for a uniform interface).
     """
 
     # The rules of the shared arguments; a subclass adds its own (``ClipDataModule.SETTINGS | {...}``).

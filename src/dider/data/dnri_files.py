@@ -145,6 +145,7 @@ class DNRIFilesDataModule(ClipDataModule):
         cache_dir: str | None = None,
         burn_in_mode: str = "global",
     ) -> None:
+        """root: the folder holding the six files (required)."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)

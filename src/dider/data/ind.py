@@ -26,7 +26,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -71,6 +71,7 @@ class InDDataModule(ClipDataModule):
         "max_agents": optional(integer(1)),
     }
     LOADER = Loader(batch_size=8, eval_batch_size=8)  # DNRI's inD batch
+    PAIRS = PairRules()  # the consistency check's rules; data.pairs overrides them key by key
 
     def __init__(
         self,
@@ -106,13 +107,32 @@ class InDDataModule(ClipDataModule):
         background_pattern: str = "{id}_background.png",
         background_scale: float = 12.0,
     ) -> None:
-        """pairs: the consistency check's rules (:class:`dider.data.pairs.PairRules` fields); test batches
-        carry ``pair_kind``."""
+        """root: the folder with each recording's ``{id}_tracks.csv``, ``_tracksMeta.csv`` and ``_recordingMeta.csv``.
+        name: the data set's name: the cache files' prefix and the log messages.
+        recordings: the recording ids used, e.g. [0, 1, 7]; null: every recording found, in order.
+        split: recordings for train / val / test in recording order (DNRI: 00-18 / 19-25 / 26-32), or fractions,
+        e.g. [0.6, 0.2, 0.2].
+        class_column: a column of tracksMeta.
+        frame_rate_column: a column of recordingMeta.
+        features: x, y (m), x and y velocity (m/s); the files' other columns are ignored.
+        classes: the road-user classes kept, e.g. [car, truck_bus]; null: all (DNRI).
+        downsample: keep every k-th frame (10: 25 Hz -> 2.5 Hz).
+        seq_len: the window length in downsampled steps (200 for the long-horizon table: ``data=ind200``).
+        stride: train windows start every ``stride`` steps; null: seq_len (no overlap).
+        eval_stride: the same for val / test windows; null: seq_len.
+        min_agent_steps: keep the agents present for at least this many steps of a window.
+        min_agents: drop windows with fewer agents (relations need two).
+        max_agents: cap on the agents per window (the longest present kept); null: no cap.
+        pairs: the consistency check on the test split (test/consistency/*: agent pairs whose edge type should stay
+        the same all along): :class:`dider.data.pairs.PairRules` fields over ``PAIRS``; test batches carry
+        ``pair_kind``.
+        background_pattern: the image drawn under the trajectory figures, where present.
+        background_scale: metres per background pixel = orthoPxToMeter x this (inD's images are downscaled 12x)."""
         super().__init__()
         check_settings(self, locals(), key="data")
         try:
-            self.pair_rules = PairRules(**{k: tuple(v) if isinstance(v, list | tuple) else v
-                                           for k, v in dict(pairs or {}).items()})
+            self.pair_rules = replace(self.PAIRS, **{k: tuple(v) if isinstance(v, list | tuple) else v
+                                                     for k, v in dict(pairs or {}).items()})
         except TypeError as e:
             raise ValueError(f"data.pairs: {e} (fields: {list(PairRules.__dataclass_fields__)})") from None
         if max_agents is not None and max_agents < min_agents:

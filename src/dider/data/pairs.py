@@ -30,7 +30,7 @@ KIND_NAMES = {PARKED: "parked", OPPOSITE: "opposite"}
 class PairRules:
     parked_speed: float = 0.5  # m/s: a vehicle whose speed stays below this at every present step is parked
     moving_speed: float = 2.0  # m/s: a vehicle whose mean speed exceeds this is moving
-    opposite_cos: float = -0.9  # cosine between the mean headings below which two vehicles head opposite ways
+    opposite_cos: float = -0.9  # mean headings with a lower cosine head opposite ways (-0.9: up to ~25 deg off)
     vehicle_classes: tuple[str, ...] = ("car", "truck_bus", "truck", "bus", "van", "trailer", "motorcycle")
 
     def __post_init__(self) -> None:

@@ -148,8 +148,18 @@ class SoccerDataModule(TableDataModule):
         burn_in_mode: str = "per_agent",
         max_speed: float | None = 12.0,
     ) -> None:
-        """options: further keyword arguments of the kloppy loader (e.g. ``sample_rate``, ``limit``,
-        ``only_alive``). frame_rate: null takes the provider's (a value given must match it)."""
+        """provider: kloppy's reader: hawkeye, skillcorner, metrica_csv, metrica_epts, tracab, sportec,
+        secondspectrum or pff.
+        files: the reader's files by its argument names (required), e.g. Hawk-Eye's {ball_feeds: F,
+        player_centroid_feeds: G}: a file, a list of files, or a folder where the reader takes one.
+        options: further keyword arguments of the kloppy loader (e.g. ``sample_rate``, ``limit``, ``only_alive``).
+        ball: the ball as one more agent (class ``ball``).
+        frame_rate: null takes the provider's (a value given must match it).
+        downsample: keep every k-th frame, e.g. 8 turns 50 Hz into 6.25 Hz steps.
+        max_speed: m/s: a faster step is a tracking jump (players sprint at <= 11 m/s), the player absent there;
+        with ``ball: true``, >= 40.
+        cache_dir: unused (kloppy reads the files each run).
+        The other settings as :class:`~dider.data.table.TableDataModule`'s."""
         check_settings(self, locals(), key="data")
         super().__init__(None, None, frame_rate or 1.0, downsample, seq_len, stride, min_agent_steps, min_agents,
                          split, seed, num_train, num_val, num_test, burn_in, horizons, loader, cache_dir,

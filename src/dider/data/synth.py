@@ -50,6 +50,7 @@ class SynthDataModule(ClipDataModule):
         horizons: tuple[int, ...] = (1, 15, 25),
         burn_in_mode: str = "global",
     ) -> None:
+        """seed: the data seed (the top-level ``seed`` drives the model and training)."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)

@@ -1,10 +1,10 @@
 """Long-format trajectory tables: one ``.csv`` or ``.parquet`` file (``data.path``), one row per agent per frame.
 
-Columns are named in ``data.columns``: ``agent``, ``frame``, ``x``, ``y`` (required), ``scene`` (null: a
-column called ``scene`` if the file has one, else the whole file is one scene), ``vx``/``vy`` (null: finite
-differences), ``agent_class`` (optional, one class per agent). Extra columns are ignored. Scene and agent ids
-may be integers (kept as they are) or strings (coded; the names are in ``source_names``); an agent is a
-(scene, agent id) pair.
+Columns are named in ``data.columns``: ``agent``, ``frame`` (integer frame numbers), ``x``, ``y`` (required),
+``scene`` (null: a column called ``scene`` if the file has one, else the whole file is one scene), ``vx``/``vy``
+(null: finite differences, both or neither), ``agent_class`` (optional, one class per agent). Extra columns are
+ignored. Scene and agent ids may be integers (kept as they are) or strings (coded; the names are in
+``source_names``); an agent is a (scene, agent id) pair.
 
 Each scene is downsampled to every ``downsample``-th frame counted from the scene's first frame, and laid
 on a grid of steps x agents: a frame missing inside an agent's span is an absent step (mask False).
@@ -43,7 +43,7 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
-from dider.data.table_reading import check_columns, id_name, read_table
+from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.data.windowing import MAX_GRID_CELLS, cut_windows
 from dider.protocol import fill_absent
@@ -188,6 +188,7 @@ class TableDataModule(ClipDataModule):
     predicts = True
 
     collate_fn = staticmethod(pad_collate)
+    COLUMNS = DEFAULT_COLUMNS  # the table's column names; data.columns overrides them key by key
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
         "frame_rate": lambda value: above(0)(value) or finite(value), "downsample": integer(1),
@@ -217,7 +218,15 @@ class TableDataModule(ClipDataModule):
         burn_in_mode: str = "per_agent",
         max_speed: float | None = None,
     ) -> None:
-        """stride: null means seq_len (windows do not overlap); max_speed: null keeps every step."""
+        """path: the .csv or .parquet file (required; parquet needs pyarrow).
+        columns: the table's column names (module docstring), key by key over ``COLUMNS``.
+        frame_rate: frames per second of the frame column: differenced velocities are per second.
+        seq_len: the window length in (downsampled) steps.
+        stride: a window starts every ``stride`` steps of a scene; null: seq_len (windows do not overlap).
+        max_speed: a step faster than this (data units per second) is a tracking jump, the agent absent there;
+        null keeps every step.
+        split: train / val / test fractions: of the scenes with >= 3 scenes, else of the windows.
+        seed: the split seed."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.columns = check_columns(columns)

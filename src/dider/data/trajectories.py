@@ -195,6 +195,9 @@ class TrajectoryDataModule(ClipDataModule):
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
     ) -> None:
+        """path: the .npz file (required).
+        split: train / val / test fractions of the clips (a permutation seeded by ``seed``).
+        frame_rate: finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (a file without 'velocities')."""
         super().__init__()
         check_settings(self, locals(), key="data")
         split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup

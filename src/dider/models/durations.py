@@ -77,7 +77,8 @@ class LearnedDuration(nn.Module):
     features at the slot's first step give mu = tanh(f_mu(h)), sigma = sigma_min + (1 - sigma_min) *
     sigmoid(f_sigma(h)); z = mu + sigma * eps (z = mu in eval); rho = clamp((z + 1) / 2, rho_min, 1);
     d = max(rho * T_remaining, min_duration); the last slot runs to the end. The duration KL is against
-    the fixed prior N(prior_mu, prior_sigma^2). An edge has at most one slot per step.
+    the fixed prior N(prior_mu, prior_sigma^2) (prior_mu -0.6: rho = 0.2 at the prior's mean). An edge has at most
+    one slot per step.
 
     How this implementation settles what the paper leaves open:
     - tanh lets z and d go negative: rho maps z to a fraction in [rho_min, 1];
@@ -113,7 +114,7 @@ class LearnedDuration(nn.Module):
         min_duration: float = 1.0,
         rho_min: float = 0.0,
         sigma_min: float = 1e-2,
-        prior_mu: float = 0.0,
+        prior_mu: float = -0.6,
         prior_sigma: float = 1.0,
         tau_start: float = 1.5,
         tau_end: float = 0.5,

@@ -78,7 +78,7 @@ def upgrade_model_config(node: Mapping[str, Any]) -> dict[str, Any]:
                                  "no_edge_prob": get("no_edge_prob", 0.9),
                                  "form": get("sparsity_form", "mean_edges"), "num_types": node.get("num_edges", 2)}
     if get("prior_fit", 0.0) > 0:
-        objective["prior_fit"] = {"_target_": f"{_OBJECTIVE}.PriorFit", "weight": old["prior_fit"]}
+        objective["prior_fit"] = {"_target_": f"{_OBJECTIVE}.PriorFit", "weight": old["prior_fit"], "capacity": 0.0}
         if not get("prior_fit_warmup", True) and get("kl_warmup", 0.0) > 0:
             log.warning("model.prior_fit_warmup=false of an older config is no longer an option: the prior fit "
                         "ramps with the KL warm-up (a resumed run's loss differs before the warm-up ends)")

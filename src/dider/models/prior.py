@@ -36,7 +36,7 @@ class FixedPrior(nn.Module):
     ``no_edge_prob: null`` gives the uniform prior.
     """
 
-    def __init__(self, num_types: int, no_edge_prob: float | None = None) -> None:
+    def __init__(self, num_types: int, no_edge_prob: float | None = 0.9) -> None:
         super().__init__()
         if no_edge_prob is None:
             log_probs = torch.full((num_types,), -math.log(num_types))

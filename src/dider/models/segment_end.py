@@ -85,7 +85,7 @@ class SegmentEnd(HazardPrior):
 
     ``temperature``: of the Gumbel-softmax over the candidate ends. ``reads``: ``position`` (DIDER) or
     ``remaining`` (SKID). ``rate``, ``rate_mix``, ``online_threshold`` and ``burn_in``:
-    :class:`~dider.models.hazard.HazardPrior`.
+    :class:`~dider.models.hazard.HazardPrior` (the fixed ``rate``, mixed into the prior, is what a boundary costs).
     """
 
     SETTINGS = HazardPrior.SETTINGS | {"temperature": above(0), "reads": one_of("position", "remaining")}
@@ -94,7 +94,7 @@ class SegmentEnd(HazardPrior):
         self,
         rnn_hidden: int = 64,
         hidden: int = 64,
-        rate: float = 0.2,
+        rate: float = 0.02,
         rate_mix: float = 0.5,
         temperature: float = 0.5,
         online_threshold: float = 0.5,

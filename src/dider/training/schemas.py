@@ -1,56 +1,101 @@
-"""Each plugin's settings written once, in its constructor: the config schema of a plugin class is made from its
-signature (every argument, with the signature's default) and registered in Hydra's ConfigStore as
-``schema/<Class>`` when the config package ``dider.conf`` is imported. A plugin's YAML starts from it
-(``defaults: [/schema@_here_: <Class>, _self_]``) and writes only what differs: an interpolation, a measured
-choice, the variant's own value. Composition refuses a key the class does not take, also where an experiment
-file sets it, and shows every setting (``python -m dider.run --cfg job``); the fields are untyped, so a value of
-the wrong type reaches the class's ``SETTINGS`` and the preflight names it by its key.
+"""Each setting written once, in its class's constructor: the config schema of a class is made from its signature
+(every argument, with the signature's default) and registered in Hydra's ConfigStore as ``schema/<Class>`` when
+the config package ``dider.conf`` is imported. A config node starts from it (``defaults: [/schema@_here_:
+<Class>, _self_]``, or ``/schema@<key>: <Class>`` for a node below) and writes only what differs: an
+interpolation, a data set's value, the variant's own choice. Composition refuses a key the class does not take,
+also where an experiment file sets it, and shows every setting (``python -m dider.run --cfg job``); the fields
+are untyped, so a value of the wrong type reaches the class's ``SETTINGS`` and the preflight names it by its key.
+
+A nested node's defaults (a data module's ``loader``, say) are the class's upper-case attribute named after the
+argument (``LOADER``), a dataclass or a mapping, where the signature's default is None.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import inspect
+from collections.abc import Iterable, Mapping
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
+from dider.data.basketball import BasketballDataModule
+from dider.data.dnri_files import DNRIFilesDataModule
+from dider.data.ind import InDDataModule
+from dider.data.soccer import SoccerDataModule
+from dider.data.synth import SynthDataModule
+from dider.data.table import TableDataModule
+from dider.data.trajectories import TrajectoryDataModule
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
 from dider.models.durations import LearnedDuration, PerStepDuration, StaticDuration
 from dider.models.encoder import GNNLSTMEncoder
 from dider.models.gate import HoldGate
+from dider.models.likelihood import GaussianNLL
+from dider.models.objective import DurationKL, EdgeKL, PriorFit, Sparsity
 from dider.models.prior import FixedPrior, LearnedPrior
 from dider.models.segment_end import SegmentEnd
+from dider.models.vae import RelationalVAE
+from dider.training.module import RelationalVAEModule
 
-# The classes the plugin groups of conf/model/net build.
+# The classes the configs build, each stored as schema/<Class>: the network and its plugins (conf/model/net),
+# the objective's terms (conf/model/net/objective: the objective itself stays open to new terms) and the data
+# modules (conf/data). The LightningModule's is stored by register_schemas.
 PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDuration, LearnedDuration, SegmentEnd,
            HoldGate, MarkovDecoder, RecurrentDecoder)
+TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, PriorFit)
+DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
+        SoccerDataModule, TrajectoryDataModule)
 
 
-def schema(cls: type) -> type:
-    """A dataclass of ``cls``'s constructor arguments (defaults as in its signature, ``???`` where it has none)
-    and its ``_target_``."""
-    fields: list[tuple[str, Any, Any]] = [("_target_", str, dataclasses.field(default=f"{cls.__module__}."
-                                                                                      f"{cls.__qualname__}"))]
+def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
+           extra: Mapping[str, Any] | None = None) -> type:
+    """A dataclass of ``cls``'s constructor arguments but ``exclude`` (defaults as in its signature, ``???`` where
+    it has none), with its ``_target_`` (unless ``target`` is False) and the fields of ``extra`` (name: default)."""
+    fields: list[tuple[str, Any, Any]] = []
+    if target:
+        fields.append(("_target_", str, dataclasses.field(default=f"{cls.__module__}.{cls.__qualname__}")))
     for name, p in inspect.signature(cls.__init__).parameters.items():
-        if name == "self" or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+        if name == "self" or name in exclude or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
             continue
-        if p.default is p.empty:
-            fields.append((name, Any, dataclasses.field(default=MISSING)))
-        elif isinstance(p.default, (list, tuple, dict)):  # a mutable default: one copy per config
-            fields.append((name, Any, dataclasses.field(default_factory=lambda d=p.default: _plain(d))))
-        else:
-            fields.append((name, Any, dataclasses.field(default=p.default)))
+        default = MISSING if p.default is p.empty else p.default
+        if default is None and hasattr(cls, name.upper()):
+            default = getattr(cls, name.upper())
+        fields.append((name, Any, _field(default)))
+    fields += [(name, Any, _field(default)) for name, default in (extra or {}).items()]
     return dataclasses.make_dataclass(f"{cls.__name__}Schema", fields)
 
 
+def _field(default: Any) -> Any:
+    """A dataclass field holding ``default``; a mutable or nested one is copied, plain, for each config."""
+    if dataclasses.is_dataclass(default):
+        return dataclasses.field(default_factory=lambda d=default: _plain(dataclasses.asdict(d)))
+    if isinstance(default, (list, tuple, Mapping)):
+        return dataclasses.field(default_factory=lambda d=default: _plain(d))
+    return dataclasses.field(default=default)
+
+
 def _plain(value: Any) -> Any:
-    return dict(value) if isinstance(value, dict) else list(value)
+    """Tuples as lists, mappings as dicts, all the way down (what a YAML file would hold)."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value
+
+
+def module_schema() -> type:
+    """The model config's top: the LightningModule's arguments (``net`` holds the network's config; ``model``,
+    that config's older name, is for checkpoints only), with the network's ``name`` and ``num_edges``, which the
+    model's top holds so that users type ``model.num_edges`` (``net`` interpolates them)."""
+    network = inspect.signature(RelationalVAE.__init__).parameters
+    return schema(RelationalVAEModule, exclude=("model",), target=False,
+                  extra={k: network[k].default for k in ("name", "num_edges")})
 
 
 def register_schemas() -> None:
-    """Store the schema of every plugin class as ``schema/<Class>``."""
+    """Store the schema of every class the configs build as ``schema/<Class>``."""
     store = ConfigStore.instance()
-    for cls in PLUGINS:
+    for cls in (*PLUGINS, RelationalVAE, *TERMS, *DATA):
         store.store(group="schema", name=cls.__name__, node=schema(cls))
+    store.store(group="schema", name=RelationalVAEModule.__name__, node=module_schema())
