@@ -23,9 +23,12 @@ from typing import Any
 
 from dider.io import atomic_write_text
 
-# What a record keeps of each job when no --metric is given: the forecast, edge recalls, the own cut.
+# What a record keeps of each job when no --metric is given: the forecast (in data units against constant velocity,
+# and as the normalised MSE), edge recalls, the own cut. A job that lacks a key leaves it out.
 DEFAULT_METRICS = (
-    "test/mse/h01", "test/mse/h15", "test/mse/h25", "test/mse_posterior/h15", "test/mse_posterior/h25",
+    "test/ade/h01", "test/ade/h15", "test/ade/h25", "test/cv/ade/h01", "test/cv/ade/h15", "test/cv/ade/h25",
+    "test/ade_vs_cv/h01", "test/ade_vs_cv/h15", "test/ade_vs_cv/h25", "test/mse/h01", "test/mse/h15", "test/mse/h25",
+    "test/mse_posterior/h15", "test/mse_posterior/h25",
     "test/mse_oracle/h15", "test/mse_oracle/h25", "test/edge_acc/posterior/none",
     "test/edge_acc/posterior/interaction", "test/edge_acc/prior/none", "test/edge_acc/prior/interaction",
     "test/edge_acc/prior_per_step/interaction", "test/segments_per_edge", "test/boundary_f1",
