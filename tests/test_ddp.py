@@ -36,6 +36,7 @@ def run_ddp(cmd: list[str], run_dir: Path) -> subprocess.CompletedProcess:
     return proc
 
 
+@pytest.mark.slow  # three processes, about 45 s on a 2-core CPU: make test-all
 def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
     run_dir = tmp_path / "ddp"
     proc = run_ddp([sys.executable, "-m", "dider.run", *COMMON, "trainer=ddp_sim", f"hydra.run.dir={run_dir}",

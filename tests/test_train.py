@@ -101,6 +101,7 @@ def test_training_lowers_the_loss(make_cfg, tmp_path):
         assert float(r["val/ade_vs_cv/h01"]) == pytest.approx(ratio, rel=1e-5) and float(r["val/cv/ade/h01"]) > 0
 
 
+@pytest.mark.slow  # about 2 minutes on a 2-core CPU: make test-all
 def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     """Two CPU minutes of DNRI learn the pushes: one-step forecasts clearly beat constant velocity.
 
@@ -130,6 +131,7 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     assert all_finite(metrics)
 
 
+@pytest.mark.slow  # about 2 minutes on a 2-core CPU: make test-all
 def test_trained_dider_finds_the_pushes(make_cfg, tmp_path):
     """A short CPU run of DIDER infers the interactions from whole clips clearly above chance.
 
