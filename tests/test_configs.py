@@ -210,7 +210,7 @@ def test_every_node_a_class_builds_holds_its_arguments(make_cfg, tmp_path):
 
     for model in options("model"):
         cfg = make_cfg([f"model={model}"], tiny=False)
-        check(cfg.model, {f.name for f in dataclasses.fields(module_schema())} | {"net"}, model)
+        check(cfg.model, {f.name for f in dataclasses.fields(module_schema())}, model)
         nodes = [cfg.model.net, *[cfg.model.net[k] for k in ("encoder", "prior", "duration", "decoder")],
                  *[t for t in cfg.model.net.objective.values() if isinstance(t, DictConfig)]]
         for node in nodes:
