@@ -1,6 +1,7 @@
 """The documentation site builds with MkDocs in strict mode (a broken link or a missing page fails), and the
 API reference is generated from the docstrings."""
 
+import re
 import shutil
 import subprocess
 import sys
@@ -35,3 +36,29 @@ def test_a_broken_link_fails_the_build(tmp_path):
     page.write_text(page.read_text() + "\nSee [the old page](no_such_page.md).\n")
     proc = build(tmp_path, tmp_path / "site")
     assert proc.returncode != 0 and "no_such_page.md" in proc.stderr
+
+
+def _expand(token: str) -> list[str]:
+    """``a{1..3}b`` and ``a{x,y}b`` as a shell expands them (one brace group)."""
+    m = re.search(r"\{([^{}]*)\}", token)
+    if not m:
+        return [token]
+    body = m.group(1)
+    if (rng := re.fullmatch(r"(\d+)\.\.(\d+)", body)) is not None:
+        items = [str(i) for i in range(int(rng.group(1)), int(rng.group(2)) + 1)]
+    else:
+        items = body.split(",")
+    return [token[: m.start()] + item + token[m.end():] for item in items]
+
+
+def test_every_cited_record_is_committed_and_every_record_cited():
+    """Every figure in the docs comes from a record in the repository: a ``docs/records/*.json`` the README, the
+    docs, the journal or the CHANGELOG name must exist, and a record nothing names is a figure without a page."""
+    pages = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    text = "\n".join(page.read_text() for page in pages)
+    tokens = re.findall(r"docs/records/([\w{},.]+?\.json)", text)
+    cited = {name for token in tokens if token.islower() for name in _expand(token)}  # NAME, seedS: placeholders
+    records = {path.name for path in (ROOT / "docs" / "records").glob("*.json")}
+    assert cited - records == set(), "named in the docs but not committed"
+    named = {name for token in re.findall(r"[\w{},.]+\.json", text) for name in _expand(token)}
+    assert records - named == set(), "committed but named nowhere"
