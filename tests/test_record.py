@@ -13,7 +13,8 @@ def fake_job(root, name, model, seed, h15, overrides=()):
     folder = root / name
     folder.mkdir(parents=True)
     record = {"seed": seed, "model": model, "overrides": [f"model={model}", f"seed={seed}", *overrides],
-              "config": {"model": {"name": model}}, "metrics": {"test/mse/h15": h15, "test/mse/h25": 2 * h15}}
+              "config": {"model": {"name": model}}, "metrics": {"test/mse/h15": h15, "test/mse/h25": 2 * h15},
+              "provenance": {"wall_s": 10.0 * seed, "device": "cpu", "git_commit": "abc", "torch": "2"}}
     (folder / "metrics.json").write_text(json.dumps(record))
 
 
@@ -33,6 +34,8 @@ def test_record_summarises_and_pairs_by_seed(tmp_path):
     assert diff["below"] == 2 and diff["ratio_of_means"] == pytest.approx(6 / 9)
     baseline = record["models"]["dnri"]["test/mse/h15"]
     assert baseline["n"] == 4 and "vs_dnri" not in baseline
+    job = next(j for j in record["jobs"] if j["folder"].endswith("dider2"))  # each job's cost and code, as it ran
+    assert job["provenance"] == {"wall_s": 20.0, "device": "cpu", "git_commit": "abc"}
 
 
 def test_jobs_that_differ_by_an_override_are_grouped_apart_unless_asked(tmp_path):

@@ -105,7 +105,9 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
         kept = {k: record["metrics"][k] for k in metrics if k in record["metrics"]}
         kept |= last_logged(folder, [k for k in metrics if k.startswith(("train/", "val/"))])
         job = {"folder": str(folder), "model": model.get(label, record.get("model")), "seed": record["seed"],
-               "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")], "metrics": kept}
+               "overrides": [o for o in record.get("overrides", []) if not o.startswith("seed=")], "metrics": kept,
+               # what the job cost and which code ran it, as the run's own record says
+               "provenance": {k: record.get("provenance", {}).get(k) for k in ("wall_s", "device", "git_commit")}}
         if curves:
             job["curves"] = logged_curves(folder, curves)
         jobs.append(job)

@@ -28,8 +28,8 @@ PRECISIONS = ("64-true", "32-true", "16-mixed", "bf16-mixed", "16-true", "bf16-t
 
 def default_precision(accelerator: str | None) -> str:
     """``trainer.precision``'s default: bf16 autocast where training runs on a CPU that computes bf16 natively
-    (AVX-512-BF16 or AMX; measured on the CPU table, seeds 1-8: the metrics within the seed spread, the jobs
-    1.5x faster), fp32 elsewhere (GPUs: not measured here). ``$DIDER_DEFAULT_PRECISION`` replaces the choice
+    (AVX-512-BF16 or AMX: the synthetic DNRI step 1.85x as fast, the metrics within the seed spread;
+    docs/performance.md), fp32 elsewhere (GPUs: not measured here). ``$DIDER_DEFAULT_PRECISION`` replaces the choice
     for a whole environment (the test suite sets 32-true: its thresholds were measured in fp32)."""
     pinned = os.environ.get("DIDER_DEFAULT_PRECISION")
     if pinned:
