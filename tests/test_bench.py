@@ -12,6 +12,7 @@ from dider.bench import cases as bench_cases
 from dider.bench import cli as bench  # the command line's namespace: main, run_case, cases, ...
 from dider.bench import reference as bench_reference
 from dider.bench import steps as bench_steps
+from dider.bench import summary as bench_summary
 
 # A checkout of cgraber/cvpr_dNRI, named by $DIDER_DNRI_REFERENCE (the comparison is skipped without one).
 REFERENCE_CHECKOUT = Path(os.environ.get("DIDER_DNRI_REFERENCE", "/nonexistent/cvpr_dNRI"))
@@ -44,15 +45,58 @@ def test_summary_speedups_and_roofline():
         return {"name": name, "samples_per_s": samples_per_s, "step_s": batch / samples_per_s,
                 "settings": settings} | ({"gflops": gflops} if gflops else {})
 
-    records = [rec("gemm/fp32", 10.0, gflop=5.0, gflops=200.0, batch=1), rec("train/dnri/synth", 102.0, gflop=100.0),
-               rec("train/dnri/synth/bf16", 153.0), rec("train/dider/synth", 51.0),
+    ref = bench_summary.REFERENCE_SAMPLES_PER_S["train/dnri/synth"]  # without --reference: the fixed figure
+    records = [rec("gemm/fp32", 10.0, gflop=5.0, gflops=200.0, batch=1), rec("train/dnri/synth", 2 * ref, gflop=100.0),
+               rec("train/dnri/synth/bf16", 3 * ref), rec("train/dider/synth", ref),
                {"name": "train/dnri/recurrent", "error": "killed"}]
     out = bench.summary(records)
-    assert out["speedup_over_reference/train/dnri/synth"] == 2.0
-    assert out["speedup_over_reference/train/dnri/synth/bf16"] == 3.0
+    assert out["speedup_over_reference/train/dnri/synth"] == pytest.approx(2.0)
+    assert out["speedup_over_reference/train/dnri/synth/bf16"] == pytest.approx(3.0)
     assert out["roofline/fp32/train/dnri/synth/max_samples_per_s"] == 128 * 200.0 / 100.0
-    assert out["step_ratio/dider_over_dnri/synth"] == 2.0
+    assert out["step_ratio/dider_over_dnri/synth"] == pytest.approx(2.0)
     assert not any("recurrent" in key or "bf16/train" in key for key in out)  # failed or missing cases
+
+
+def test_allocator_ratios_pair_each_round_by_hand():
+    """thresholds against heap: step times 1.0 / 1.1, 2.0 / 2.0 (a slow round), 1.0 / 1.3 -> ratios 1.1, 1.0, 1.3,
+    median 1.1; a failed measurement drops its round's pair, and a plain run's records give nothing."""
+    def rec(mode, round_, step, peak):
+        return {"name": "train/x", "allocator": mode, "round": round_, "step_s": step, "peak_memory_mb": peak}
+
+    records = [rec("heap", 0, 1.0, 110.0), rec("thresholds", 0, 1.1, 100.0),
+               rec("thresholds", 1, 2.0, 100.0), rec("heap", 1, 2.0, 125.0),
+               rec("heap", 2, 1.0, 100.0), rec("thresholds", 2, 1.3, 100.0),
+               {**rec("heap", 3, 9.0, 1.0), "error": "killed"}, rec("thresholds", 3, 1.0, 100.0),
+               {"name": "rollout/x", "allocator": "heap", "step_s": 1.0, "peak_memory_mb": 1.0}]
+    out = bench.summary(records)
+    assert out == {"allocator/thresholds_over_heap/train/x/step": pytest.approx(1.1),
+                   "allocator/thresholds_over_heap/train/x/peak": pytest.approx(100 / 110)}
+
+
+def test_allocator_comparison_runs_each_case_under_each_setting_in_turn(monkeypatch, tmp_path):
+    """``--allocator heap thresholds``: every round runs the case once under each (fresh processes, the order
+    reversed every other round), each record says the setting its process ran with, and the environment is
+    restored after."""
+    tiny = bench.REFERENCE_SIZES["tiny"]
+    case = bench.Case("train/dnri/tiny", ["model=dnri", *tiny["overrides"]], tiny["batch"], 3, tiny["steps"],
+                      iters=1, warmup=0)
+    other = bench.Case("train/dnri/tiny/compile", [], 1, 3, 8)  # left out by --only's anchored expression
+    monkeypatch.setattr(bench, "cases", lambda: [case, other])
+    monkeypatch.setenv("DIDER_ALLOCATOR", "system")
+    out = tmp_path / "b.json"
+    bench.main(["--only", "dnri/tiny$", "--allocator", "heap", "thresholds", "--allocator-rounds", "3",
+                "--out", str(out)])
+    doc = json.loads(out.read_text())
+    assert [(r["round"], r["allocator"]) for r in doc["records"]] == [
+        (0, "heap"), (0, "thresholds"), (1, "thresholds"), (1, "heap"), (2, "heap"), (2, "thresholds")]
+    assert doc["meta"]["allocator"] == ["heap", "thresholds"]
+    assert {"allocator/thresholds_over_heap/train/dnri/tiny/step",
+            "allocator/thresholds_over_heap/train/dnri/tiny/peak"} <= set(doc["summary"])
+    assert os.environ["DIDER_ALLOCATOR"] == "system"
+    assert {r["name"] for r in doc["records"]} == {"train/dnri/tiny"}
+    for bad in (["--allocator", "heap", "heap"], ["--only", "train/(dnri"]):
+        with pytest.raises(SystemExit):
+            bench.main([*bad, "--out", str(out)])
 
 
 def test_interleaved_rounds_alternate_and_pair_the_speedups():
@@ -82,8 +126,9 @@ def test_interleaved_rounds_alternate_and_pair_the_speedups():
 
 
 def test_summary_takes_measured_speedups_over_the_fixed_figures():
-    records = [{"name": "train/dnri/synth", "samples_per_s": 102.0, "step_s": 1.0, "settings": {"batch": 128}},
-               {"name": "train/dnri/recurrent", "samples_per_s": 30.0, "step_s": 1.0, "settings": {"batch": 128}}]
+    ref = bench_summary.REFERENCE_SAMPLES_PER_S
+    records = [{"name": name, "samples_per_s": 2 * ref[name], "step_s": 1.0, "settings": {"batch": 128}}
+               for name in ("train/dnri/synth", "train/dnri/recurrent")]
     reference = {"cases": {"train/dnri/synth": {"speedup": {"fp32": 1.5, "bf16": 2.5},
                                                 "ceiling": {"speedup": {"fp32": 1.9, "bf16": 4.7}}}}}
     out = bench.summary(records, reference)
@@ -92,7 +137,7 @@ def test_summary_takes_measured_speedups_over_the_fixed_figures():
     assert out["ceiling_over_reference/train/dnri/synth"] == 1.9
     assert out["ceiling_over_reference/train/dnri/synth/bf16"] == 4.7
     assert "ceiling_over_reference/train/dnri/recurrent" not in out  # not measured in this run
-    assert out["speedup_over_reference/train/dnri/recurrent"] == 2.0  # not measured: 30 / REFERENCE_SAMPLES_PER_S
+    assert out["speedup_over_reference/train/dnri/recurrent"] == 2.0  # not measured: against the fixed figure
     assert bench.summary(records)["speedup_over_reference/train/dnri/synth"] == 2.0  # without --reference
 
 
@@ -175,7 +220,9 @@ def test_time_to_result_runs_the_documented_job_and_reads_its_metrics(tmp_path, 
 
     out = tmp_path / "bench.json"
     bench.main(["--only", "result/demo", "--quick", "--out", str(out)])
-    (record,) = json.loads(out.read_text())["records"]
+    doc = json.loads(out.read_text())
+    assert doc["meta"]["command"] == f"python -m dider.bench --only result/demo --quick --out {out}"  # remade by it
+    (record,) = doc["records"]
     assert record["name"] == "result/demo" and "error" not in record, record.get("error")
     assert record["wall_s"] > 0 and record["runs"] == 1 and record["failed_runs"] == 0 and record["complete"]
     assert record["command"] == "python -m dider.run experiment=demo" and record["quick"]

@@ -12,8 +12,10 @@ def test_command_line_scores_each_segmentation_of_a_trained_run(make_cfg, tmp_pa
     run = tmp_path / "run"
     train(make_cfg(["model=dider", "logger=none"], out=run))
     out = tmp_path / "diagnose.json"
-    main([str(run), "--clips", "16", "--draws", "2", "--lengths", "10", "--out", str(out)])
+    args = [str(run), "--clips", "16", "--draws", "2", "--lengths", "10", "--out", str(out)]
+    main(args)
     result = json.loads(out.read_text())
+    assert result["command"] == "python -m dider.analysis.diagnose " + " ".join(args)  # how to make it again
     rows, weights = result["rows"], result["weights"]
     assert weights == {"kl_edge": 0.5, "kl_duration": 1.0, "sparsity": 0.5}  # model=dider's objective
     assert set(rows) == {"own (test)", "own (training)", "one-step", "posterior runs", "truth runs", "fixed 10"}

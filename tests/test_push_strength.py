@@ -51,8 +51,11 @@ def test_command_line_scores_a_trained_run(make_cfg, tmp_path, capsys):
     run = tmp_path / "run"
     train(make_cfg(["model=dider", "logger=none"], out=run))
     out = tmp_path / "rows.json"
-    main([str(run), "--clips", "30", "--seed", "7", "--bins", "0,0.5,1", "--out", str(out)])
-    (res,) = json.loads(out.read_text())
+    args = [str(run), "--clips", "30", "--seed", "7", "--bins", "0,0.5,1", "--out", str(out)]
+    main(args)
+    record = json.loads(out.read_text())
+    assert record["command"] == "python -m dider.analysis.push_strength " + " ".join(args)  # how to make it again
+    (res,) = record["runs"]
     states, edges = simulate_push(30, 50, seed=7)
     pushes = int((edges[:, 1:] > 0).sum())
     for key in ("segments", "prior"):

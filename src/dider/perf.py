@@ -2,11 +2,10 @@
 
 On Linux/glibc every tensor above the mmap threshold (128 KiB to 32 MiB, adaptive) is a fresh
 mmap whose pages fault in on first touch and are unmapped on free. Training allocates and frees
-tens-of-MiB activations many times per step, so on the 2-core CPU a third of a DNRI step went to
-page faults (measured: 3.5 s -> 2.4 s per synthetic step of batch 128 with the thresholds raised).
+tens-of-MiB activations many times per step, so page faults take a large share of a CPU training step.
 Raising the thresholds lets glibc keep and reuse that memory, but only up to 32 MiB, glibc's largest
-threshold: the recurrent step's 100-200 MiB edge tensors still came fresh from mmap every time (one backward
-stack of its LSTM gates' gradients, 210 MiB, took 313 ms). ``heap`` serves every size from the heap.
+threshold: the recurrent step's 100-200 MiB edge tensors would still come fresh from mmap every time.
+``heap`` serves every size from the heap. The measurements: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -19,10 +18,9 @@ import sys
 import torch
 
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -2, -3, -4
-# heap: thresholds raised and no mmap at all, every freed block reused (the bench's DNRI training cases on the
-# 2-core CPU, fresh processes, alternating: recurrent step -8%, synthetic -5.5%; peak memory 5-14% higher, the
-# price of a heap that is never returned; docs/journal/performance_history.md); thresholds: the thresholds
-# only; system: glibc's own settings.
+# heap: thresholds raised and no mmap at all, every freed block reused (faster steps where tensors exceed 32 MiB,
+# for a higher peak: a heap is never returned; docs/performance.md); thresholds: the thresholds only; system:
+# glibc's own settings.
 ALLOCATORS = ("heap", "thresholds", "system")
 _applied: str | None = None
 
@@ -61,7 +59,7 @@ def tune_allocator(mode: str | None = None) -> bool:
 
 def native_bf16(device: str = "cpu") -> bool:
     """Whether ``device`` computes in bf16 natively. A CPU without AVX-512 (oneDNN's test) emulates bf16
-    autocast: on a 2-core AVX2 CPU a synthetic DNRI training step took 54.7 s in bf16 against 2.7 s in fp32."""
+    autocast, far slower than fp32 (``docs/journal/performance_history.md``)."""
     if device.startswith("cuda"):
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())

@@ -36,6 +36,7 @@ from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
+from dider.outputs.run_record import command_line
 from dider.trained import find_checkpoint
 
 STATS = ("segments_per_edge", "steps_per_segment")
@@ -160,7 +161,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(argv)
     if args.clips < 1 or args.draws < 1:
         parser.error(f"--clips and --draws must be >= 1, got {args.clips} and {args.draws}")
-    result = diagnose(args.run, args.clips, args.draws, args.lengths, args.seed)
+    result = {"command": command_line(parser.prog, argv)} | diagnose(args.run, args.clips, args.draws, args.lengths,
+                                                                   args.seed)
     print(table(result))
     if args.out is not None:
         atomic_write_text(args.out, json.dumps(result, indent=1))

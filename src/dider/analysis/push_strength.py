@@ -2,12 +2,15 @@
 
 Particle 2 is pushed by particle i with a force push_factor * (1 - d) while their distance d is below the
 radius (1), so a push near the radius barely moves anything: at d > 0.8 the force is under a fifth of its
-maximum, and about 45% of the pushes' steps lie there. Edge recall over all push steps mixes those
+maximum, and about 45% of the pushes' steps lie there (the bins' step counts in
+``docs/records/push_strength_claims_fp32.json``). Edge recall over all push steps mixes those
 near-invisible steps with the clear ones; this tool splits it by d, for the posterior (the segments
 inferred from whole clips) and the online prior (past only)::
 
     python -m dider.analysis.push_strength RUN_OR_CKPT [RUN_OR_CKPT ...] [--clips 400] [--seed 4242] \\
         [--bins 0,0.5,0.7,0.8,0.9,1] [--out recall_by_distance.json]
+
+The JSON holds the command (``command``) and one row per run (``runs``).
 
 Fresh clips are simulated with the run's ``push_factor`` (``--seed`` picks them), so any synthetic run can be
 scored without its data cache. Shapes: S clips, T frames, E = 6 directed edges.
@@ -28,6 +31,7 @@ import torch
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 from dider.evaluation.metrics import EdgeAccuracy
 from dider.io import atomic_write_text
+from dider.outputs.run_record import command_line
 from dider.trained import load
 
 DEFAULT_BINS = (0.0, 0.5, 0.7, 0.8, 0.9, 1.0)
@@ -108,7 +112,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
             cells = "  ".join(f"[{r['lo']:g},{r['hi']:g}) {r['recall']:.2f} ({r['steps']})" for r in res[key])
             print(f"  {key:8s} {cells}  none recall {res[f'{key}_none_recall']:.3f}")
     if args.out is not None:
-        atomic_write_text(args.out, json.dumps(results, indent=1))
+        record = {"command": command_line(parser.prog, argv), "runs": results}
+        atomic_write_text(args.out, json.dumps(record, indent=1))
     return results
 
 

@@ -23,7 +23,9 @@ decoder off and on, and ``memory/dnri/largest_N/*`` searches for the largest N w
 ``--memory-limit-gb`` (:mod:`dider.bench.memory`). The ``result/*`` cases time a whole documented job, ``make
 demo``'s or the CPU-sized synthetic table, beside the edge accuracy it produced (:mod:`dider.bench.result`);
 they run only when ``--only`` names them. ``--profile CASE`` times nothing: it prints and writes where one step of a
-training case spends its time (torch.profiler's op table, :func:`profile_case`).
+training case spends its time (torch.profiler's op table, :func:`profile_case`). ``--allocator heap thresholds``
+runs every case under each allocator setting in turn, in alternating rounds, and the summary pairs them by round
+(:func:`dider.bench.summary.allocator_ratios`). The JSON's ``meta`` keeps the command and the commit.
 """
 
 

@@ -74,7 +74,7 @@ def cases() -> list[Case]:
         out.append(Case(f"scale/agents/N{n:02d}", SCALE_MODEL, 8, n, 50, iters=3, warmup=1))
     for t in SCALE_STEPS:
         out.append(Case(f"scale/steps/T{t:03d}", SCALE_MODEL, 8, 5, t, iters=3, warmup=1))
-    for n in MEMORY_AGENTS:  # one step each: the peak is the figure (N = 30 takes about 40 s on 2 cores)
+    for n in MEMORY_AGENTS:  # one step each: the peak is the figure (N = 30: about 40 s on 2 cores, bench_memory.json)
         for saver in ("off", "on"):
             out.append(memory_case(n, saver == "on"))
     for saver in ("off", "on"):  # after the fixed N above, whose peaks start the search

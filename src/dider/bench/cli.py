@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import multiprocessing as mp
 import os
 import platform
+import re
 import resource
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from queue import Empty
 from typing import Any
@@ -25,6 +27,7 @@ from dider.bench.result import JOBS, time_to_result
 from dider.bench.steps import gemm_case, model_case, profile_case
 from dider.bench.summary import plot, summary
 from dider.io import atomic_write_text
+from dider.outputs.run_record import command_line, git_commit
 from dider.perf import ALLOCATORS, allocator_mode, native_bf16, tune_allocator
 
 log = logging.getLogger(__name__)
@@ -71,7 +74,7 @@ def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, An
     return {
         "name": case.name, "kind": case.kind, "samples_per_s": case.batch / step_s, "step_s": step_s, **rate,
         "peak_memory_mb": peak / 2**20, "device": device, "threads": torch.get_num_threads(),
-        "torch": torch.__version__,
+        "torch": torch.__version__, "allocator": allocator_mode(),
         "settings": {"batch": case.batch, "agents": case.agents, "steps": case.steps, "iters": case.iters,
                      "overrides": case.overrides, **case.settings, **extra},
     }  # fmt: skip
@@ -113,13 +116,22 @@ def _run_isolated(case: Case, device: str, quick: bool = False) -> dict[str, Any
     return _isolated(run_case, (case, device), {"name": case.name, "kind": case.kind})
 
 
+def _pattern(text: str) -> re.Pattern[str]:
+    try:
+        return re.compile(text)
+    except re.error as err:
+        raise argparse.ArgumentTypeError(f"--only {text!r}: not a regular expression ({err})") from err
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
     parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
-    parser.add_argument("--only", nargs="*", help="run only the cases whose name contains one of these; the "
-                        "time-to-result cases (result/demo, result/synth_cpu_table: whole jobs, minutes) run only "
-                        "when named here")
+    parser.add_argument("--only", nargs="*", type=_pattern,
+                        help="run only the cases whose name matches one of these regular expressions (searched "
+                        "anywhere in the name: a plain name selects the cases that contain it, "
+                        "'train/dnri/synth$' that case alone); the time-to-result cases (result/demo, "
+                        "result/synth_cpu_table: whole jobs, minutes) run only when named here")
     parser.add_argument("--memory-limit-gb", type=float, default=16.0,
                         help="memory/dnri/largest_N/*: the budget a training step's peak must fit")
     parser.add_argument("--quick", action="store_true",
@@ -134,12 +146,15 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--reference-iters", type=int, default=2, help="timed steps of each per round")
     parser.add_argument("--reference-threads", type=int, default=None,
                         help="torch threads of the comparison (default: torch's, as the other cases)")
-    parser.add_argument("--allocator", choices=ALLOCATORS, default=None,
+    parser.add_argument("--allocator", choices=ALLOCATORS, nargs="+", default=None,
                         help="glibc's allocator settings in every case's process (default: $DIDER_ALLOCATOR, else "
-                        "heap, as training runs; dider.perf.tune_allocator)")
+                        "heap, as training runs; dider.perf.tune_allocator); two or more: every case runs under "
+                        "each in turn, --allocator-rounds times, and the summary pairs them by round")
+    parser.add_argument("--allocator-rounds", type=int, default=3,
+                        help="rounds of an --allocator comparison (the order reverses every round: A B, B A, ...)")
     parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
                         help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
-                        "AVX-512 emulates it, about 20x slower than fp32)")
+                        "AVX-512 emulates it, far slower than fp32)")
     parser.add_argument("--profile", metavar="CASE", default=None,
                         help="instead of timing: profile one step of the training case CASE (e.g. "
                         "train/dnri/recurrent) with torch.profiler, print its op table and write it next to --out")
@@ -176,6 +191,12 @@ def _reference(args: argparse.Namespace, names: tuple[str, ...], bf16: bool) -> 
     return reference
 
 
+def _alternating(modes: list[str], rounds: int) -> list[tuple[int, str]]:
+    """(round, allocator) in the order they run: every round each setting once, the order reversed every other
+    round, so a drift of the machine's speed within the rounds falls on both alike."""
+    return [(r, m) for r in range(rounds) for m in (modes if r % 2 == 0 else modes[::-1])]
+
+
 def _print_record(case: Case, record: dict[str, Any]) -> None:
     if "error" in record:
         print(f"{record['name']:<32} FAILED: {record['error']}", flush=True)
@@ -187,52 +208,86 @@ def _print_record(case: Case, record: dict[str, Any]) -> None:
             print(f"    {model:<28} " + "  ".join(f"{k.removeprefix('test/')} {v:.3g}" for k, v in values.items()
                                                if k != "runs"), flush=True)
     else:
+        where = f"  ({record['allocator']}, round {record['round']})" if "round" in record else ""
         print(f"{record['name']:<32} {record['samples_per_s']:11.1f} samples/s  "
-              f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB", flush=True)
+              f"{record['step_s'] * 1000:9.1f} ms/step  peak {record['peak_memory_mb']:.0f} MiB{where}", flush=True)
+
+
+@contextlib.contextmanager
+def _allocator_env(mode: str | None) -> Iterator[None]:
+    """The case processes spawned inside take ``mode`` (they read ``$DIDER_ALLOCATOR`` at start, ``_worker``);
+    the variable is restored on leaving. None: leave it as it is."""
+    old = os.environ.get("DIDER_ALLOCATOR")
+    if mode is not None:
+        os.environ["DIDER_ALLOCATOR"] = mode
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("DIDER_ALLOCATOR", None)
+        else:
+            os.environ["DIDER_ALLOCATOR"] = old
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser = _parser()
     args = parser.parse_args(argv)
-    if args.allocator:  # the spawned case processes read it at start (_worker)
-        os.environ["DIDER_ALLOCATOR"] = args.allocator
-    if args.profile is not None:
-        _profile(args, parser)
-        return []
+    if args.allocator and len(set(args.allocator)) != len(args.allocator) or args.allocator_rounds < 1:
+        parser.error(f"--allocator: distinct settings and --allocator-rounds >= 1, got {args.allocator} and "
+                     f"{args.allocator_rounds}")
+    with _allocator_env(args.allocator[0] if args.allocator else None):
+        if args.profile is not None:
+            _profile(args, parser)
+            return []
+        return _bench(args, command_line("python -m dider.bench", argv))
+
+
+def _bench(args: argparse.Namespace, command: str) -> list[dict[str, Any]]:
+    """Every selected case (each in a fresh process), the JSON rewritten after each measurement."""
+    modes = args.allocator or [allocator_mode()]
     native = native_bf16(args.device)
     bf16 = {"yes": True, "no": False, "auto": native}[args.bf16]
-    meta = {"machine": platform.processor() or platform.machine(), "python": platform.python_version(),
+    meta = {"command": command, "git_commit": git_commit(),
+            "machine": platform.processor() or platform.machine(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "gpu": torch.cuda.get_device_name() if args.device == "cuda" else None,
-            "bf16": bf16, "native_bf16": native, "allocator": allocator_mode()}
+            "bf16": bf16, "native_bf16": native, "allocator": modes[0] if len(modes) == 1 else modes}
     if not bf16:
         print(f"bf16 cases left out (--bf16 {args.bf16}; native bf16 on {args.device}: {native})", flush=True)
 
     def selected(name: str) -> bool:
-        return (not args.only or any(s in name for s in args.only)) and (bf16 or "bf16" not in name)
+        return (not args.only or any(p.search(name) for p in args.only)) and (bf16 or "bf16" not in name)
 
     names = tuple(n for n in REFERENCE_CASES if selected(f"reference/{n}"))
     reference = _reference(args, names, bf16) if args.reference is not None and names else None
+    records: list[dict[str, Any]] = []
 
-    def write(records: list[dict[str, Any]]) -> None:
+    def write() -> None:
         document = {"meta": meta, "summary": summary(records, reference), "records": records}
         if reference is not None:
             document["reference"] = reference
         atomic_write_text(args.out, json.dumps(document, indent=2))
 
-    records: list[dict[str, Any]] = []
+    def measure(case: Case) -> Iterator[dict[str, Any]]:
+        if case.kind == "largest":
+            print(f"{case.name:<32} searching (budget {args.memory_limit_gb:g} GB)", flush=True)
+            yield largest_case(case, records, args.device, args.memory_limit_gb)
+        elif len(modes) == 1 or case.kind == "result":  # a result case is a training job: its config's allocator
+            yield _run_isolated(case, args.device, args.quick)
+        else:
+            for round_, mode in _alternating(modes, args.allocator_rounds):
+                with _allocator_env(mode):
+                    record = _run_isolated(case, args.device)
+                yield {**record, "round": round_}
+
     if reference is not None:
-        write(records)
+        write()
     for case in cases():
         if not selected(case.name) or (case.kind == "result" and not args.only):
             continue
-        if case.kind == "largest":
-            print(f"{case.name:<32} searching (budget {args.memory_limit_gb:g} GB)", flush=True)
-            record = largest_case(case, records, args.device, args.memory_limit_gb)
-        else:
-            record = _run_isolated(case, args.device, args.quick)
-        records.append(record)
-        _print_record(case, record)
-        write(records)  # after every case: an interrupted benchmark keeps what it measured
+        for record in measure(case):
+            records.append(record)
+            _print_record(case, record)
+            write()  # after every measurement: an interrupted benchmark keeps what it measured
     for key, value in summary(records, reference).items():
         print(f"{key:<44} {value:.2f}")
     if any(r["name"].startswith("scale/") for r in records):

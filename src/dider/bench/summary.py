@@ -9,9 +9,10 @@ from typing import Any
 
 import numpy as np
 
-# The public DNRI implementation's training throughput, measured by running it on the same 2-core CPU on
-# another day: the speed-ups' fallback when a run did not time the reference itself (``--reference``).
-REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 51.0, "train/dnri/recurrent": 15.0}
+# The public DNRI implementation's training throughput in fp32 on a 2-core AMD EPYC
+# (docs/records/bench_reference_epyc_heap.json): the speed-ups' fallback when a run does not time the reference
+# itself (``--reference``), and so only a rough figure on another machine.
+REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 68.2, "train/dnri/recurrent": 20.4}
 
 
 def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -59,6 +60,27 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
             if axis == "agents":  # against the edge count N(N-1): 1 means "as N^2 for large N"
                 edges = np.log([p[0] * (p[0] - 1) for p in pts])
                 out["growth_exponent/edges"] = float(np.polyfit(edges, y, 1)[0])
+    return out | allocator_ratios(records)
+
+
+def allocator_ratios(records: list[dict[str, Any]]) -> dict[str, float]:
+    """An ``--allocator A B ...`` comparison: for each case, the median over the rounds of each setting's step time
+    and peak memory over the first setting's in the same round (``allocator/B_over_A/<case>/step`` and ``/peak``);
+    records without a ``round`` (a plain run) give nothing."""
+    rounds: dict[str, dict[int, dict[str, dict[str, Any]]]] = {}
+    for r in records:
+        if "round" in r and "error" not in r:
+            rounds.setdefault(r["name"], {}).setdefault(r["round"], {})[r["allocator"]] = r
+    out: dict[str, float] = {}
+    for name, by_round in rounds.items():
+        first = by_round[min(by_round)]
+        base = next(iter(first))  # round 0 runs the settings in the order they were given
+        for mode in first:
+            pairs = [(rd[mode], rd[base]) for rd in by_round.values() if mode != base and {mode, base} <= set(rd)]
+            if pairs:
+                for key, field in (("step", "step_s"), ("peak", "peak_memory_mb")):
+                    out[f"allocator/{mode}_over_{base}/{name}/{key}"] = float(np.median([a[field] / b[field]
+                                                                                       for a, b in pairs]))
     return out
 
 

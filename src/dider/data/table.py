@@ -232,7 +232,7 @@ class TableDataModule(ClipDataModule):
         self.columns = check_columns(columns)
         if min_agent_steps > seq_len:
             raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
-        split_indices(10**4, split, seed)  # the form of split (10**6 would cost 0.4 s); the window count comes later
+        split_indices(10**4, split, seed)  # checks the form of split early; the window count comes later
         self.save_hyperparameters(logger=False)
         self.init_shared(seq_len, length_key="data.seq_len")
         self.frame_step = downsample

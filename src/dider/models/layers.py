@@ -65,9 +65,9 @@ def checkpointed(fn: Callable[..., torch.Tensor], *args: torch.Tensor | None) ->
 class FlatBatchNorm(nn.BatchNorm1d):
     """BatchNorm1d over every leading dimension: [..., F] -> [..., F].
 
-    ATen's CPU batch-norm backward is fast on a contiguous gradient (~25 ms fwd + bwd over 38k rows x 256)
-    and about five times slower on a transposed one, which a layout change downstream hands back
-    silently; so the gradient is made contiguous first.
+    ATen's CPU batch-norm backward is fast on a contiguous gradient and several times slower on a transposed
+    one, which a layout change downstream hands back silently; so the gradient is made contiguous first
+    (timings: ``docs/journal/performance_history.md``).
     """
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:

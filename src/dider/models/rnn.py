@@ -1,14 +1,13 @@
 """The encoder's two per-edge LSTMs, forward and reverse, as one training-time call.
 
-On large inputs ATen's CPU LSTM (oneDNN) spent ~0.5 s of a 2 s DNRI step in forward + backward (768 edge
-sequences of 50 frames, input width 256), and under bf16 autocast it gained little. The fused path here does
+On large inputs ATen's CPU LSTM (oneDNN) takes a large share of a DNRI step in forward + backward (768 edge
+sequences of 50 frames, input width 256), and gains little under bf16 autocast. The fused path here does
 the input projections of both directions as one large matmul over every frame (where the arithmetic is) and
 runs the two recurrences together, one batched [2, M, R] x [2, R, 4R] product per frame whose element-wise
-gate ops stay in cache: 0.59 -> 0.46 s (fp32) and 0.29 -> 0.21 s (bf16) at that size on the 2-core CPU. Its
-per-frame Python ops cost a fixed overhead, so on small inputs (batch 8, or input width 64) ATen's
-bidirectional LSTM is up to 2.5x faster: the crossover was measured between M x H = 384 x 256 (ATen faster
-by 7%) and 768 x 256 (fused faster by 22%). ``FUSED_MIN_WORK`` selects ATen's below a size (off by
-default). On a GPU cuDNN's LSTM is used: the fused path's per-frame launches were never measured to pay there.
+gate ops stay in cache. Its per-frame Python ops cost a fixed overhead, so on small inputs (batch 8, or input
+width 64) ATen's bidirectional LSTM is faster; ``FUSED_MIN_WORK`` selects ATen's below a size (off by
+default). The timings of both paths and their crossover: ``docs/journal/performance_history.md``. On a GPU
+cuDNN's LSTM is used: the fused path's per-frame launches were never measured to pay there.
 The weights stay two ``nn.LSTM`` modules, so checkpoints and the one-step evaluation path are unchanged.
 """
 
@@ -23,10 +22,9 @@ def _check(rnn: nn.LSTM) -> None:
         raise ValueError("bidirectional_lstm: expects single-layer, unidirectional nn.LSTMs with biases")
 
 
-# Sequences x input width from which the fused recurrence is used on the CPU. The measured crossover is about
-# 2^17, but a threshold makes a model's rounding, and so a short run's outcome, depend on its batch size (a
-# DNRI test run at batch 32 reached balanced edge accuracy 0.547 on ATen's path and 0.58 on the fused one).
-# So by default every CPU input takes the fused path; set 2**17 for speed on small batches.
+# Sequences x input width from which the fused recurrence is used on the CPU. The crossover in speed is about
+# 2^17, but a threshold makes a model's rounding, and so a short run's outcome, depend on its batch size; so by
+# default every CPU input takes the fused path. Set 2**17 for speed on small batches.
 FUSED_MIN_WORK = 0
 
 

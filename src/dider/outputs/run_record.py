@@ -6,8 +6,11 @@ from __future__ import annotations
 import json
 import math
 import platform
+import shlex
 import subprocess
+import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,17 +42,31 @@ def provenance(started: float, device: str) -> dict[str, Any]:
     record: dict[str, Any] = {"dider": __version__, "torch": torch.__version__, "lightning": L.__version__,
                               "python": platform.python_version(), "device": device,
                               "wall_s": round(time.time() - started, 1)}
+    if (commit := git_commit()) is not None:
+        record["git_commit"] = commit
+    return record
+
+
+def git_commit() -> str | None:
+    """The commit of the repository the package runs from (``-dirty`` when tracked files differ from it); None for
+    an installed package."""
+    root = Path(__file__).resolve().parents[3]  # src/dider/outputs/ -> the repository
     try:
-        root = Path(__file__).resolve().parents[3]  # src/dider/outputs/ -> the repository
         commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
                                 timeout=10)
-        if commit.returncode == 0:
-            dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                   capture_output=True, text=True, timeout=10).stdout.strip()
-            record["git_commit"] = commit.stdout.strip() + ("-dirty" if dirty else "")
-    except (OSError, subprocess.SubprocessError):  # no git: an installed package
-        pass
-    return record
+        if commit.returncode != 0:
+            return None
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):  # no git
+        return None
+    return commit.stdout.strip() + ("-dirty" if dirty else "")
+
+
+def command_line(prog: str, argv: Sequence[str] | None) -> str:
+    """The command that produced a tool's output (``prog`` and its arguments, shell-quoted), kept in the JSON it
+    writes so that a committed record says how to make it again."""
+    return " ".join([prog, shlex.join(sys.argv[1:] if argv is None else argv)]).rstrip()
 
 
 def overrides() -> list[str]:
