@@ -124,7 +124,7 @@ def _pattern(text: str) -> re.Pattern[str]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m dider.bench", description=__doc__)
     parser.add_argument("--out", type=Path, default=Path("bench/results.json"))
     parser.add_argument("--plot", type=Path, default=None, help="scaling plot (default: next to --out)")
     parser.add_argument("--only", nargs="*", type=_pattern,
@@ -151,7 +151,7 @@ def _parser() -> argparse.ArgumentParser:
                         "heap, as training runs; dider.perf.tune_allocator); two or more: every case runs under "
                         "each in turn, --allocator-rounds times, and the summary pairs them by round")
     parser.add_argument("--allocator-rounds", type=int, default=3,
-                        help="rounds of an --allocator comparison (the order reverses every round: A B, B A, ...)")
+                        help="rounds of an --allocator comparison (the order alternates: A B, B A, A B, ...)")
     parser.add_argument("--bf16", choices=("auto", "yes", "no"), default="auto",
                         help="the bf16 cases: auto runs them where the device has native bf16 (a CPU without "
                         "AVX-512 emulates it, far slower than fp32)")
@@ -239,7 +239,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         if args.profile is not None:
             _profile(args, parser)
             return []
-        return _bench(args, command_line("python -m dider.bench", argv))
+        return _bench(args, command_line(parser.prog, argv))
 
 
 def _bench(args: argparse.Namespace, command: str) -> list[dict[str, Any]]:

@@ -73,10 +73,9 @@ def allocator_ratios(records: list[dict[str, Any]]) -> dict[str, float]:
             rounds.setdefault(r["name"], {}).setdefault(r["round"], {})[r["allocator"]] = r
     out: dict[str, float] = {}
     for name, by_round in rounds.items():
-        first = by_round[min(by_round)]
-        base = next(iter(first))  # round 0 runs the settings in the order they were given
-        for mode in first:
-            pairs = [(rd[mode], rd[base]) for rd in by_round.values() if mode != base and {mode, base} <= set(rd)]
+        base, *others = by_round[min(by_round)]  # round 0 runs the settings in the order they were given
+        for mode in others:
+            pairs = [(rd[mode], rd[base]) for rd in by_round.values() if mode in rd and base in rd]
             if pairs:
                 for key, field in (("step", "step_s"), ("peak", "peak_memory_mb")):
                     out[f"allocator/{mode}_over_{base}/{name}/{key}"] = float(np.median([a[field] / b[field]
