@@ -9,10 +9,7 @@ from typing import Any
 
 import numpy as np
 
-# The public DNRI implementation's training throughput in fp32 on a 2-core AMD EPYC
-# (docs/records/bench_reference_epyc_heap.json): the speed-ups' fallback when a run does not time the reference
-# itself (``--reference``), and so only a rough figure on another machine.
-REFERENCE_SAMPLES_PER_S = {"train/dnri/synth": 68.2, "train/dnri/recurrent": 20.4}
+from dider.bench.reference import REFERENCE_CASES
 
 
 def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -21,28 +18,25 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
     edges, and 1 in T); speed-ups over the reference implementation; and the roofline, the samples/s a
     step would reach doing only its matmuls at the measured ``gemm/*`` rate.
 
-    ``reference``: the results JSON's ``reference`` section (:func:`dider.bench.compare_with_reference`).
-    A case it measured takes its speed-ups from there (reference and ours timed in the same process,
-    alternating), with the matmul-only ceiling of the same run beside them; the others divide this run's
-    samples/s by :data:`REFERENCE_SAMPLES_PER_S`."""
+    ``reference``: the results JSON's ``reference`` section (:func:`dider.bench.compare_with_reference`). The
+    speed-ups come only from there (reference and ours timed in the same process, alternating), with the
+    matmul-only ceiling of the same run beside them: a throughput measured on another machine or at another time
+    is no denominator for this run's."""
     by = {r["name"]: r for r in records if "error" not in r}
     measured = (reference or {}).get("cases", {})
     out: dict[str, Any] = {}
-    for name, ref in REFERENCE_SAMPLES_PER_S.items():
-        for variant in ("", "/bf16"):
-            if name in measured:  # ours in bf16 against the reference in fp32, as the fallback's
-                if (dtype := variant[1:] or "fp32") in measured[name]["speedup"]:  # bf16 may be left out
-                    out[f"speedup_over_reference/{name}{variant}"] = measured[name]["speedup"][dtype]
-                    ceiling = measured[name].get("ceiling", {}).get("speedup", {})  # absent in older JSON
-                    if dtype in ceiling:  # the most any implementation of our arithmetic reaches here
-                        out[f"ceiling_over_reference/{name}{variant}"] = ceiling[dtype]
-            elif name + variant in by:
-                out[f"speedup_over_reference/{name}{variant}"] = by[name + variant]["samples_per_s"] / ref
+    for name, case in measured.items():
+        for dtype, variant in (("fp32", ""), ("bf16", "/bf16")):
+            if dtype in case["speedup"]:  # ours in bf16 against the reference in fp32; bf16 may be left out
+                out[f"speedup_over_reference/{name}{variant}"] = case["speedup"][dtype]
+                ceiling = case.get("ceiling", {}).get("speedup", {})  # absent in older JSON
+                if dtype in ceiling:  # the most any implementation of our arithmetic reaches here
+                    out[f"ceiling_over_reference/{name}{variant}"] = ceiling[dtype]
     for dtype in ("fp32", "bf16"):
         if f"gemm/{dtype}" not in by:
             continue
         peak = by[f"gemm/{dtype}"]["gflops"]
-        for name in REFERENCE_SAMPLES_PER_S:
+        for name in REFERENCE_CASES:
             settings = by[name]["settings"] if name in by else {}
             if "gflop_per_step" in settings:
                 ceiling = settings["batch"] * peak / settings["gflop_per_step"]
