@@ -33,26 +33,43 @@ def test_bernoulli_kl_hand_values():
     assert bernoulli_kl(torch.tensor([1.3]), torch.tensor(1.3)).item() == pytest.approx(0.0, abs=1e-7)
 
 
+@pytest.mark.parametrize("closed", [False, True])
 @pytest.mark.parametrize("grad", [True, False])
-def test_hold_assignment_puts_each_step_in_the_last_boundarys_slot(grad):
+def test_hold_assignment_puts_each_step_in_the_last_boundarys_slot(grad, closed):
     gate = torch.tensor([[[1.0, 0, 1, 0, 0, 1, 1]]], requires_grad=grad)
-    assign = hold_assignment(gate)
+    assign = hold_assignment(gate, closed)
     assert assign.shape == (1, 1, 7, 7)
     assert assign.argmax(-1).tolist() == [[[0, 0, 2, 2, 2, 5, 6]]]
     assert torch.equal(assign.sum(-1), torch.ones(1, 1, 7))  # exactly one-hot forward
     g = torch.Generator().manual_seed(0)
     random = (torch.rand(2, 3, 20, generator=g) < 0.3).float().index_fill(-1, torch.tensor([0]), 1.0)
-    assert torch.equal(hold_assignment(random.requires_grad_(grad)), hold_assignment(random.detach()))
+    assert torch.equal(hold_assignment(random.requires_grad_(grad), closed), hold_assignment(random.detach()))
 
 
-def test_hold_assignment_gradient_is_the_switch_at_each_step():
+@pytest.mark.parametrize("closed", [False, True])
+def test_hold_assignment_gradient_is_the_switch_at_each_step(closed):
     """z_t = b_t y_t + (1 - b_t) z_{t-1} with b = [1, 0, 1] and L = z_1 + z_2: dL/db_1 = y_1 - y_0 (switching at
     step 1), dL/db_2 = y_2 - z_1 = y_2 - y_0; a later boundary stops the gradient of an earlier one at it."""
     b = torch.tensor([1.0, 0.0, 1.0], requires_grad=True)
     y = torch.tensor([[0.5], [2.0], [-1.0]])  # one value per slot
-    z = torch.einsum("ts,sf->tf", hold_assignment(b.view(1, 1, 3))[0, 0], y)
+    z = torch.einsum("ts,sf->tf", hold_assignment(b.view(1, 1, 3), closed)[0, 0], y)
     (z[1] + z[2]).sum().backward()
     assert b.grad[1:].tolist() == pytest.approx([2.0 - 0.5, -1.0 - 0.5])
+
+
+@pytest.mark.parametrize("straight_through", [True, False])
+def test_hold_assignment_closed_form_equals_the_recurrence(straight_through):
+    """The unrolled product (the GPU's path) and the step-by-step recurrence (the CPU's): the same assignment and
+    the same gradient, for straight-through gates (0 or 1 forward: zeros in every product) and soft ones."""
+    g = torch.Generator().manual_seed(0)
+    soft = torch.rand(3, 4, 30, generator=g, dtype=torch.float64)
+    hard = (soft > 0.8).double().index_fill(-1, torch.tensor([0]), 1.0)
+    gate = (hard + soft - soft.detach() if straight_through else soft).detach().requires_grad_()
+    weights = torch.randn(3, 4, 30, 30, generator=g, dtype=torch.float64)
+    loop, closed = hold_assignment(gate, closed=False), hold_assignment(gate, closed=True)
+    assert torch.allclose(loop, closed, rtol=0, atol=1e-12)
+    grads = [torch.autograd.grad((a * weights).sum(), gate)[0] for a in (loop, closed)]
+    assert grads[0].abs().max() > 1 and torch.allclose(*grads, rtol=1e-10, atol=1e-12)
 
 
 @pytest.mark.parametrize("burn_in", [None, 6])

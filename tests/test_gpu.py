@@ -5,8 +5,11 @@ import math
 
 import pytest
 import torch
+from torch import nn
 
+from dider.models.hazard import hold_assignment
 from dider.models.plugins import Progress
+from dider.models.rnn import bidirectional_lstm
 from dider.models.vae import RelationalVAE
 from dider.run import train
 
@@ -34,3 +37,20 @@ def test_bf16_step_on_the_gpu(make_cfg, model):
     terms["loss"].backward()
     grads = [p.grad for p in net.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_the_gpu_paths_of_the_lstm_and_the_hold_assignment_equal_the_cpus():
+    """On CUDA the encoder's LSTMs run as two cuDNN calls and the hold assignment as one cumulative product."""
+    torch.manual_seed(0)
+    fwd, rev, seq = nn.LSTM(8, 5), nn.LSTM(8, 5), torch.randn(7, 4, 8)
+    on_cpu = bidirectional_lstm(seq, fwd, rev, fused=False)
+    on_gpu = bidirectional_lstm(seq.cuda(), fwd.cuda(), rev.cuda())
+    assert all(torch.allclose(a, b.cpu(), atol=1e-3) for a, b in zip(on_cpu, on_gpu, strict=True))
+    gate = (torch.rand(2, 3, 9) < 0.3).float().index_fill(-1, torch.tensor([0]), 1.0).requires_grad_()
+    weights = torch.randn(2, 3, 9, 9)
+    grads = []
+    for g, w in ((gate, weights), (gate.detach().cuda().requires_grad_(), weights.cuda())):
+        assign = hold_assignment(g)
+        (assign * w).sum().backward()
+        grads.append((assign.detach().cpu(), g.grad.cpu()))
+    assert torch.equal(grads[0][0], grads[1][0]) and torch.allclose(grads[0][1], grads[1][1], atol=1e-5)

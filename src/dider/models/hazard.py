@@ -28,24 +28,39 @@ def bernoulli_kl(q_logits: torch.Tensor, p_logits: torch.Tensor) -> torch.Tensor
     return categorical_kl(torch.stack([q_logits, zero], -1), torch.stack([p_logits.expand_as(q_logits), zero], -1))
 
 
-def hold_assignment(gate: torch.Tensor) -> torch.Tensor:
+def hold_assignment(gate: torch.Tensor, closed: bool | None = None) -> torch.Tensor:
     """Boundaries [B, E, T] (gate[..., 0] = 1) -> step-to-slot assignment [B, E, T, S=T]: step t belongs to the
     slot of the last boundary at or before it.
 
     The assignment is built by the recurrence z_t = b_t e_t + (1 - b_t) z_{t-1} (e_t the one-hot of slot t),
     so a straight-through gate (0 or 1 forward) gets, at each step, the gradient of switching the held type
-    there: the new segment's type against the one held before it. Without gradients, the one-hot directly."""
+    there: the new segment's type against the one held before it. Without gradients, the one-hot directly.
+    ``closed``: the recurrence unrolled as one cumulative product (True) or run step by step (False); None picks
+    by device: on a GPU the loop's small kernels cost more than the [B, E, T, T] product, on a CPU the product's
+    backward through the gate's zeros costs more than the loop (docs/performance.md)."""
     b, e, t = gate.shape
     if not torch.is_grad_enabled() or not gate.requires_grad:
         step = torch.arange(t, device=gate.device)
         slot = torch.where(gate.detach() > 0.5, step, 0).cummax(-1).values  # the last boundary at or before t
         return nn.functional.one_hot(slot, t).to(gate.dtype)
+    if gate.is_cuda if closed is None else closed:
+        return _held_closed(gate)
     eye = torch.eye(t, device=gate.device, dtype=gate.dtype)
     rows = [eye[0].expand(b, e, t) * gate[..., :1]]
     for j in range(1, t):  # over steps only, vectorised over batch, edges and slots
         g = gate[..., j, None]
         rows.append(g * eye[j] + (1 - g) * rows[-1])
     return torch.stack(rows, dim=2)
+
+
+def _held_closed(gate: torch.Tensor) -> torch.Tensor:
+    """The recurrence of :func:`hold_assignment` unrolled: z_t[s] = b_s prod_{s < j <= t} (1 - b_j) for s <= t, else
+    0. gate [B, E, T] -> [B, E, T, S=T]."""
+    t = gate.shape[-1]
+    upto = torch.ones(t, t, dtype=torch.bool, device=gate.device).tril()  # [t, s]: s <= t
+    later = upto.tril(-1)  # s < t: the steps whose (1 - b_t) a segment started at s survives
+    held = torch.where(later, (1 - gate).unsqueeze(-1), 1.0).cumprod(-2)  # [B, E, T, S]: prod over s < j <= t
+    return torch.where(upto, gate.unsqueeze(-2) * held, 0.0)
 
 
 class HazardPrior(nn.Module):

@@ -7,7 +7,7 @@ runs the two recurrences together, one batched [2, M, R] x [2, R, 4R] product pe
 gate ops stay in cache. Its per-frame Python ops cost a fixed overhead, so on small inputs (batch 8, or input
 width 64) ATen's bidirectional LSTM is faster; ``FUSED_MIN_WORK`` selects ATen's below a size (off by
 default). The timings of both paths and their crossover: ``docs/journal/performance_history.md``. On a GPU
-cuDNN's LSTM is used: the fused path's per-frame launches were never measured to pay there.
+cuDNN's LSTM runs each direction: the fused path's per-frame launches would not pay there.
 The weights stay two ``nn.LSTM`` modules, so checkpoints and the one-step evaluation path are unchanged.
 """
 
@@ -42,6 +42,10 @@ def bidirectional_lstm(
     steps, m, width = seq.shape
     if fused is None:
         fused = seq.device.type == "cpu" and m * width >= FUSED_MIN_WORK
+    if not fused and seq.is_cuda:
+        # cuDNN takes each LSTM's weights as one buffer: one call on both modules' weights would copy them into
+        # one (and warn) every call; two calls run as fast (docs/performance.md)
+        return fwd(seq)[0].transpose(0, 1), rev(seq.flip(0))[0].flip(0).transpose(0, 1)
     if not fused:
         h0 = seq.new_zeros(2, m, fwd.hidden_size)
         weights = [*fwd._flat_weights, *rev._flat_weights]
