@@ -103,3 +103,17 @@ def test_bidirectional_lstm_fuses_only_large_cpu_inputs(monkeypatch):
     monkeypatch.setattr(rnn, "FUSED_MIN_WORK", 4 * 6)
     bidirectional_lstm(seq, fwd, rev)
     assert calls == [seq.shape]
+
+
+def test_scalar_head_is_a_one_output_linear_with_its_parameters():
+    """ScalarHead computes nn.Linear(in_dim, 1) as a product and a sum (the same bits on any vector width) and
+    keeps nn.Linear's parameters, so checkpoints of either load into the other."""
+    from dider.models.layers import ScalarHead
+
+    torch.manual_seed(0)
+    head, linear = ScalarHead(16), nn.Linear(16, 1)
+    linear.load_state_dict(head.state_dict())
+    x = torch.randn(5, 7, 16)
+    assert head(x).shape == (5, 7, 1)
+    assert torch.allclose(head(x), linear(x), atol=1e-6)
+    assert {k: v.shape for k, v in head.state_dict().items()} == {k: v.shape for k, v in linear.state_dict().items()}

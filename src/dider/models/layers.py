@@ -62,6 +62,20 @@ def checkpointed(fn: Callable[..., torch.Tensor], *args: torch.Tensor | None) ->
                       context_fn=lambda: (contextlib.nullcontext(), _recomputing()))
 
 
+class ScalarHead(nn.Linear):
+    """nn.Linear(in_dim, 1) computed as a product and a sum over the features: [..., in_dim] -> [..., 1].
+
+    A one-output matmul is a matrix-vector product, which MKL computes with the CPU's vector instructions (other
+    last bits on AVX2 and AVX-512); the sum does not, so a model's fp32 training gives the same bits on any CPU
+    (tests/test_reproducibility.py). The parameters are nn.Linear's: checkpoints load either way."""
+
+    def __init__(self, in_dim: int) -> None:
+        super().__init__(in_dim, 1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return (x * self.weight[0]).sum(-1, keepdim=True) + self.bias
+
+
 class FlatBatchNorm(nn.BatchNorm1d):
     """BatchNorm1d over every leading dimension: [..., F] -> [..., F].
 

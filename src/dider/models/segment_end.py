@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dider.models.hazard import HazardPrior, hold_assignment
+from dider.models.layers import ScalarHead
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
 from dider.validation import above, check_settings, one_of
@@ -114,7 +115,7 @@ class SegmentEnd(HazardPrior):
         # at the segment's start only)
         self.at = nn.Linear(2 * rnn_hidden if reads == "position" else len(OFFSET_SCALES), hidden)
         self.start = nn.Linear(2 * rnn_hidden, hidden, bias=False)
-        self.out = nn.Linear(hidden, 1)
+        self.out = ScalarHead(hidden)
         with torch.no_grad():  # start at the prior's rate: segments of about 1 / rate steps
             self.out.bias.fill_(self.rate_logit)
 
@@ -151,7 +152,10 @@ class SegmentEnd(HazardPrior):
             kl = kl + seg_kl * exists * running
             if draw:
                 gumbel = -torch.empty_like(log_q).exponential_().log()
-                soft = F.softmax((log_q + gumbel) / self.temperature, -1)
+                # exp(z - logsumexp z), not F.softmax: ATen's softmax over a long row rounds with the CPU's vector
+                # width, and a last bit here can flip a drawn end (the same bits on any CPU: docs/reliability.md)
+                z = (log_q + gumbel) / self.temperature
+                soft = (z - z.logsumexp(-1, keepdim=True)).exp()
                 end = soft.argmax(-1)
             else:
                 soft, end = None, median_end(log_q)
