@@ -66,8 +66,8 @@ class ScalarHead(nn.Linear):
     """nn.Linear(in_dim, 1) computed as a product and a sum over the features: [..., in_dim] -> [..., 1].
 
     A one-output matmul is a matrix-vector product, which MKL computes with the CPU's vector instructions (other
-    last bits on AVX2 and AVX-512); the sum does not, so a model's fp32 training gives the same bits on any CPU
-    (tests/test_reproducibility.py). The parameters are nn.Linear's: checkpoints load either way."""
+    last bits on AVX2 and AVX-512); the sum rounds the same on either (tests/test_reproducibility.py). The
+    parameters are nn.Linear's: checkpoints load either way."""
 
     def __init__(self, in_dim: int) -> None:
         super().__init__(in_dim, 1)

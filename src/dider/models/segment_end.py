@@ -153,7 +153,7 @@ class SegmentEnd(HazardPrior):
             if draw:
                 gumbel = -torch.empty_like(log_q).exponential_().log()
                 # exp(z - logsumexp z), not F.softmax: ATen's softmax over a long row rounds with the CPU's vector
-                # width, and a last bit here can flip a drawn end (the same bits on any CPU: docs/reliability.md)
+                # width, and a last bit here can flip a drawn end (docs/reliability.md)
                 z = (log_q + gumbel) / self.temperature
                 soft = (z - z.logsumexp(-1, keepdim=True)).exp()
                 end = soft.argmax(-1)
