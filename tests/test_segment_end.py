@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from dider.models.segment_end import SegmentEnd, end_kl, end_log_probs, median_end
+from dider.models.segment_end import SegmentEnd, end_kl, end_log_probs, median_end, offset_features
 from dider.models.segments import forced_boundaries
 
 
@@ -166,3 +166,17 @@ def test_paper_duration_cut_kl_by_hand():
     got = dur.cut_kl(torch.randn(1, 1, 10, 8), torch.randn(1, 1, 10, 8), gate, gate, torch.tensor([10.0]))
     want = -math.log(cdf(-0.4) - cdf(-0.6)) - math.log(1 - cdf(2 * 6 / 7 - 1))
     assert got.item() == pytest.approx(want / 10, rel=1e-5)
+
+
+def test_the_offset_table_reads_what_the_offset_layer_would():
+    """reads=remaining: W_at offset_features(t - s) taken from a per-clip table equals the layer applied to each
+    candidate's offset (the table only changes the order of the arithmetic)."""
+    torch.manual_seed(0)
+    plugin = SegmentEnd(rnn_hidden=8, hidden=16, reads="remaining")
+    feats, start = torch.randn(2, 3, 20, 16), torch.tensor([[0, 5, 19], [3, 12, 7]])
+    offset = (torch.arange(20) - start.unsqueeze(-1)).clamp_min(0)
+    assert torch.allclose(plugin.offset_table(20, feats.device)[offset], plugin.at(offset_features(offset)), atol=1e-6)
+    s = plugin.start(feats.gather(2, start[..., None, None].expand(-1, -1, 1, 16)))
+    direct = plugin.out(torch.nn.functional.elu(plugin.at(offset_features(offset)) + s)).squeeze(-1)
+    table = plugin.offset_table(20, feats.device)
+    assert torch.allclose(plugin.posterior_logits(table, feats, start), direct, atol=1e-5)

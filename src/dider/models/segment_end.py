@@ -119,22 +119,28 @@ class SegmentEnd(HazardPrior):
         with torch.no_grad():  # start at the prior's rate: segments of about 1 / rate steps
             self.out.bias.fill_(self.rate_logit)
 
-    def posterior_logits(self, at: torch.Tensor | None, feats: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
+    def posterior_logits(self, at: torch.Tensor, feats: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
         """The posterior hazard's logits [B, E, T] for segments starting at ``start`` [B, E] long, given the
-        features [B, E, T, 2R] and, for reads=position, at = W_at features [B, E, T, H]."""
+        features [B, E, T, 2R] and ``at``: W_at features [B, E, T, H] (reads=position) or W_at's value at each
+        offset from a start, [T, H] (reads=remaining, :meth:`offset_table`)."""
         t = feats.shape[2]
         index = start.clamp(max=t - 1)[..., None, None].expand(-1, -1, 1, feats.shape[-1])
         s = self.start(feats.gather(2, index))  # [B, E, 1, H]
-        if at is None:  # the candidate's offset from the start, on a log scale
-            offset = (torch.arange(t, device=feats.device) - start.unsqueeze(-1)).clamp_min(0).float()
-            at = self.at(offset_features(offset).to(s.dtype))
+        if self.reads == "remaining":  # the candidate's offset from the start, read from the table
+            at = at[(torch.arange(t, device=feats.device) - start.unsqueeze(-1)).clamp_min(0)]  # [B, E, T, H]
         return self.out(F.elu(at + s)).squeeze(-1).float()
+
+    def offset_table(self, t: int, device: torch.device) -> torch.Tensor:
+        """W_at offset_features(d) + b for every offset d = 0..t-1 -> [t, H], once per clip instead of per segment,
+        as products and sums: a matmul over the 7 offset features rounds by the CPU's vector width in MKL."""
+        feats = offset_features(torch.arange(t, device=device))  # [t, F]
+        return (feats.unsqueeze(-1) * self.at.weight.T).sum(1) + self.at.bias
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = torch.cat([h_fwd, h_rev], -1)
-        at = self.at(feats) if self.reads == "position" else None
+        at = self.at(feats) if self.reads == "position" else self.offset_table(t, h_fwd.device)
         p = self.prior_logits(h_fwd)
         rate = torch.full_like(p, self.rate_logit)
         fixed, value = self.forced(t, h_fwd.device, present)
