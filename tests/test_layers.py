@@ -6,7 +6,7 @@ from torch import nn
 
 from dider.graph import aggregate_to_receivers, edge_id, edge_index, edge_mask, num_agents, num_edges
 from dider.models import rnn
-from dider.models.layers import FlatBatchNorm, PairLinear, TypedLinear
+from dider.models.layers import FlatBatchNorm, PairLinear, SumLinear, TypedLinear
 from dider.models.rnn import bidirectional_lstm
 
 
@@ -105,15 +105,14 @@ def test_bidirectional_lstm_fuses_only_large_cpu_inputs(monkeypatch):
     assert calls == [seq.shape]
 
 
-def test_scalar_head_is_a_one_output_linear_with_its_parameters():
-    """ScalarHead computes nn.Linear(in_dim, 1) as a product and a sum (the same bits on any vector width) and
-    keeps nn.Linear's parameters, so checkpoints of either load into the other."""
-    from dider.models.layers import ScalarHead
-
+@pytest.mark.parametrize("out_dim", [1, 16])
+def test_sum_linear_is_a_linear_with_its_parameters(out_dim):
+    """SumLinear computes nn.Linear as products and a sum (the same bits on any vector width) and keeps nn.Linear's
+    parameters, so checkpoints of either load into the other."""
     torch.manual_seed(0)
-    head, linear = ScalarHead(16), nn.Linear(16, 1)
+    head, linear = SumLinear(7, out_dim), nn.Linear(7, out_dim)
     linear.load_state_dict(head.state_dict())
-    x = torch.randn(5, 7, 16)
-    assert head(x).shape == (5, 7, 1)
+    x = torch.randn(5, 7, 7)
+    assert head(x).shape == (5, 7, out_dim)
     assert torch.allclose(head(x), linear(x), atol=1e-6)
     assert {k: v.shape for k, v in head.state_dict().items()} == {k: v.shape for k, v in linear.state_dict().items()}

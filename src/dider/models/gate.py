@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from dider.models.hazard import HazardPrior, bernoulli_kl, hold_assignment
-from dider.models.layers import ScalarHead
+from dider.models.layers import SumLinear
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
 from dider.validation import above, boolean, check_settings
@@ -59,7 +59,7 @@ class HoldGate(HazardPrior):
         check_settings(self, locals())
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
         self.temperature, self.sample = temperature, sample
-        self.posterior = nn.Sequential(nn.Linear(2 * rnn_hidden, hidden), nn.ELU(), ScalarHead(hidden))
+        self.posterior = nn.Sequential(nn.Linear(2 * rnn_hidden, hidden), nn.ELU(), SumLinear(hidden, 1))
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dider.models.layers import ScalarHead
+from dider.models.layers import SumLinear
 from dider.models.losses import categorical_kl
 from dider.models.segments import forced_boundaries
 from dider.validation import Rule, at_least, integer, optional, within, within_open
@@ -89,7 +89,7 @@ class HazardPrior(nn.Module):
         self.rate_logit, self.rate_mix = math.log(rate / (1 - rate)), rate_mix
         self.online_threshold = online_threshold
         self.observed = 0 if burn_in is None else burn_in - 1
-        self.prior = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), ScalarHead(hidden))
+        self.prior = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), SumLinear(hidden, 1))
 
     def prior_logits(self, h_fwd: torch.Tensor) -> torch.Tensor:
         """h_fwd [..., R] -> [...] the learned prior hazard's logits (fp32: they feed KL terms and a threshold)."""

@@ -62,18 +62,16 @@ def checkpointed(fn: Callable[..., torch.Tensor], *args: torch.Tensor | None) ->
                       context_fn=lambda: (contextlib.nullcontext(), _recomputing()))
 
 
-class ScalarHead(nn.Linear):
-    """nn.Linear(in_dim, 1) computed as a product and a sum over the features: [..., in_dim] -> [..., 1].
+class SumLinear(nn.Linear):
+    """nn.Linear computed as products and a sum over the input features: [..., in_dim] -> [..., out_dim].
 
-    A one-output matmul is a matrix-vector product, which MKL computes with the CPU's vector instructions (other
-    last bits on AVX2 and AVX-512); the sum rounds the same on either (tests/test_reproducibility.py). The
-    parameters are nn.Linear's: checkpoints load either way."""
-
-    def __init__(self, in_dim: int) -> None:
-        super().__init__(in_dim, 1)
+    MKL computes a one-output matmul (a matrix-vector product) and a matmul over a few input features with the CPU's
+    vector instructions (other last bits on AVX2 and AVX-512); the sum rounds the same on either
+    (tests/test_reproducibility.py). It holds [..., in_dim, out_dim]: for narrow layers only. The parameters are
+    nn.Linear's: checkpoints load either way."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return (x * self.weight[0]).sum(-1, keepdim=True) + self.bias
+        return (x.unsqueeze(-1) * self.weight.T).sum(-2) + self.bias
 
 
 class FlatBatchNorm(nn.BatchNorm1d):

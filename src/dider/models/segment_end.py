@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from dider.models.hazard import HazardPrior, hold_assignment
-from dider.models.layers import ScalarHead
+from dider.models.layers import SumLinear
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
 from dider.validation import above, check_settings, one_of
@@ -113,16 +113,16 @@ class SegmentEnd(HazardPrior):
         # f_q = v . ELU(W_at a_t + W_start [h_fwd_s, h_rev_s]) + c. a_t: the candidate's features [h_fwd_t, h_rev_t]
         # (reads=position, once per clip) or its offset t - s (reads=remaining: SKID reads the remaining trajectory
         # at the segment's start only)
-        self.at = nn.Linear(2 * rnn_hidden if reads == "position" else len(OFFSET_SCALES), hidden)
+        self.at = nn.Linear(2 * rnn_hidden, hidden) if reads == "position" else SumLinear(len(OFFSET_SCALES), hidden)
         self.start = nn.Linear(2 * rnn_hidden, hidden, bias=False)
-        self.out = ScalarHead(hidden)
+        self.out = SumLinear(hidden, 1)
         with torch.no_grad():  # start at the prior's rate: segments of about 1 / rate steps
             self.out.bias.fill_(self.rate_logit)
 
     def posterior_logits(self, at: torch.Tensor, feats: torch.Tensor, start: torch.Tensor) -> torch.Tensor:
         """The posterior hazard's logits [B, E, T] for segments starting at ``start`` [B, E] long, given the
         features [B, E, T, 2R] and ``at``: W_at features [B, E, T, H] (reads=position) or W_at's value at each
-        offset from a start, [T, H] (reads=remaining, :meth:`offset_table`)."""
+        offset from a start, [T, H] (reads=remaining)."""
         t = feats.shape[2]
         index = start.clamp(max=t - 1)[..., None, None].expand(-1, -1, 1, feats.shape[-1])
         s = self.start(feats.gather(2, index))  # [B, E, 1, H]
@@ -130,17 +130,14 @@ class SegmentEnd(HazardPrior):
             at = at[(torch.arange(t, device=feats.device) - start.unsqueeze(-1)).clamp_min(0)]  # [B, E, T, H]
         return self.out(F.elu(at + s)).squeeze(-1).float()
 
-    def offset_table(self, t: int, device: torch.device) -> torch.Tensor:
-        """W_at offset_features(d) + b for every offset d = 0..t-1 -> [t, H], once per clip instead of per segment,
-        as products and sums: a matmul over the 7 offset features rounds by the CPU's vector width in MKL."""
-        feats = offset_features(torch.arange(t, device=device))  # [t, F]
-        return (feats.unsqueeze(-1) * self.at.weight.T).sum(1) + self.at.bias
-
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
         b, e, t, _ = h_fwd.shape
         feats = torch.cat([h_fwd, h_rev], -1)
-        at = self.at(feats) if self.reads == "position" else self.offset_table(t, h_fwd.device)
+        if self.reads == "position":
+            at = self.at(feats)
+        else:  # W_at at each integer offset, once per clip; each segment's pass reads it by index
+            at = self.at(offset_features(torch.arange(t, device=h_fwd.device)))  # [T, H]
         p = self.prior_logits(h_fwd)
         rate = torch.full_like(p, self.rate_logit)
         fixed, value = self.forced(t, h_fwd.device, present)
