@@ -227,3 +227,21 @@ def test_every_node_a_class_builds_holds_its_arguments(make_cfg, tmp_path):
         (tmp_path / "experiment" / f"{level}.yaml").write_text(f"# @package _global_\n{text}")
         with pytest.raises(ConfigCompositionException, match=r"Key '\w+' not in '\w+Schema'"):
             make_cfg([f"hydra.searchpath=[file://{tmp_path}]", f"experiment={level}"], tiny=False)
+
+
+@pytest.mark.parametrize("node, typo, schema", [("protocol", "burnin", "Protocol"), ("predict", "forecast_step",
+                                                                                   "PredictSettings"),
+                                                ("eval", "nmae", "EvalSettings")])
+def test_the_apps_own_nodes_refuse_an_unknown_key(make_cfg, tmp_path, node, typo, schema):
+    """protocol, predict and eval hold exactly their settings (dider.settings): an experiment file's typo is refused at
+    composition, and one added on the command line (+node.key=...) by the preflight, naming the key."""
+    from hydra.errors import ConfigCompositionException
+
+    from dider.run import ConfigError, validate_config
+
+    (tmp_path / "experiment").mkdir()
+    (tmp_path / "experiment" / "typo.yaml").write_text(f"# @package _global_\n{node}:\n  {typo}: 3\n")
+    with pytest.raises(ConfigCompositionException, match=rf"Key '{typo}' not in '{schema}'"):
+        make_cfg([f"hydra.searchpath=[file://{tmp_path}]", "experiment=typo"], tiny=False)
+    with pytest.raises(ConfigError, match=rf"{node}.{typo}: no such setting \(expected one of \["):
+        validate_config(make_cfg([f"+{node}.{typo}=3"]))

@@ -238,3 +238,64 @@ def test_predict_refuses_a_data_set_without_a_prediction_set(run, tmp_path):
                       tmp_path)
     with pytest.raises(ConfigError, match="SynthDataModule has no prediction set"):
         predict(cfg)
+
+
+def test_a_second_prediction_into_a_live_folder_is_refused_before_any_work(run, new_data, tmp_path, monkeypatch):
+    """The folder's lock is taken before the check that predictions/ is free: a prediction into a folder another live
+    prediction holds stops at once, before reading the checkpoint or the data."""
+    import os
+    import socket
+
+    from dider.training.runfolder import LOCK, RunRefused
+
+    out = tmp_path / "shared"
+    out.mkdir()
+    (out / LOCK).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))  # a live writer
+
+    def work(*args, **kwargs):
+        raise AssertionError("the second prediction started working")
+
+    monkeypatch.setattr("dider.run.load", work)
+    cfg = compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.path={new_data[0]}"], out)
+    with pytest.raises(RunRefused, match=r"is being written by another run \(pid"):
+        predict(cfg)
+    assert sorted(p.name for p in out.iterdir()) == [LOCK]
+
+
+def test_damaged_checkpoint_internals_and_ragged_inputs_are_named(run, tmp_path):
+    """A checkpoint whose weights miss a tensor, whose model config names no class or whose normaliser is broken:
+    each named with the file and the part. A ragged positions list: named as the argument."""
+    good = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+
+    def damaged(name: str, edit) -> Path:
+        ckpt = {k: (dict(v) if isinstance(v, dict) else v) for k, v in good.items()}
+        edit(ckpt)
+        torch.save(ckpt, tmp_path / name)
+        return tmp_path / name
+
+    missing = damaged("missing.ckpt", lambda c: c["state_dict"].pop(next(iter(c["state_dict"]))))
+    with pytest.raises(ValueError, match=r"missing\.ckpt: its weights \(state_dict\) do not fit .*Missing key"):
+        dider.load(missing)
+    target = damaged("target.ckpt", lambda c: c["hyper_parameters"].update(
+        net={**c["hyper_parameters"]["net"], "_target_": "no.such.Model"}))
+    with pytest.raises(ValueError, match=r"target\.ckpt: its model config \(hyper_parameters\) does not build"):
+        dider.load(target)
+    broken = damaged("normaliser.ckpt", lambda c: c.update(dider={**c["dider"], "data": {
+        **c["dider"]["data"], "state": {"normalizer": {"pos_range": [1.0, 0.0], "vel_range": [0.0, 1.0]}}}}))
+    with pytest.raises(ValueError, match=r"normaliser\.ckpt: its data normaliser .* is damaged"):
+        dider.load(broken)
+    model = dider.load(run)
+    ragged = [[[[0.0, 0.0]] * 3] * 12, [[[0.0, 0.0]] * 2] * 12]  # two clips of 3 and 2 agents
+    with pytest.raises(ValueError, match=r"^positions: not a rectangular array of numbers"):
+        model.segments(ragged, frame_rate=10)
+
+
+def test_predict_takes_the_threads_setting(run, new_data, tmp_path):
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        predict(compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.path={new_data[0]}",
+                             "threads=1"], tmp_path / "pred"))
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

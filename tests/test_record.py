@@ -3,6 +3,7 @@ differences."""
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 
@@ -68,3 +69,38 @@ def test_curves_keep_a_metric_over_the_epochs(tmp_path):
         "epoch,step,val/mse/h01,train/loss\n0,9,0.5,\n0,9,,3\n1,19,0.25,\n")
     record = main([str(tmp_path), "--out", str(tmp_path / "r.json"), "--curve", "val/mse/h01", "--curve", "x"])
     assert record["jobs"][0]["curves"] == {"val/mse/h01": [[0, 9, 0.5], [1, 19, 0.25]]}
+
+
+def test_broken_failed_and_running_jobs_are_named_and_left_out(tmp_path, caplog):
+    """A metrics.json that is not an object, one cut off mid-write, a failed job and a running one (its lock held by a
+    live process): each is named with its reason in a warning and in the record's ``unfinished``, never read as a
+    result; the finished jobs are recorded."""
+    import os
+    import socket
+
+    sweep = tmp_path / "sweep"
+    fake_job(sweep, "ok", "dnri", 1, 1.0)
+    for name, text in (("list", "[1, 2]"), ("half", '{"metrics": {"test/mse/h15": 0.')):
+        (sweep / name).mkdir()
+        (sweep / name / "metrics.json").write_text(text)
+    (sweep / "failed").mkdir()
+    (sweep / "failed" / "failed.json").write_text(json.dumps({"status": "failed", "error": "OSError('disk')"}))
+    (sweep / "running" / ".hydra").mkdir(parents=True)
+    (sweep / "running" / ".dider.lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    with caplog.at_level("WARNING", logger="dider.analysis.record"):
+        record = main([str(sweep), "--out", str(tmp_path / "r.json")])
+    assert [j["folder"] for j in record["jobs"]] == [str(sweep / "ok")]
+    states = {Path(u["folder"]).name: u["state"] for u in record["unfinished"]}
+    assert states["list"].startswith("failed: ") and "not a run's record" in states["list"]
+    assert "is not JSON (half-written?)" in states["half"]
+    assert "failed.json says OSError('disk')" in states["failed"]
+    assert states["running"].startswith(f"running (pid {os.getpid()}")
+    for name in states:
+        assert str(sweep / name) in caplog.text
+
+
+def test_two_jobs_of_one_model_and_seed_are_refused(tmp_path):
+    fake_job(tmp_path / "a", "j1", "dider", 1, 1.0)
+    fake_job(tmp_path / "b", "j1", "dider", 1, 3.0)
+    with pytest.raises(ValueError, match=r"two jobs of model 'dider' with seed 1: .*a/j1 and .*b/j1"):
+        main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "r.json")])

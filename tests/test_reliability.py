@@ -14,13 +14,15 @@ from pathlib import Path
 import pytest
 import torch
 
+import dider
 import dider.models.likelihood as likelihood_mod
 from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
-from dider.run import ConfigError, train, trainer_plugins, validate_config
+from dider.run import ConfigError, predict, train, trainer_plugins, validate_config
 from dider.training.callbacks import NonFiniteError
 from dider.training.checkpoint import AtomicCheckpointIO
 from helpers import NO_SPARSITY
+from helpers.fixtures import write_trajectories
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -130,34 +132,24 @@ def test_killed_run_resumes_to_the_same_metrics(tmp_path, cache_dir):
     assert identical(resumed_metrics, reference)
 
 
-def test_terminated_run_exits_nonzero_and_resumes(tmp_path, cache_dir):
-    """SIGTERM (a scheduler's time limit) mid-training: exit status 143, a saved last.ckpt, the resume
-    command printed; ckpt_path=last then finishes the run."""
-    env = dict(os.environ, HYDRA_FULL_ERROR="1")
-    out = tmp_path / "run"
-    with (tmp_path / "run.log").open("w") as log_file:
-        run = subprocess.Popen(_run_args(out, cache_dir), cwd=tmp_path, env=env, stdout=log_file,
-                               stderr=subprocess.STDOUT)
-        try:
-            last, deadline = out / "checkpoints" / "last.ckpt", time.monotonic() + 300
-            while not (last.exists() and torch.load(last, map_location="cpu", weights_only=True)["epoch"] >= 1):
-                assert run.poll() is None, (tmp_path / "run.log").read_text()[-3000:]
-                assert time.monotonic() < deadline, "no epoch-1 checkpoint within 5 minutes"
-                time.sleep(0.02)
-            run.send_signal(signal.SIGTERM)
-            assert run.wait(timeout=120) == 143
-        finally:
-            if run.poll() is None:
-                run.kill()
-                run.wait()
-    text = (tmp_path / "run.log").read_text()
-    assert "terminated (SIGTERM); resume with: python -m dider.run" in text and "ckpt_path=last" in text
-    assert not (out / "metrics.json").exists()
-    assert torch.load(last, map_location="cpu", weights_only=True)["global_step"] > 0
-    resumed = subprocess.run(_run_args(out, cache_dir, "ckpt_path=last"), cwd=tmp_path, env=env,
-                             capture_output=True, text=True, timeout=600)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    assert "test/mse/h01" in metrics_of(out)
+def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path, capsys):
+    """A real SIGTERM (a scheduler's time limit) after batch 3 of epoch 2: exit status 143, last.ckpt saved with the
+    epoch's position, the resume command printed; ckpt_path=last then trains on exactly the batches the
+    uninterrupted run trained on (the rest of the interrupted epoch in its order, the same random stream), and every
+    test metric equals the uninterrupted run's."""
+    base = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=96"]  # 6 batches an epoch
+    whole = train(make_cfg(base, out=tmp_path / "whole"))
+    stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=1",
+            "+callbacks.stop.batch=2"]
+    with pytest.raises(SystemExit) as stopped:
+        train(make_cfg(base + stop, out=tmp_path / "run"))
+    assert stopped.value.code == 143
+    assert "terminated (SIGTERM); resume with: python -m dider.run" in capsys.readouterr().err
+    last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert last["global_step"] == 9 and last["dider_epoch_position"]["done"] == 3
+    assert not (tmp_path / "run" / "metrics.json").exists()
+    resumed = train(make_cfg(base + ["ckpt_path=last"], out=tmp_path / "run"))
+    assert "test/mse/h01" in whole and identical(resumed, whole)
 
 
 # ------------------------------------------------------------------------------------------ determinism
@@ -224,6 +216,35 @@ def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypat
     with pytest.raises(NonFiniteError, match=r"non-finite gradient at step 1, batch 1 of epoch 0: from loss term "
                                              r"kl_duration;"):
         train(cfg)
+
+
+def test_a_diverging_dider_stops_with_the_non_finite_error(make_cfg, tmp_path):
+    """lr=1e20: the first step makes every weight NaN, and DIDER's segment loop must still end so that the guard
+    stops the run at step 1 (it used to spin forever on NaN hazards)."""
+    cfg = make_cfg(["logger=none", "model=dider", "model.optimizer.lr=1e20"], out=tmp_path / "run")
+    with pytest.raises(NonFiniteError, match=r"non-finite (loss|gradient) at step 1, "):
+        train(cfg)
+
+
+def test_a_checkpoint_with_nan_weights_is_named_in_eval_predict_and_load(make_cfg, tmp_path):
+    train(make_cfg(["logger=none", "model=dider"], out=tmp_path / "run"))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    state = torch.load(ckpt, weights_only=True)
+    key = next(k for k in state["state_dict"] if k.endswith("weight"))
+    state["state_dict"][key] = state["state_dict"][key] * float("nan")
+    torch.save(state, ckpt)
+    named = rf"{re.escape(str(ckpt))}: 1 weight tensor\(s\) hold NaN or inf \(e.g. {re.escape(key)}\)"
+    with pytest.raises(ValueError, match=named):
+        dider.load(ckpt)
+    with pytest.raises(ValueError, match=named):
+        train(make_cfg(["logger=none", "model=dider", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval"))
+    with pytest.raises(ValueError, match=named):
+        predict(make_cfg(["mode=predict", f"ckpt_path={ckpt}", "data=trajectories",
+                          f"data.path={_npz(tmp_path)}"], out=tmp_path / "predict"))
+
+
+def _npz(tmp_path: Path) -> Path:
+    return write_trajectories(tmp_path / "new.npz", num=4, steps=12) and tmp_path / "new.npz"
 
 
 # ------------------------------------------------------------------------------------------ config checks
@@ -474,3 +495,20 @@ def test_a_full_disk_is_named(tmp_path, monkeypatch):
                                       r"its disk, folder writable"):
         atomic_torch_save({"x": 1}, tmp_path / "last.ckpt")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
+    """A run killed while writing its first last.ckpt leaves the best checkpoint and a temporary file: ckpt_path=last
+    removes the temporary file and resumes from the newest complete checkpoint (the most optimiser steps)."""
+    from dider.training.runfolder import resolve_ckpt
+
+    folder = tmp_path / "checkpoints"
+    folder.mkdir()
+    for name, step in (("epoch_000.ckpt", 10), ("epoch_001.ckpt", 20)):
+        torch.save({"global_step": step}, folder / name)
+    (folder / "broken.ckpt").write_bytes(b"PK\x03\x04 half")
+    (folder / ".last.ckpt.x1y2.tmp").write_bytes(b"PK\x03\x04 half a checkpoint")
+    with caplog.at_level("WARNING", logger="dider.training.runfolder"):
+        assert resolve_ckpt("last", tmp_path, folder_given=True) == str(folder / "epoch_001.ckpt")
+    assert not (folder / ".last.ckpt.x1y2.tmp").exists()
+    assert "last.ckpt is missing" in caplog.text and "removing the temporary file" in caplog.text

@@ -77,10 +77,10 @@ def test_report_matches_jobs(sweep: Path, tmp_path: Path):
     assert "segments_per_edge" in md.split("\n## Segments")[1].split("\n## ")[0]
     assert (tmp_path / "horizons.png").stat().st_size > 0
     assert sorted(p.parent.name for p in tmp_path.glob("timelines/*/timeline_00.png")) == ["dider", "dnri"]
-    assert md.rstrip().endswith("## Failed, missing or ignored jobs\n\n(failed: a job folder without metrics.json, "
-                                "also while it still runs; missing: swept values that no job folder holds; ignored: a "
-                                "finished run whose overrides are not a job of this sweep, e.g. copied in, left out "
-                                "of the tables)\n\nnone")
+    assert md.rstrip().endswith("## Failed, missing or ignored jobs\n\n(failed: a job folder without a readable "
+                                "metrics.json, with why, or one still running; missing: swept values that no job "
+                                "folder holds; ignored: a finished run whose overrides are not a job of this sweep, "
+                                "e.g. copied in, left out of the tables)\n\nnone")
 
 
 def test_runs_csv_has_one_row_per_job(sweep: Path, tmp_path: Path):
@@ -292,3 +292,28 @@ def test_ratios_to_dnri_pair_num_edges_when_dnri_ran_several(tmp_path: Path):
         ("dnri", 2): 1.0, ("dnri", 4): 1.0, ("dider", 2): 1.5, ("dider", 4): 1.5}
     only = [g for g in groups if g.key["model"] == "dnri"]
     assert report_table.add_ratios(only) == []
+
+
+def test_broken_running_and_evaluated_jobs(tmp_path: Path, caplog):
+    """A job whose metrics.json is not an object and one still running are listed with why, never read as results; a
+    job's own evaluation (eval/<name>/ inside it) is not another job of the sweep; two jobs of the same settings are
+    both kept, with a warning."""
+    import os
+    import socket
+
+    jobs = [("dnri", 2, seed) for seed in (1, 2, 3)]
+    sweep = fake_sweep(tmp_path, {"model": "dnri", "seed": "1,2,3"}, jobs)
+    (sweep / "model=dnri,e=2,seed=2" / "metrics.json").write_text("[]")
+    running = sweep / "model=dnri,e=2,seed=3"
+    (running / "metrics.json").unlink()
+    (running / ".dider.lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    evaluated = sweep / "model=dnri,e=2,seed=1" / "eval" / "synth"
+    shutil.copytree(sweep / "model=dnri,e=2,seed=1", evaluated)
+    shutil.copytree(sweep / "model=dnri,e=2,seed=1", sweep / "twin", ignore=shutil.ignore_patterns("eval"))
+    with caplog.at_level("WARNING", logger="dider.analysis.report"):
+        summary = report.main([str(sweep), "--out", str(tmp_path / "out")])
+    assert len(summary.failed) == 2
+    assert summary.failed[0].startswith("model=dnri,e=2,seed=2 (") and "is not a run's record" in summary.failed[0]
+    assert summary.failed[1].startswith(f"model=dnri,e=2,seed=3 (running (pid {os.getpid()} ")
+    assert [len(g.jobs) for g in summary.groups] == [2]  # seed 1 and its twin; not the evaluation
+    assert "ran the same settings: both are kept" in caplog.text and "twin" in caplog.text

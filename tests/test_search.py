@@ -43,7 +43,8 @@ def test_bad_space_is_named(space, key):
 
 def test_a_killed_search_goes_on_from_its_study(tmp_path, cache_dir):
     """A search stopped after one trial, with a second one cut off (still RUNNING in its study), started again
-    with the same folder: the cut-off trial is marked failed, one new trial completes the two asked for."""
+    with the same folder: the cut-off trial is marked failed, one new trial completes the two asked for, at a new
+    point (not trial 0's again). Started there with other settings, the search is refused before any trial."""
     out = tmp_path / "search"
     args = [*SMOKE, f"data.cache_dir={cache_dir}", "hparams_search=dider", f"hydra.run.dir={out}"]
     search([*args, "hparams_search.n_trials=1"])
@@ -55,3 +56,7 @@ def test_a_killed_search_goes_on_from_its_study(tmp_path, cache_dir):
     study = optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}")
     states = [t.state.name for t in study.trials]
     assert states == ["COMPLETE", "FAIL", "COMPLETE"]
+    assert study.trials[2].params != study.trials[0].params
+    with pytest.raises(ValueError, match=r"holds a search with other settings.*\n  - overrides: "):
+        search([*args, "hparams_search.n_trials=3", "trainer.max_epochs=1"])
+    assert len(optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}").trials) == 3

@@ -180,3 +180,27 @@ def test_the_offset_table_reads_what_the_offset_layer_would():
     s = plugin.start(feats.gather(2, start[..., None, None].expand(-1, -1, 1, 16)))
     direct = plugin.out(torch.nn.functional.elu(plugin.at(offset_features(offset)) + s)).squeeze(-1)
     assert torch.allclose(plugin.posterior_logits(table, feats, start), direct, atol=1e-5)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_the_segment_loop_ends_whatever_the_numbers(training, monkeypatch):
+    """NaN hazards (a diverged network) leave every drawn end where it starts unless a segment is made to end after
+    its start: the loop makes at most T passes (one end is drawn per pass; counted here, so the old endless loop
+    fails instead of hanging) and covers the clip."""
+    import dider.models.segment_end as segment_end
+
+    passes, real = [], segment_end.end_log_probs
+
+    def counted(*args):
+        passes.append(1)
+        assert len(passes) <= 3 * 12, "the segment loop does not end"
+        return real(*args)
+
+    monkeypatch.setattr(segment_end, "end_log_probs", counted)
+    plugin = SegmentEnd(rnn_hidden=8, hidden=8).train(training)
+    with torch.no_grad():
+        for p in plugin.parameters():
+            p.fill_(float("nan"))
+    seg = plugin.segment(torch.randn(2, 6, 12, 8), torch.randn(2, 6, 12, 8), torch.zeros(1))
+    assert len(passes) <= 3 * 12  # the posterior, learned prior and fixed-rate ends: three per pass
+    assert seg.assign.shape == (2, 6, 12, 12) and seg.valid[..., 0].all()

@@ -77,6 +77,9 @@ def test_hawkeye_windows_velocities_and_rate():
     ({"files": HAWKEYE, "frame_rate": 25.0}, r"data.frame_rate=25.0 \(given, or a checkpoint's in prediction\): "
                                               r"the tracking data run at 50.0 frames per second"),
     ({"files": HAWKEYE, "frame_rate": float("nan")}, r"data.frame_rate=nan: must be null \(the provider's\)"),
+    ({"files": "/data/match.xml"}, r"data.files='/data/match.xml': expected the reader's files by its argument "
+                                   r"names, e.g. data.files=\{ball_feeds:PATH,player_centroid_feeds:PATH\}"),
+    ({"files": HAWKEYE, "options": {"sample_rat": 2}}, r"data.options: kloppy.hawkeye.load takes no \['sample_rat'\]"),
 ])
 def test_bad_input_is_named(kwargs, match):
     with pytest.raises((ValueError, FileNotFoundError), match=match):
@@ -88,8 +91,12 @@ def test_a_file_kloppy_cannot_read_is_named(tmp_path):
     bad = tmp_path / "garbage.xml"
     bad.write_text("not tracking data")
     files = {"meta_data": str(bad), "raw_data": str(FILES / "tracab_raw.dat")}
-    with pytest.raises(ValueError, match=r"kloppy.tracab.load could not read them as data.provider=tracab"):
+    with pytest.raises(ValueError, match=r"data.files: kloppy.tracab.load could not read .* as data.provider=tracab"):
         kloppy_tracking("tracab", files)
+    empty = tmp_path / "empty.dat"
+    empty.write_text("")
+    with pytest.raises(ValueError, match=r"data.files.raw_data=.*empty.dat: the file is empty"):
+        kloppy_tracking("tracab", {"meta_data": str(FILES / "tracab_meta.xml"), "raw_data": str(empty)})
 
 
 def test_every_provider_has_a_sample_here():

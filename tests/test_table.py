@@ -4,6 +4,7 @@ import importlib.util
 import json
 import logging
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -374,3 +375,24 @@ def test_a_window_too_long_fails_before_the_trainer_starts(make_cfg, tmp_path, m
     with pytest.raises(ValueError, match=r"a scene spanning >= 14 frames, and the longest scene has 13 step\(s\): "
                                          r"set data.seq_len <= 12"):
         train(cfg)
+
+
+def test_the_readme_own_data_commands_run_on_the_example(tmp_path):
+    """The README's three own-data commands, as written, on the example tables it points to (training cut to one
+    epoch): a run, a prediction and an explorer page."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"## Your data in three commands\n\n```bash\n(.*?)```", readme, re.S).group(1)
+    commands = [line.split("#")[0].split() for line in block.strip().splitlines()]
+    programs = [c[:3] for c in commands]
+    assert programs == [["python", "-m", "dider.run"]] * 2 + [["python", "-m", "dider.analysis.explore"]]
+    env = {**os.environ, "HYDRA_FULL_ERROR": "1"}
+    for path, seed in (("tracks.csv", "0"), ("new.csv", "1")):
+        subprocess.run([sys.executable, "-m", "dider.data.example", path, "--seed", seed], cwd=tmp_path, check=True,
+                       env=env, capture_output=True)
+    fast = ["trainer.max_epochs=1", "logger=none", "trainer.enable_progress_bar=false",
+            "callbacks.timelines.num_clips=0"]
+    for i, command in enumerate(commands):
+        args = [sys.executable, *command[1:], *(fast if i == 0 else [])]
+        done = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, f"{' '.join(command)}:\n{done.stderr[-3000:]}"
+    assert (tmp_path / "runs" / "mine" / "explorer.html").exists()

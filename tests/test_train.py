@@ -257,3 +257,26 @@ def test_nothing_is_refitted_on_resume_and_fit_needs_a_datamodule(make_cfg):
     module._trainer = SimpleNamespace(ckpt_path=None, datamodule=None)
     with pytest.raises(ValueError, match="model.net.objective.nll.variance=fit fits the variance to a training batch"):
         module.on_fit_start()
+
+
+@pytest.mark.parametrize("model", ["dider", "dnri"])
+def test_a_monitor_must_name_a_logged_metric(make_cfg, tmp_path, model):
+    """Every metric a run logs for validation and training is one the monitor check accepts (so it never refuses a
+    real one), and a monitor naming none is refused before training, with the key that sets it."""
+    import pandas as pd
+
+    from dider.run import ConfigError, train
+    from dider.training.module import RelationalVAEModule
+
+    cfg = make_cfg([f"model={model}", "logger=csv", "trainer.max_epochs=2"], out=tmp_path / "run")
+    train(cfg)
+    logged = {c for c in pd.read_csv(tmp_path / "run" / "csv" / "metrics.csv").columns
+              if c.startswith(("val/", "train/")) and c != "train/lr"}
+    known = RelationalVAEModule.from_config(cfg.model).monitorable()
+    assert logged and logged <= known, logged - known
+    bad = make_cfg([f"model={model}", "logger=none", "callbacks.model_checkpoint.monitor=val/mse/h99"],
+                   out=tmp_path / "bad")
+    with pytest.raises(ConfigError, match=r"callbacks.model_checkpoint.monitor=val/mse/h99: the model logs no such "
+                                          r"metric; e.g. val/"):
+        train(bad)
+    assert not (tmp_path / "bad" / "checkpoints").exists()

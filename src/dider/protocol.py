@@ -10,7 +10,8 @@ rolls out from its own predictions. There are two ways to place the burn-in (``b
   an agent that appears late still gets a full burn-in before its forecast is counted (DNRI's protocol).
 
 A horizon h is the h-th predicted step after the burn-in: for ``global`` the frame ``burn_in + h - 1`` of
-every agent, for ``per_agent`` the agent's h-th present frame after its own burn-in. Test errors are
+every agent, for ``per_agent`` the agent's h-th present frame after its own burn-in. A forecast frame is scored
+only while the agent has been present since its last observed frame (:func:`scored_targets`). Test errors are
 reported at a few such horizons (``protocol.horizons``, which the data and the model configs read), each of
 which must therefore lie in 1..T - burn_in.
 
@@ -48,6 +49,27 @@ def agent_horizons(mask: torch.Tensor, burn_in: int) -> torch.Tensor:
     """
     steps = mask.long().cumsum(dim=1) - burn_in
     return torch.where(mask, steps, torch.zeros((), dtype=steps.dtype, device=steps.device))
+
+
+def scored_targets(mask: torch.Tensor, burn_in: int, mode: str) -> torch.Tensor:
+    """The forecast frames that are scored, [B, T, N] bool -> [B, T - burn_in, N] bool (frames burn_in..T-1).
+
+    One rule for an agent that leaves: a frame is scored only if the agent's forecast there starts from an
+    observation of that agent and the agent has been present at every frame since. In ``global`` mode that
+    observation is the burn-in's last frame (burn_in - 1), so an agent absent there is never scored; in
+    ``per_agent`` mode it is the agent's own last burn-in frame (its burn_in-th present frame). Once an agent is
+    missing for a frame it is not scored again in the clip, even when it comes back: the roll-out has lost it (its
+    input is zeros while it is absent), and what comes back may be a track re-acquired elsewhere."""
+    if mode == "per_agent":
+        count = mask.long().cumsum(dim=1)  # present frames so far
+        observed = count >= burn_in  # the agent's burn-in is complete at or before this frame
+        gaps = (~mask & observed).long().cumsum(dim=1)  # frames missed since then
+        scored = mask & (count > burn_in) & (gaps == 0)
+    elif mode == "global":
+        scored = mask[:, burn_in - 1 :].long().cumprod(dim=1).bool()[:, 1:]  # present since frame burn_in - 1
+    else:
+        raise ValueError(f"scored_targets: mode={mode!r}, expected one of {list(BURN_IN_MODES)}")
+    return scored[:, burn_in:] if mode == "per_agent" else scored
 
 
 def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

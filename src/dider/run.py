@@ -47,7 +47,9 @@ from dider.training.runfolder import (
     check_checkpoint,
     check_fresh,
     close_run_log,
+    eval_folder,
     is_rank_zero,
+    log_failure,
     mark_failed,
     open_run_folder,
     resolve_ckpt,
@@ -81,13 +83,30 @@ def predict(cfg: DictConfig) -> list[Path]:
     leaves no mix of two predictions' files."""
     validate_config(cfg)
     started = time.time()
+    apply_threads(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     out_dir = Path(cfg.output_dir)
     final, staging = out_dir / "predictions", out_dir / ".predictions.partial"
-    if final.exists() and is_rank_zero():
-        raise RunRefused(f"{final} already holds a prediction; predict into another folder (hydra.run.dir=...)")
+    with RunLock(out_dir):  # first: a second prediction into the folder is refused before it does any work
+        if final.exists() and is_rank_zero():
+            raise RunRefused(f"{final} already holds a prediction; predict into another folder (hydra.run.dir=...)")
+        names, writer = _predict_into(cfg, out_dir, final, staging, started)
+    if names is None:
+        return []
+    written = [final / name for name in names]
+    for path in written:
+        print(f"predictions: {path}")
+    if verdict := cv_verdict(writer.scores):
+        (log.info if verdict[1] else log.warning)(verdict[0])
+    return written
+
+
+def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, started: float
+                  ) -> tuple[list[str] | None, PredictionWriter]:
+    """The prediction itself, under the folder's lock: the names of the files written into ``staging`` and moved
+    to ``final`` (None on a rank other than zero) and the writer (its forecast scores)."""
     ckpt = find_checkpoint(str(cfg.ckpt_path))  # a checkpoint file or a run folder, as dider.load takes
-    trained = load(ckpt)  # named errors for a foreign or older checkpoint, before the data are read
+    trained = load(ckpt)  # named errors for a foreign, older or damaged checkpoint, before the data are read
     datamodule = _prediction_data(cfg, trained)
     module = RelationalVAEModule.from_config(trained.config)
     module.model.load_state_dict(trained.network.state_dict())
@@ -101,48 +120,42 @@ def predict(cfg: DictConfig) -> list[Path]:
     for warning in input_warnings(clips.states, clips.mask, trained.normalizer, where):
         log.warning(warning)
     module.predict_forecast = (burn_in, cfg.predict.forecast_steps) if cfg.predict.forecast_steps else None
-    with RunLock(out_dir):
-        open_run_folder(out_dir, cfg)
-        shutil.rmtree(staging, ignore_errors=True)  # a killed prediction's files: never part of this one
-        writer = PredictionWriter(staging, burn_in)
-        progress = PredictProgress(cfg.predict.progress_s)
-        trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[writer, progress], logger=False,
-                                         plugins=trainer_plugins(cfg))
-        log.info("predicting %d clips with %s (model %s, trained with dider %s)", len(clips), ckpt,
-                 module.model.name, trained.version)
-        try:
-            trainer.predict(module, datamodule=datamodule, return_predictions=False)
-        except SIGTERMException:
-            shutil.rmtree(staging, ignore_errors=True)
-            print(f"terminated (SIGTERM) before the predictions were complete: nothing written to {final}",
-                  file=sys.stderr)
-            raise SystemExit(TERMINATED) from None
-        if not trainer.is_global_zero:
-            return []
-        names = [p.name for p in writer.written]
-        atomic_write_text(staging / "complete.json", json.dumps({
-            "files": names, "clips": len(clips), "checkpoint": str(ckpt), "checkpoint_version": trained.version,
-            "provenance": provenance(started, str(trainer.strategy.root_device))}, indent=2))
-        os.replace(staging, final)  # the complete set appears at once
-    written = [final / name for name in names]
-    for path in written:
-        print(f"predictions: {path}")
-    if verdict := cv_verdict(writer.scores):
-        (log.info if verdict[1] else log.warning)(verdict[0])
-    return written
+    open_run_folder(out_dir, cfg)
+    shutil.rmtree(staging, ignore_errors=True)  # a killed prediction's files: never part of this one
+    writer = PredictionWriter(staging, burn_in)
+    progress = PredictProgress(cfg.predict.progress_s)
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[writer, progress], logger=False,
+                                     plugins=trainer_plugins(cfg))
+    log.info("predicting %d clips with %s (model %s, trained with dider %s)", len(clips), ckpt,
+             module.model.name, trained.version)
+    try:
+        trainer.predict(module, datamodule=datamodule, return_predictions=False)
+    except SIGTERMException:
+        shutil.rmtree(staging, ignore_errors=True)
+        print(f"terminated (SIGTERM) before the predictions were complete: nothing written to {final}",
+              file=sys.stderr)
+        raise SystemExit(TERMINATED) from None
+    if not trainer.is_global_zero:
+        return None, writer
+    names = [p.name for p in writer.written]
+    atomic_write_text(staging / "complete.json", json.dumps({
+        "files": names, "clips": len(clips), "checkpoint": str(ckpt), "checkpoint_version": trained.version,
+        "provenance": provenance(started, str(trainer.strategy.root_device))}, indent=2))
+    os.replace(staging, final)  # the complete set appears at once
+    return names, writer
+
+
+def apply_threads(cfg: DictConfig) -> None:
+    """``threads``: torch's intra-op threads for this process (null: torch's default)."""
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
 
 
 def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataModule:
     """The data module of ``mode=predict``: the settings that shape the features taken from the checkpoint
     where the command line does not set them (a differing one refused unless ``predict.force``), the
     checkpoint's normaliser."""
-    try:
-        take = training_settings(trained, cfg.data, overridden_keys(), bool(cfg.predict.force))
-    except ValueError as e:
-        raise ConfigError(str(e)) from None
-    for key, value in take.items():
-        log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
-                 key, value, key, cfg.data[key])
+    take = _checkpoint_features(cfg, trained, "predict.force")
     with open_dict(cfg):
         cfg.data.update(take)
         if "horizons" in cfg.data:  # the data's test horizons score nothing here: no clip length to fit them in
@@ -164,23 +177,66 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
     """:func:`train`, also returning ``optimized_metric``'s value (metrics.json's ``objective``)."""
     validate_config(cfg)
     started = time.time()
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    apply_threads(cfg)
     out_dir = Path(cfg.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if not os.access(out_dir, os.W_OK):
         raise ConfigError(f"{out_dir}: the run folder is not writable (choose another hydra.run.dir)")
-    ckpt = resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given())
-    if cfg.mode == "eval" and ckpt is None:
-        raise FileNotFoundError(f"ckpt_path={cfg.ckpt_path}: no checkpoint found in {out_dir / 'checkpoints'}")
-    version = None
+    trained, version = None, None
+    ckpt = (str(eval_checkpoint(cfg.ckpt_path, out_dir)) if cfg.mode == "eval"
+            else resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given()))
     if ckpt is not None:  # before any work: a checkpoint of another model fails naming both sides
         version = check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
-    elif cfg.mode == "train" and is_rank_zero():
-        check_fresh(out_dir)
-    with RunLock(out_dir):
+    if cfg.mode == "eval":
+        out_dir = eval_folder(out_dir, _eval_name(cfg))
+        trained = load(ckpt)  # named errors for a damaged or older checkpoint, before the data are read
+        with open_dict(cfg):  # every path of the run (checkpoints, logs, figures, exports) follows output_dir
+            cfg.output_dir = str(out_dir)
+            cfg.data.update(_checkpoint_features(cfg, trained, "eval.force"))
+        out_dir.mkdir(parents=True, exist_ok=True)
+    with RunLock(out_dir):  # first: the folder checks below and the run never race another process
+        if ckpt is None and is_rank_zero():
+            check_fresh(out_dir)
         open_run_folder(out_dir, cfg)
-        return _fit_and_test(cfg, ckpt, out_dir, started, version)
+        return _fit_and_test(cfg, ckpt, out_dir, started, version, trained)
+
+
+def eval_checkpoint(ckpt_path: str | None, folder: Path) -> Path:
+    """The checkpoint ``mode=eval`` tests: ``last`` (``folder``'s ``checkpoints/last.ckpt``), a checkpoint file, or
+    a run folder (its best checkpoint, else its last, as :func:`dider.load` takes)."""
+    if ckpt_path is None:
+        raise ConfigError("mode=eval needs ckpt_path: a checkpoint file, a run folder, or last (this run folder's)")
+    if str(ckpt_path) == "last":
+        last = folder / "checkpoints" / "last.ckpt"
+        if not last.is_file():
+            raise FileNotFoundError(f"ckpt_path=last: no checkpoint found in {last.parent}")
+        return last
+    return find_checkpoint(str(ckpt_path))
+
+
+def _eval_name(cfg: DictConfig) -> str:
+    """The folder an evaluation writes to in a training run (``eval/<name>``): ``eval.name``, else the data
+    config's name."""
+    if cfg.eval.get("name"):
+        return str(cfg.eval.name)
+    try:
+        return str(HydraConfig.get().runtime.choices.get("data") or "test")
+    except ValueError:  # composed outside a Hydra app
+        return "test"
+
+
+def _checkpoint_features(cfg: DictConfig, trained: TrainedModel, force_key: str) -> dict[str, Any]:
+    """The data settings that shape the features, taken from the checkpoint where the command line does not set
+    them (a differing one refused, naming both, unless ``force_key`` is true): the keys whose value changes."""
+    try:
+        take = training_settings(trained, cfg.data, overridden_keys(), bool(OmegaConf.select(cfg, force_key)),
+                                 force_key=force_key)
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
+    for key, value in take.items():
+        log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
+                 key, value, key, cfg.data[key])
+    return take
 
 
 def _run_dir_given() -> bool:
@@ -195,15 +251,20 @@ def _run_dir_given() -> bool:
 
 
 def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: float,
-                  ckpt_version: str | None = None) -> tuple[dict[str, float], float | None]:
+                  ckpt_version: str | None = None, trained: TrainedModel | None = None
+                  ) -> tuple[dict[str, float], float | None]:
     L.seed_everything(cfg.seed, workers=True, verbose=False)
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
+    if trained is not None:  # an evaluation reads its clips as the checkpoint was trained to, never refitting
+        datamodule.use_normalizer(trained.normalizer)
     model = RelationalVAEModule.from_config(cfg.model)
     if cfg.get("compile"):
         compile_modules(model.model)
     loggers: list[Logger] = _build_list(cfg.get("logger"))
     # The learning-rate monitor needs a logger to write to: without one (logger=none) it has nothing to do.
     callbacks = [c for c in _build_list(cfg.get("callbacks")) if loggers or not isinstance(c, LearningRateMonitor)]
+    if cfg.mode == "train":
+        _check_monitors(model, cfg)
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
     if trainer.world_size == 1:  # the data's problems (files, window lengths) surface before any training
@@ -248,6 +309,18 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     return metrics, objective
 
 
+def _check_monitors(model: RelationalVAEModule, cfg: DictConfig) -> None:
+    """A checkpoint or early-stopping callback that monitors a metric the model never logs would fail only after the
+    first epoch: named before training, with the key that sets it."""
+    known = model.monitorable()
+    for name, node in (cfg.get("callbacks") or {}).items():
+        monitor = node.get("monitor") if isinstance(node, DictConfig) else None
+        if monitor and monitor not in known:
+            close = sorted(k for k in known if k.split("/")[0] == str(monitor).split("/")[0])
+            raise ConfigError(f"callbacks.{name}.monitor={monitor}: the model logs no such metric; e.g. "
+                              f"{', '.join(close[:8]) or ', '.join(sorted(known)[:8])}")
+
+
 def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metrics: dict[str, float]) -> float | None:
     """``optimized_metric``'s value: the best checkpoint's score when the checkpoint callback monitors it
     (the value of the epoch whose weights were tested), else its last logged value; None if never logged."""
@@ -273,7 +346,7 @@ def main(cfg: DictConfig) -> float | None:
             return None
         objective = fit_and_score(cfg)[1]
     except Exception as e:  # into the run's own log and a failed.json beside it (a folder it took), then out
-        log.exception("run failed: %s", e)
+        log_failure(e)  # Hydra prints it on the console, once
         if is_rank_zero():
             mark_failed(Path(cfg.output_dir), e)
         raise

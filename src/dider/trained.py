@@ -66,6 +66,12 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise ValueError(f"{path}: not a dider training checkpoint (no state_dict / hyper_parameters)")
+    bad = [k for k, v in ckpt["state_dict"].items()
+           if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise ValueError(f"{path}: {len(bad)} weight tensor(s) hold NaN or inf (e.g. {', '.join(bad[:3])}): the run "
+                         f"that wrote it diverged; use a checkpoint from before (checkpoints/), or train again with "
+                         f"a lower model.optimizer.lr")
     data = (ckpt.get("dider") or {}).get("data") or {}
     missing = [what for what, ok in (("the package version", "dider" in ckpt),
                                      ("the data normaliser", "normalizer" in data.get("state", {}))) if not ok]
@@ -109,11 +115,11 @@ class TrainedModel:
         (default: the training data's steps per second, its ``frame_rate`` / ``downsample``: give positions
         at the model's step rate)."""
         check_arguments("TrainedModel", {"frame_rate": (frame_rate, optional(above(0)))})
-        arrays = {"positions": _numpy(positions)}
+        arrays = {"positions": _numpy(positions, "positions")}
         single = arrays["positions"].ndim == 3
         for key, value in (("mask", mask), ("velocities", velocities)):
             if value is not None:
-                arrays[key] = _numpy(value)
+                arrays[key] = _numpy(value, key)
         if single:
             arrays = {k: v[None] for k, v in arrays.items()}
         if velocities is None and frame_rate is None:
@@ -188,11 +194,12 @@ FEATURE_SETTINGS = ("frame_rate", "downsample", "max_speed")
 
 
 def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_user: Collection[str],
-                      force: bool = False, where: str = "data") -> dict[str, Any]:
+                      force: bool = False, where: str = "data", force_key: str = "predict.force") -> dict[str, Any]:
     """The values of :data:`FEATURE_SETTINGS` that reading new data for ``trained`` needs, for the keys that
     both ``given`` (the data config) and the checkpoint have: the checkpoint's where the user did not set the
     key (``set_by_user`` holds ``where.key`` names), the user's where set and equal or ``force``. A value set
-    and different raises a ValueError naming both. Returns the keys whose value changes, with it."""
+    and different raises a ValueError naming both (and ``force_key``, the setting that forces it). Returns the
+    keys whose value changes, with it."""
     take: dict[str, Any] = {}
     for key in FEATURE_SETTINGS:
         if key not in given or key not in trained.data or given[key] == trained.data[key]:
@@ -203,12 +210,21 @@ def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_us
         elif not force:
             raise ValueError(f"{name}={given[key]}: the checkpoint {trained.path} was trained with {name}={theirs}, "
                              f"which shapes the features it reads (velocities); leave {name} out to use "
-                             f"{theirs}, or set predict.force=true to read the data with {given[key]} anyway")
+                             f"{theirs}, or set {force_key}=true to read the data with {given[key]} anyway")
     return take
 
 
-def _numpy(value: ArrayLike) -> np.ndarray:
-    return value.detach().cpu().numpy() if isinstance(value, torch.Tensor) else np.asarray(value)
+def _numpy(value: ArrayLike, name: str) -> np.ndarray:
+    """An argument as an array; a ragged one (clips or agents of different lengths) named."""
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu().numpy()
+    try:
+        out = np.asarray(value, dtype=np.bool_ if name == "mask" else np.float64)
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{name}: not a rectangular array of numbers ({str(e).splitlines()[0]}); pad clips and "
+                         f"agents to one shape ([S, T, N, 2] for positions, NaN where absent) and pass "
+                         f"mask=[S, T, N]") from None
+    return out
 
 
 def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
@@ -216,15 +232,26 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     ckpt_path = find_checkpoint(path)
     ckpt = read_checkpoint(ckpt_path)
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
-    net = network_hparams(hparams)
-    config = ({k: v for k, v in hparams.items() if k not in ("net", "model")}
-              | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
-    network = RelationalVAE.from_config(net)
+    try:  # a damaged or hand-edited checkpoint: named with the file and the part that does not fit
+        net = network_hparams(hparams)
+        config = ({k: v for k, v in hparams.items() if k not in ("net", "model")}
+                  | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
+        network = RelationalVAE.from_config(net)
+    except Exception as e:  # noqa: BLE001 (hydra, a plugin's checks or a missing key: any of them)
+        raise ValueError(f"{ckpt_path}: its model config (hyper_parameters) does not build a model "
+                         f"({type(e).__name__}: {e})") from e
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
-    network.load_state_dict(state)
+    try:
+        network.load_state_dict(state)
+    except RuntimeError as e:  # missing, unexpected or mis-shaped weights
+        raise ValueError(f"{ckpt_path}: its weights (state_dict) do not fit the model its config describes: "
+                         f"{' '.join(str(e).split())[:400]}") from e
     data = ckpt["dider"]["data"]
     if warning := version_problem(ckpt["dider"].get("version", "")):
         log.warning("%s: %s", ckpt_path, warning)
-    normalizer = Normalizer(**data["state"]["normalizer"])
+    try:
+        normalizer = Normalizer(**data["state"]["normalizer"])
+    except (TypeError, ValueError, KeyError) as e:
+        raise ValueError(f"{ckpt_path}: its data normaliser ({data['state']['normalizer']!r}) is damaged: {e}") from e
     return TrainedModel(network.to(device).eval(), normalizer, config, dict(data.get("args", {})),
                         ckpt["dider"].get("version", ""), ckpt_path)

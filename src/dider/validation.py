@@ -103,16 +103,18 @@ def boolean(value: Any) -> str | None:
     return None if isinstance(value, bool) else "expected true or false"
 
 
+def folder_name(value: Any) -> str | None:
+    """A name for a folder inside another: no path separators, not '.' or '..'."""
+    ok = isinstance(value, str) and value not in ("", ".", "..") and "/" not in value and "\\" not in value
+    return None if ok else "expected a folder name (no path separators)"
+
+
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
-# The settings of the app, the trainer, the LightningModule and the forecast protocol; the model's and the data's
-# classes declare theirs (SETTINGS).
+# The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare theirs
+# (SETTINGS), and so do the protocol, eval and predict nodes (dider.settings).
 RULES: dict[str, Rule] = {
     "compile": boolean,
-    "predict.force": boolean,
-    "predict.burn_in": optional(integer(1, " frame")),
-    "predict.forecast_steps": optional(integer(1, " step")),
-    "predict.progress_s": above(0),
     "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
     "threads": optional(integer(1, " (null: torch's default)")),
@@ -121,8 +123,6 @@ RULES: dict[str, Rule] = {
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
     "model.burn_in": integer(1),
-    "protocol.burn_in": integer(1),
-    "protocol.burn_in_mode": one_of(*BURN_IN_MODES),
 }
 
 
@@ -157,13 +157,13 @@ def _problems(rules: Mapping[str, Rule | type], values: Mapping[str, Any], prefi
     for name, value in values.items():
         rule = rules.get(name)
         if isinstance(rule, type):
-            found += _node_problems(rule, value, f"{prefix}{name}")
+            found += node_problems(rule, value, f"{prefix}{name}")
         elif rule is not None and (why := rule(value)) is not None:
             found.append(f"{prefix}{name}={value!r}: {why}")
     return found
 
 
-def _node_problems(cls: type, node: Any, where: str) -> list[str]:
+def node_problems(cls: type, node: Any, where: str) -> list[str]:
     """A nested settings node (e.g. the data's ``loader``) built into ``cls``: unknown keys and its rules."""
     if node is None:
         return []

@@ -3,7 +3,9 @@
     python -m dider.analysis.record SWEEP [SWEEP ...] --out docs/records/NAME.json [--baseline dnri]
         [--command "the command that ran the sweeps"] [--metric test/mse/h15 ...] [--curve val/mse/h01 ...]
 
-Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly), and for ``train/`` and
+Reads each job's ``metrics.json`` (a sweep's subfolders, or run folders given directly; a job still running, failed
+or with a broken record is named in a warning and listed under ``unfinished``; two jobs of one model and seed are
+refused), and for ``train/`` and
 ``val/`` metrics the last value the job's CSV log (``csv/metrics.csv``, ``logger=csv``) holds; keys it by its
 model's name and seed (with ``--curve``, a metric's course over the epochs too), and writes one JSON file: the
 jobs, and per model the mean, sample std, min and max of each metric and, against ``--baseline``, the mean and
@@ -16,12 +18,16 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import logging
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from dider.io import atomic_write_text
+from dider.training.runfolder import LOCK, owner_of
+
+log = logging.getLogger(__name__)
 
 # What a record keeps of each job when no --metric is given: the forecast (in data units against constant velocity,
 # and as the normalised MSE), edge recalls, the own cut. A job that lacks a key leaves it out.
@@ -39,18 +45,49 @@ DEFAULT_METRICS = (
 
 
 def job_folders(paths: Sequence[Path]) -> list[Path]:
-    """Run folders: each path that holds a metrics.json, else its subfolders that do (a sweep)."""
+    """Run folders: each path that is one (it holds a ``metrics.json``, a ``failed.json``, a run's lock or its
+    ``.hydra`` record), else its subfolders that are (a sweep)."""
     found = []
     for path in paths:
-        if (path / "metrics.json").is_file():
+        if is_job(path):
             found.append(path)
         elif path.is_dir():
-            found.extend(sorted(p.parent for p in path.glob("*/metrics.json")))
+            found.extend(sorted(p for p in path.iterdir() if p.is_dir() and is_job(p)))
         else:
             raise FileNotFoundError(f"{path}: no such run or sweep folder")
     if not found:
         raise FileNotFoundError(f"{', '.join(map(str, paths))}: no job with a metrics.json")
     return found
+
+
+def is_job(folder: Path) -> bool:
+    return any((folder / name).exists() for name in ("metrics.json", "failed.json", LOCK, ".hydra"))
+
+
+def read_job(folder: Path) -> tuple[dict[str, Any] | None, str]:
+    """A job's ``metrics.json`` record, or None and what it is instead: ``running`` (a live run holds the
+    folder), ``failed: <why>`` (its ``failed.json``, or a record that is missing, half-written or not a run's)."""
+    if (lock := owner_of(folder)) is not None:
+        return None, f"running (pid {lock.get('pid')} on {lock.get('host')})"
+    path = folder / "metrics.json"
+    try:
+        record = json.loads(path.read_text())
+    except OSError:
+        failed = folder / "failed.json"
+        why = "no metrics.json" + (f"; {failed.name} says {_error(failed)}" if failed.exists() else "")
+        return None, f"failed: {why}"
+    except ValueError as e:
+        return None, f"failed: {path} is not JSON (half-written?): {e}"
+    if not isinstance(record, dict) or not isinstance(record.get("metrics"), dict) or "seed" not in record:
+        return None, f"failed: {path} is not a run's record (a JSON object with 'metrics' and 'seed')"
+    return record, "finished"
+
+
+def _error(failed: Path) -> str:
+    try:
+        return str(json.loads(failed.read_text()).get("error", "?"))
+    except (OSError, ValueError, AttributeError):
+        return "nothing readable"
 
 
 def logged_curves(folder: Path, names: Sequence[str]) -> dict[str, list[list[float]]]:
@@ -98,9 +135,13 @@ def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, flo
 
 def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,
           label: str = "name", by_overrides: bool = True, curves: Sequence[str] = ()) -> dict[str, Any]:
-    jobs = []
+    jobs, unfinished = [], []
     for folder in job_folders(paths):
-        record = json.loads((folder / "metrics.json").read_text())
+        record, state = read_job(folder)
+        if record is None:
+            log.warning("%s: %s; left out of the record", folder, state)
+            unfinished.append({"folder": str(folder), "state": state})
+            continue
         model = record.get("config", {}).get("model", {})
         kept = {k: record["metrics"][k] for k in metrics if k in record["metrics"]}
         kept |= last_logged(folder, [k for k in metrics if k.startswith(("train/", "val/"))])
@@ -116,6 +157,14 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
     for job in jobs if by_overrides else ():
         own = sorted(o for o in set(job["overrides"]) - common if not o.startswith("model="))
         job["model"] = job["model"] + (f" [{' '.join(own)}]" if own else "")
+    if not jobs:
+        raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
+    seen: dict[tuple[str, int], str] = {}
+    for job in jobs:  # a record pairs by model and seed: two jobs there would make one of them vanish
+        if (other := seen.setdefault((job["model"], job["seed"]), job["folder"])) != job["folder"]:
+            raise ValueError(f"two jobs of model {job['model']!r} with seed {job['seed']}: {other} and "
+                             f"{job['folder']}; a record keeps one job per model and seed: record them apart, or "
+                             f"tell them apart by an override (without --by-name)")
     by_model: dict[str, dict[str, dict[int, float]]] = {}
     for job in jobs:
         for k, v in job["metrics"].items():
@@ -128,7 +177,7 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
             for k, v in per_metric.items():
                 if (diff := paired(v, by_model[baseline].get(k, {}))) is not None:
                     models[name][k]["vs_" + baseline] = diff
-    return {"command": command, "baseline": baseline, "models": models, "jobs": jobs}
+    return {"command": command, "baseline": baseline, "models": models, "jobs": jobs, "unfinished": unfinished}
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import io
 import itertools
-import json
+import logging
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -30,6 +30,7 @@ import pandas as pd  # noqa: E402
 from hydra.core.override_parser.overrides_parser import OverridesParser  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from dider.analysis.record import read_job  # noqa: E402
 from dider.analysis.report_latex import latex_table  # noqa: E402
 from dider.analysis.report_table import (  # noqa: E402
     BEST_NOTE,
@@ -40,6 +41,8 @@ from dider.analysis.report_table import (  # noqa: E402
     paired_support,
 )
 from dider.io import atomic_write_bytes, atomic_write_text  # noqa: E402
+
+log = logging.getLogger(__name__)
 
 SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
             ("Forecast against DNRI: error over DNRI's, paired by seed", r"(ade|fde)_vs_dnri/h\d+$"),
@@ -118,24 +121,25 @@ def expected_jobs(sweep: Path) -> list[frozenset[str]] | None:
 
 
 def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], int | None, list[str]]:
-    """(records of finished jobs in sweep order, failed job folders, missing override sets, expected count,
-    ignored job folders: runs whose overrides are not among the sweep's jobs, e.g. copied in)."""
+    """(records of finished jobs in sweep order, failed or running job folders with the reason, missing override
+    sets, expected count, ignored job folders: runs whose overrides are not among the sweep's jobs, e.g. copied in).
+    A job's own evaluations (``eval/<name>/`` inside it) are not jobs of the sweep."""
     dirs = {p.parent for p in sweep.rglob(".hydra") if p.is_dir()} | {p.parent for p in sweep.rglob("metrics.json")}
+    dirs = {d for d in dirs if not any(parent in dirs for parent in d.parents)}
     records, failed, found = [], [], set()
     for d in sorted(dirs):
         overrides_file = d / ".hydra" / "overrides.yaml"
         overrides = list(OmegaConf.load(overrides_file)) if overrides_file.exists() else None
-        try:
-            record = json.loads((d / "metrics.json").read_text())
-            if not isinstance(record.get("metrics"), dict):
-                raise ValueError("metrics.json without a 'metrics' table")
-        except (OSError, ValueError) as err:
-            failed.append(f"{d.relative_to(sweep)} ({'no metrics.json' if isinstance(err, OSError) else err})")
+        record, state = read_job(d)
+        if record is None:
+            log.warning("%s: %s; left out of the report", d, state)
+            failed.append(f"{d.relative_to(sweep)} ({state.removeprefix('failed: ')})")
             found.add(_canon(overrides or []))
             continue
         record["dir"], record["_key"] = d, _canon(overrides if overrides is not None else record.get("overrides", []))
         records.append(record)
         found.add(record["_key"])
+    _warn_twins(records, sweep)
     expected = expected_jobs(sweep)
     if expected is None:
         return records, failed, [], None, []
@@ -150,6 +154,18 @@ def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], in
     order = {e: i for i, e in enumerate(expected)}  # the sweep's order (models as listed, num_edges ascending)
     records.sort(key=lambda r: order.get(r["_key"], len(order)))
     return records, failed, missing, len(expected), ignored
+
+
+def _warn_twins(records: list[dict[str, Any]], sweep: Path) -> None:
+    """Two finished jobs with the same overrides (a job run twice, copied in): both stay in the tables, each a row
+    of runs.csv, and the warning names them (a ratio to the baseline is then ambiguous and left out)."""
+    by_key: dict[frozenset[str], list[str]] = {}
+    for r in records:
+        by_key.setdefault(r["_key"], []).append(str(r["dir"].relative_to(sweep)))
+    for folders in by_key.values():
+        if len(folders) > 1:
+            log.warning("jobs %s ran the same settings: both are kept in the report's rows and statistics",
+                        ", ".join(folders))
 
 
 def group_jobs(records: list[dict[str, Any]], sweep: Path) -> list[Group]:
@@ -328,9 +344,9 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         lines += ["## Interaction timelines (one job per row)", ""]
         for label, job, paths in timelines:
             lines += [f"**{label}** (`{job}`)", "", *(f"![{label}]({p})" for p in paths), ""]
-    lines += ["## Failed, missing or ignored jobs", "", "(failed: a job folder without metrics.json, also while it "
-              "still runs; missing: swept values that no job folder holds; ignored: a finished run whose overrides "
-              "are not a job of this sweep, e.g. copied in, left out of the tables)", ""]
+    lines += ["## Failed, missing or ignored jobs", "", "(failed: a job folder without a readable metrics.json, with "
+              "why, or one still running; missing: swept values that no job folder holds; ignored: a finished run "
+              "whose overrides are not a job of this sweep, e.g. copied in, left out of the tables)", ""]
     lines += ([f"- failed: `{f}`" for f in s.failed] + [f"- missing: `{m}`" for m in s.missing]
               + [f"- ignored: `{i}`" for i in s.ignored]) or ["none"]
     return "\n".join(lines) + "\n"

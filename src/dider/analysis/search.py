@@ -6,8 +6,9 @@ space in ``hparams_search`` (conf/hparams_search), trains in ``<out>/trial_<k>``
 ``optimized_metric`` (a validation metric by default, so the search never tunes on the test set). The
 trials go to ``<out>/search.csv`` after each one (atomic), the best to ``<out>/best.json``, the study to
 ``<out>/study.db`` (SQLite): a killed search started again with ``hydra.run.dir=<out>`` goes on where it
-stopped (``hparams_search.n_trials`` counts the completed trials). ``<out>`` is ``hydra.run.dir`` if given,
-else ``multirun/search/<date>_<time>``. Needs ``pip install optuna``.
+stopped (``hparams_search.n_trials`` counts the completed trials), drawing new points; started there with other
+settings (overrides, space, objective) it is refused. ``<out>`` is ``hydra.run.dir`` if given, else
+``multirun/search/<date>_<time>``. Needs ``pip install optuna``.
 """
 
 from __future__ import annotations
@@ -63,6 +64,31 @@ def check_space(space: Mapping[str, Any]) -> None:
                              f"{spec.get('high')!r}")
 
 
+# Settings a search may change when it goes on: how many trials it makes, where it writes.
+GOES_ON_WITH = ("hparams_search.n_trials=", "hydra.run.dir=")
+
+
+def study_settings(overrides: Sequence[str], spec: Mapping[str, Any], objective: Any) -> dict[str, Any]:
+    """What makes a search one search: its overrides (but :data:`GOES_ON_WITH`), space, direction, sampler seed and
+    objective; kept in the study, so that a search started again in its folder is checked against it."""
+    return {"overrides": sorted(o for o in overrides if not o.startswith(GOES_ON_WITH)),
+            "space": dict(spec.get("space") or {}), "direction": spec.get("direction", "minimize"),
+            "seed": int(spec.get("seed", 1)), "objective": objective}
+
+
+def check_same_search(out: Path, recorded: Mapping[str, Any] | None, settings: Mapping[str, Any]) -> None:
+    """Refuse to go on with a study made with other settings (its trials would mix two configurations)."""
+    if recorded is None:
+        raise ValueError(f"{out / 'study.db'}: a study with no record of its settings (another tool's, or an older "
+                         f"version's): start this search in another folder (hydra.run.dir=...)")
+    differ = [f"{k}: the study's {recorded.get(k)!r}, now {settings.get(k)!r}" for k in settings
+              if json.dumps(recorded.get(k), sort_keys=True) != json.dumps(settings.get(k), sort_keys=True)]
+    if differ:
+        raise ValueError(f"{out}: holds a search with other settings; going on would mix two configurations in one "
+                         f"study. Start this one in another folder (hydra.run.dir=...), or repeat the study's "
+                         f"settings:\n  - " + "\n  - ".join(differ))
+
+
 def suggest(trial: Any, space: Mapping[str, Any]) -> dict[str, Any]:
     """The trial's value for each key of the space."""
     values = {}
@@ -94,9 +120,16 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
     given = [o for o in overrides if not o.startswith("hydra.run.dir=")]
     out.mkdir(parents=True, exist_ok=True)
     # the study lives in the search folder: a killed search started again with the same folder goes on
-    study = optuna.create_study(study_name="dider", storage=f"sqlite:///{out.resolve() / 'study.db'}",
-                                load_if_exists=True, direction=spec.get("direction", "minimize"),
-                                sampler=optuna.samplers.TPESampler(seed=int(spec.get("seed", 1))))
+    storage = f"sqlite:///{out.resolve() / 'study.db'}"
+    settings = study_settings(given, spec, base.get("optimized_metric"))
+    study = optuna.create_study(study_name="dider", storage=storage, load_if_exists=True,
+                                direction=spec.get("direction", "minimize"))
+    if study.trials or "settings" in study.user_attrs:  # going on: the same search, never two mixed in one study
+        check_same_search(out, study.user_attrs.get("settings"), settings)
+    else:
+        study.set_user_attr("settings", settings)
+    # seeded by the trials already made too: a search that goes on draws new points, not trial 0's again
+    study.sampler = optuna.samplers.TPESampler(seed=int(spec.get("seed", 1)) + len(study.trials))
     for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         # a trial the killed search was running: failed; its folder keeps what it wrote, the next trial gets a new one
         log.warning("trial %d (%s) was cut off by the killed search: marked failed", trial.number,

@@ -223,7 +223,7 @@ class BasketballDataModule(ClipDataModule):
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
         raw = {s: x[spread_indices(x.shape[0], caps[s])] for s, x in raw.items()}
         try:
-            self.normalizer = Normalizer.fit(raw["train"])
+            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"]))
         except ValueError as err:  # e.g. constant positions: nothing to scale by
             raise ValueError(f"basketball training clips in data.root={self.hparams.root}: {err}") from err
         for split, x in raw.items():

@@ -13,16 +13,16 @@ their names in ``source_names`` (key -> list indexed by the id).
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import lightning as L
 import torch
 import torch.distributed as dist
 from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from dider.data.batch import Batch, Normalizer
 from dider.data.loader import Loader
@@ -185,6 +185,34 @@ def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:
             "frame_step": int(getattr(dm, "frame_step", 1)), "state": dm.state_dict()}
 
 
+class EpochOrder(RandomSampler):
+    """RandomSampler's shuffle, resumable mid-epoch: each epoch's order comes from a seed drawn from the global
+    generator as the epoch starts, exactly as RandomSampler draws it (the same orders, the same random stream),
+    and the seed is kept (``seed``) so that a checkpoint can carry the epoch's order. :meth:`resume` makes the
+    next epoch the rest of an interrupted one: its order from the recorded seed, from the batch after the last one
+    done, and the global torch random state put back to the checkpoint's as it starts (a new loader iterator draws
+    a worker seed from it, which the interrupted epoch had drawn before the checkpoint)."""
+
+    def __init__(self, data: Dataset, batch_size: int) -> None:
+        super().__init__(data)
+        self.batch_size = batch_size
+        self.seed: int | None = None
+        self._resume: tuple[int, int, torch.Tensor] | None = None
+
+    def resume(self, seed: int, batches_done: int, rng: torch.Tensor) -> None:
+        self._resume = (int(seed), int(batches_done), rng)
+
+    def __iter__(self) -> Iterator[int]:
+        if self._resume is not None:
+            (self.seed, done, rng), self._resume = self._resume, None
+            torch.set_rng_state(rng)
+        else:
+            self.seed, done = int(torch.empty((), dtype=torch.int64).random_().item()), 0
+        generator = torch.Generator()
+        generator.manual_seed(self.seed)
+        yield from torch.randperm(len(self.data_source), generator=generator).tolist()[done * self.batch_size:]
+
+
 class ClipDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
@@ -222,6 +250,10 @@ class ClipDataModule(L.LightningDataModule):
         self.datasets: dict[str, Dataset] = {}
         self.source_names: dict[str, list[str]] = {}
         self.frame_step = 1  # input frames per step (downsampling readers change it)
+        self.train_order: EpochOrder | None = None  # the training loader's sampler, once it is built
+        # (seed, batches done, torch random state) of an epoch a checkpoint stopped in: the next training loader
+        # replays the rest of it (:class:`EpochOrder`)
+        self.resume_position: tuple[int, int, torch.Tensor] | None = None
 
     # The normaliser travels in checkpoints (Lightning stores a data module's state_dict), so a trained
     # model can normalise new data the way it was trained.
@@ -237,8 +269,14 @@ class ClipDataModule(L.LightningDataModule):
             self.normalizer = Normalizer(**state["normalizer"])
 
     def use_normalizer(self, normalizer: Normalizer) -> None:
-        """Normalise with a trained model's normaliser instead of fitting one (before ``setup``; prediction)."""
+        """Normalise with a trained model's normaliser instead of fitting one (before ``setup``: prediction, and
+        ``mode=eval``, which reads its clips as the checkpoint was trained to)."""
         self.normalizer = normalizer
+
+    def train_normalizer(self, fit: Callable[[], Normalizer]) -> Normalizer:
+        """The splits' normaliser in ``setup``: the one given by :meth:`use_normalizer`, else ``fit()``'s (on the
+        train split)."""
+        return self.normalizer if self.normalizer is not None else fit()
 
     def init_shared(self, clip_len: int | None = None, *, length_key: str | None = None,
                     integer_horizons: bool = False) -> None:
@@ -266,16 +304,22 @@ class ClipDataModule(L.LightningDataModule):
     def _dataloader(self, split: str, train: bool) -> DataLoader:
         if split not in self.datasets:
             raise RuntimeError(f"{type(self).__name__}: call setup() before asking for the {split} loader")
-        sampler = None
-        if not train and dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
+        batch_size = self.loader.batch_size if train else self.loader.eval_batch_size
+        order: dict[str, Any] = {"shuffle": False}
+        if train:  # no ``shuffle`` given: Lightning tells a shuffled loader by its RandomSampler (DDP replaces it)
+            self.train_order = EpochOrder(self.datasets[split], batch_size)
+            if self.resume_position is not None:
+                self.train_order.resume(*self.resume_position)
+                self.resume_position = None
+            order = {"sampler": self.train_order}
+        elif dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1:
             # DDP evaluation: each clip exactly once (Lightning's default sampler pads the shards by
             # repeating clips, which the metrics would count twice); rank r holds clips r, r + W, ...
-            sampler = UnrepeatedDistributedSampler(self.datasets[split], shuffle=False)
+            order["sampler"] = UnrepeatedDistributedSampler(self.datasets[split], shuffle=False)
         return DataLoader(
             self.datasets[split],
-            batch_size=self.loader.batch_size if train else self.loader.eval_batch_size,
-            shuffle=train,
-            sampler=sampler,
+            batch_size=batch_size,
+            **order,
             drop_last=False,
             num_workers=self.loader.num_workers,
             pin_memory=self.loader.pin_memory,

@@ -183,7 +183,7 @@ class DNRIFilesDataModule(ClipDataModule):
         for split, (feats, _) in raw.items():
             check_horizons(h.horizons, feats.shape[1], h.burn_in, where=f" in {root / f'{split}_feats'}")
         try:
-            self.normalizer = fit_normalizer(raw["train"][0], h.normalization)
+            self.normalizer = self.train_normalizer(lambda: fit_normalizer(raw["train"][0], h.normalization))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
             raise ValueError(f"{root / 'train_feats'}: cannot fit the normalisation: {e}") from None
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}

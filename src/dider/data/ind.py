@@ -259,7 +259,8 @@ class InDDataModule(ClipDataModule):
             self.predict_normalizer(f"data.root={h.root}")
         else:
             try:
-                self.normalizer = Normalizer.fit(raw["train"]["states"], raw["train"]["mask"])
+                train = raw["train"]
+                self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"]))
             except ValueError as e:  # e.g. only parked vehicles left: a zero velocity range
                 raise ValueError(f"{h.name} train split (recordings {raw['train']['recordings']}): cannot "
                                  f"fit the normalisation: {e}") from None

@@ -13,6 +13,7 @@ matches the same way. Windows, downsampling, the split and the normalisation are
 from __future__ import annotations
 
 import importlib
+import inspect
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -60,6 +61,12 @@ def kloppy_tracking(provider: str, files: Mapping[str, Any], options: Mapping[st
     if provider not in PROVIDERS:
         raise ValueError(f"data.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
     module, loader, arguments, optional = PROVIDERS[provider]
+    if files is not None and not isinstance(files, Mapping):
+        raise ValueError(f"data.files={files!r}: expected the reader's files by its argument names, e.g. "
+                         f"data.files={{{arguments[0]}:PATH,{arguments[-1]}:PATH}} for data.provider={provider}")
+    if options is not None and not isinstance(options, Mapping):
+        raise ValueError(f"data.options={options!r}: expected keyword arguments of kloppy's loader, e.g. "
+                         f"data.options={{limit:1000}}")
     given = dict(files or {})
     if unknown := sorted(set(given) - set(arguments) - set(optional)):
         raise ValueError(f"data.files: unknown key(s) {unknown} for data.provider={provider} (its loader reads "
@@ -68,20 +75,30 @@ def kloppy_tracking(provider: str, files: Mapping[str, Any], options: Mapping[st
         raise ValueError(f"data.files: data.provider={provider} needs {needed} (kloppy.{module}.{loader}'s files)")
     for key, value in given.items():
         for path in value if isinstance(value, (list, tuple)) else [value]:
-            if not Path(str(path)).expanduser().exists():
+            where = Path(str(path)).expanduser()
+            if not where.exists():
                 raise FileNotFoundError(f"data.files.{key}={path}: no such file or folder")
+            if where.is_file() and where.stat().st_size == 0:
+                raise ValueError(f"data.files.{key}={path}: the file is empty")
     try:
         kloppy = importlib.import_module(f"kloppy.{module}")
     except ImportError as e:
         raise ImportError(f"data=soccer reads tracking data with kloppy >= 3.19, which is not installed (or too "
                           f"old for data.provider={provider}): pip install 'dider[soccer]' ({e})") from None
+    read = getattr(kloppy, loader)
+    takes = inspect.signature(read).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in takes.values()):
+        if unknown := sorted(set(options or {}) - set(takes)):
+            raise ValueError(f"data.options: kloppy.{module}.{loader} takes no {unknown} (it takes "
+                             f"{sorted(k for k in takes if k not in arguments and k not in optional)})")
     paths = {k: [str(Path(str(p)).expanduser()) for p in v] if isinstance(v, (list, tuple))
              else str(Path(str(v)).expanduser()) for k, v in given.items()}
     try:
-        return getattr(kloppy, loader)(**paths, coordinates="secondspectrum", **dict(options or {}))
+        return read(**paths, coordinates="secondspectrum", **dict(options or {}))
     except Exception as e:  # kloppy raises many types for a file it cannot parse
-        raise ValueError(f"data.files {paths}: kloppy.{module}.{loader} could not read them as "
-                         f"data.provider={provider} ({type(e).__name__}: {e})") from e
+        blame = "data.options" if options and any(str(k) in str(e) for k in options) else "data.files"
+        raise ValueError(f"{blame}: kloppy.{module}.{loader} could not read {paths} as data.provider={provider} "
+                         f"with options {dict(options or {})} ({type(e).__name__}: {e})") from e
 
 
 def tracking_rows(dataset: Any, ball: bool, source: str) -> tuple[dict[str, Any], float | None]:

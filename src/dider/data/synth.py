@@ -80,7 +80,7 @@ class SynthDataModule(ClipDataModule):
         if self.datasets:
             return
         raw = {split: load_or_build(self._path(split), lambda split=split: self._generate(split)) for split in SPLITS}
-        self.normalizer = Normalizer.fit(raw["train"]["states"])
+        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"]["states"]))
         for split, blob in raw.items():
             states = self.normalizer.normalize(blob["states"])
             mask = torch.ones(states.shape[:3], dtype=torch.bool)

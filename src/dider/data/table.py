@@ -299,7 +299,7 @@ class TableDataModule(ClipDataModule):
         parts, by = self._split(data)
         rows, _ = ragged_rows(data["offsets"], parts["train"])
         try:
-            self.normalizer = Normalizer.fit(data["states"][rows], data["mask"][rows])
+            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(data["states"][rows], data["mask"][rows]))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
             raise ValueError(f"{self._source()}: cannot fit the normalisation on the train split: {e}") from None
         for split, idx in parts.items():

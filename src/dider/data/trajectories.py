@@ -226,7 +226,8 @@ class TrajectoryDataModule(ClipDataModule):
         parts = {s: idx[spread_indices(len(idx), caps[s])] for s, idx in parts.items()}
         train = parts["train"]
         try:
-            self.normalizer = Normalizer.fit(data["states"][train], data["mask"][train])
+            self.normalizer = self.train_normalizer(
+                lambda: Normalizer.fit(data["states"][train], data["mask"][train]))
         except ValueError as e:  # e.g. no present agent, or agents that never move
             raise ValueError(f"{path}: cannot fit the normalisation on the train split: {e}") from None
         for split, idx in parts.items():

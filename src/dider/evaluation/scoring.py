@@ -176,8 +176,9 @@ def seeded_forecast(pl_module: Any, states: torch.Tensor, mask: torch.Tensor, bu
 
 
 def data_units(normalizer: Normalizer | None) -> Callable[[torch.Tensor], torch.Tensor]:
-    """Maps model states [..., D] to the data's units (identity without a normaliser)."""
-    return normalizer.denormalize if normalizer is not None else (lambda states: states)
+    """Maps model states [..., D] to the data's units in float64 (identity without a normaliser): coordinates far
+    from 0 (UTM metres, say) keep their last digits, which fp32 (a 0.5 m step at 5e6) and bf16 would round."""
+    return (lambda states: normalizer.denormalize(states.double())) if normalizer is not None else (lambda s: s)
 
 
 def horizon_values(prefix: str, metric: HorizonMSE) -> dict[str, torch.Tensor]:

@@ -148,7 +148,9 @@ class SegmentEnd(HazardPrior):
         ends = h_fwd.new_zeros(b, e, t + 1, dtype=torch.float32)  # the drawn ends, summed over segments
         kl = h_fwd.new_zeros(b, e, dtype=torch.float32)
         running = torch.ones(b, e, dtype=torch.bool, device=h_fwd.device)
-        while bool(running.any()):  # one pass per segment, vectorised over batch and edges
+        for _ in range(t):  # one pass per segment, vectorised over batch and edges; each pass moves every start on
+            if not bool(running.any()):
+                break
             log_q = end_log_probs(self.posterior_logits(at, feats, start), start, fixed, value)
             seg_kl = ((1 - self.rate_mix) * end_kl(log_q, end_log_probs(p, start, fixed, value))
                       + self.rate_mix * end_kl(log_q, end_log_probs(rate, start, fixed, value)))
@@ -162,6 +164,8 @@ class SegmentEnd(HazardPrior):
                 end = soft.argmax(-1)
             else:
                 soft, end = None, median_end(log_q)
+            # a segment ends after its start, whatever the numbers (NaN hazards would otherwise hold it there)
+            end = torch.maximum(end, start + 1).clamp(max=t)
             one_hot = F.one_hot(end, t + 1).to(log_q.dtype)
             drawn = one_hot if soft is None or not torch.is_grad_enabled() else one_hot + soft - soft.detach()
             ends = ends + drawn * running.unsqueeze(-1)

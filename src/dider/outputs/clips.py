@@ -30,7 +30,7 @@ from dider.io import atomic_write, atomic_write_bytes
 # Arrays over a clip's edges and transitions ([E, T-1, ...]): padded by re-indexing edges, not appending.
 EDGE_KEYS = ("segments", "probs", "per_step", "prior", "truth", "step_probs")
 # Arrays over a clip's agents ([T, N, ...] or [N]): padded by appending absent agents.
-AGENT_KEYS = {"positions": 1, "mask": 1, "forecast": 1, "agent": 0}  # key -> the agents' axis
+AGENT_KEYS = {"states": 1, "positions": 1, "mask": 1, "forecast": 1, "agent": 0}  # key -> the agents' axis
 # Fill values for what padding adds: absent edges and agents.
 FILL = {"segments": -1, "per_step": -1, "prior": -1, "truth": -1, "agent": -1}
 

@@ -137,6 +137,7 @@ def write_metrics(path: Path, cfg: DictConfig, metrics: dict[str, float], checkp
     version that wrote it (eval, resume), the objective, the provenance and the resolved config."""
     record = {
         "metrics": metrics,
+        "mode": str(cfg.get("mode", "train")),
         "overrides": overrides(),
         "seed": int(cfg.seed),
         "model": cfg.model.get("name", "model"),

@@ -125,10 +125,45 @@ class FiniteGuard(L.Callback):
         return culprits or ["loss (no single term: their sum)"]
 
 
+class ResumeMidEpoch(L.Callback):
+    """A run stopped mid-epoch (SIGTERM) resumes on the very batches the uninterrupted run would have trained on:
+    a checkpoint saved inside an epoch carries the epoch's order (the training sampler's seed,
+    :class:`~dider.data.common.EpochOrder`) and the batches done; on resume the data module's next training
+    loader replays that order from the next batch. With the random state the checkpoint restores
+    (:class:`EvalRandomState`) the resumed run gives the uninterrupted one's numbers."""
+
+    CHECKPOINT_KEY = "dider_epoch_position"
+
+    def __init__(self) -> None:
+        self.done = 0  # batches of the current epoch trained
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                           batch_idx: int) -> None:
+        self.done = batch_idx + 1
+
+    def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.done = 0
+
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        order = getattr(getattr(trainer, "datamodule", None), "train_order", None)
+        inside = 0 < self.done < trainer.num_training_batches  # an epoch's end needs no position: the next draws
+        if order is not None and order.seed is not None and inside:
+            checkpoint[self.CHECKPOINT_KEY] = {"seed": order.seed, "done": self.done}
+
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+        position = checkpoint.get(self.CHECKPOINT_KEY)
+        dm = getattr(trainer, "datamodule", None)
+        rng = checkpoint.get(EvalRandomState.CHECKPOINT_KEY, {}).get("torch")  # the training run's, at the save
+        if position and rng is not None and trainer.state.fn == "fit" and hasattr(dm, "resume_position"):
+            rng = torch.as_tensor(rng, dtype=torch.uint8).cpu()
+            dm.resume_position = (int(position["seed"]), int(position["done"]), rng)
+            self.done = int(position["done"])
+
+
 class SaveOnTerminate(L.Callback):
     """On SIGTERM (a scheduler's time limit, ``kill``), Lightning stops training with ``SIGTERMException``:
-    save the run's state to the checkpoint folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it
-    (from the interrupted epoch's start of data if it stopped mid-epoch). ``dider.run`` then exits non-zero."""
+    save the run's state to the checkpoint folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it (mid-epoch
+    from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits non-zero."""
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         folder = getattr(trainer.checkpoint_callback, "dirpath", None)

@@ -36,8 +36,8 @@ from dider.models.baselines import ConstantVelocity
 from dider.models.legacy import split_model_config
 from dider.models.plugins import Progress
 from dider.models.vae import Inference, RelationalVAE, plain_config
-from dider.protocol import agent_horizons
-from dider.training.callbacks import EvalRandomState, FiniteGuard, SaveOnTerminate
+from dider.protocol import agent_horizons, scored_targets
+from dider.training.callbacks import EvalRandomState, FiniteGuard, ResumeMidEpoch, SaveOnTerminate
 from dider.validation import require
 
 log = logging.getLogger(__name__)
@@ -149,9 +149,25 @@ class RelationalVAEModule(L.LightningModule):
                 log.info("NLL variance fitted on a training batch, per feature: %s",
                          ", ".join(f"{v:.3g}" for v in likelihood.variance.tolist()))
 
+    def monitorable(self) -> set[str]:
+        """Every metric a checkpoint or early-stopping callback may monitor: what validation logs (each loss term,
+        ``val/nelbo``, ``val/select``, the forecast per horizon, the segments and, on data with ground truth, the
+        edge recalls) and training's epoch means. Some are logged only where the data allow (a horizon no agent
+        reaches, an own cut without a boundary); the set holds every name that can be."""
+        hs = [f"h{int(h):02d}" for h in self.hparams.horizons]
+        terms = [*self.model.objective.terms, "loss", "nelbo"]
+        segments = ["segments_per_edge", "steps_per_segment", "sigma"]
+        val = {*(f"val/{k}" for k in [*terms, "select"]), *(f"val/segments/{k}" for k in segments),
+               "val/segments/on_switch", "val/segments/boundary_f1", "val/edge_acc/posterior/none",
+               "val/edge_acc/posterior/interaction"}
+        val |= {f"val/{kind}/{h}" for kind in ("mse", "ade", "fde", "cv/ade", "cv/fde", "ade_vs_cv") for h in hs}
+        train = {*(f"train/{k}_{when}" for k in terms for when in ("step", "epoch")),
+                 *(f"train/segments/{k}" for k in segments), *(f"train/schedule/{k}" for k in self.model.schedule())}
+        return val | train | {"loss"}
+
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []
-        return [EvalRandomState(self.hparams.eval_seed), *guard, SaveOnTerminate()]
+        return [EvalRandomState(self.hparams.eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]
 
     def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
         """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""
@@ -192,7 +208,7 @@ class RelationalVAEModule(L.LightningModule):
         mode = self.burn_in_mode
         pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges, decoder)
         horizon = agent_horizons(mask, b)[:, b:] if mode == "per_agent" else None
-        return Forecast(pred, x[:, b:], mask[:, b:], types, horizon)
+        return Forecast(pred, x[:, b:], scored_targets(mask, b, mode), types, horizon)
 
     def validation_step(self, batch: Batch, batch_idx: int) -> None:
         out = self._infer(batch, hard=True)
@@ -290,14 +306,15 @@ class RelationalVAEModule(L.LightningModule):
 
     def _score_forecast(self, x: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor) -> None:
         """Where the input holds the forecast's future, score the forecast [B, P, N, D] and constant
-        velocity's in data units, over the agents that carry on and are present at each predicted frame."""
+        velocity's in data units, at the frames of agents present since the burn-in's last frame
+        (:func:`~dider.protocol.scored_targets`, as the test pass scores them)."""
         burn_in, steps = self.predict_forecast
         if x.shape[1] < burn_in + steps:
             return
         cv = self.model.forecast_after(x, mask, burn_in, steps, self.constant_velocity)
         units = self._data_units()
         target = units(x[:, burn_in:burn_in + steps])
-        scored = mask[:, burn_in:burn_in + steps] & mask[:, burn_in - 1 : burn_in]
+        scored = scored_targets(mask[:, :burn_in + steps], burn_in, "global")
         for name, pred in {"model": forecast, "cv": cv}.items():
             self.predict_scores[name].update(units(pred), target, scored)
 

@@ -18,7 +18,8 @@ from dider.data.batch import Normalizer
 from dider.models.legacy import stray_keys
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
-from dider.validation import RULES, ConfigError, problem, settings_problems
+from dider.settings import NODES
+from dider.validation import RULES, ConfigError, node_problems, problem, settings_problems
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,9 @@ def validate_config(cfg: DictConfig) -> None:
                 problems += settings_problems(plain, section) + (stray_keys(plain) if section == "model" else [])
             except OmegaConfBaseException as e:  # an interpolation that cannot resolve: named here, not later
                 problems.append(f"{section}: cannot resolve ({e})")
+    for key, cls in NODES.items():  # the app's own nodes: unknown keys (+predict.foo=1) and their rules
+        if (node := get(key)) is not None:
+            problems += node_problems(cls, OmegaConf.to_container(node, resolve=True), key)
     mode = get("mode")
     problems += _checkpoint_problems(mode, get("ckpt_path"))
     if mode != "predict":  # prediction uses the checkpoint's model and scores no data horizons
@@ -91,13 +95,15 @@ def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
     if mode not in MODES:
         problems.append(f"mode={mode!r}: expected one of {list(MODES)}")
     if mode in ("eval", "predict") and not ckpt:
-        problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file, or last for eval)")
+        problems.append(f"ckpt_path: mode={mode} needs ckpt_path=PATH (a checkpoint file or a run folder, or last "
+                        f"for eval)")
     if mode == "predict" and ckpt == "last":
         problems.append("ckpt_path=last: mode=predict writes a new run folder; give the trained run's folder or "
                         "one of its checkpoint files (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
-    folder_ok = mode == "predict" and ckpt and Path(str(ckpt)).expanduser().is_dir()  # a run folder, as dider.load
+    tested = mode in ("eval", "predict")  # a run folder is a checkpoint there, as for dider.load
+    folder_ok = tested and ckpt and Path(str(ckpt)).expanduser().is_dir()
     if ckpt and ckpt != "last" and not folder_ok and not Path(str(ckpt)).expanduser().is_file():
-        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if mode == "predict" else ""))
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if tested else ""))
     return problems
 
 

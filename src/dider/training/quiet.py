@@ -1,7 +1,8 @@
 """Library messages that say nothing about a run, silenced where they come from, so a run's output is its
 own: Lightning's tips about its cloud products and notes on its own bookkeeping, a deprecation inside
 Lightning's own pytree helper, the model summary's note that it counts bf16 parameters as fp32, and the hint
-to add data-loader workers (the data sets here are in memory: workers would only copy them)."""
+to add data-loader workers (the data sets here are in memory: workers would only copy them), and the warning that a
+loader is not resumable mid-epoch (the training order is: :class:`dider.training.callbacks.ResumeMidEpoch`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ WARNINGS = (
     r".*isinstance\(treespec, LeafSpec\)` is deprecated.*",
     r".*is not supported by the model summary.*",
     r".*does not have many workers which may be a bottleneck.*",
+    r".*ended before the epoch ended and your dataloader is not resumable.*",
 )
 
 

@@ -54,24 +54,76 @@ def check_fresh(folder: Path) -> None:
 
 
 def resolve_ckpt(ckpt_path: str | None, folder: Path, folder_given: bool) -> str | None:
-    """``last``: this run folder's ``checkpoints/last.ckpt``. Absent, a fresh start only where that is clearly
-    meant (the folder was named on the command line: a restartable job's first start), with a notice; in a
-    new timestamped folder resuming can never work, so that is an error naming where it looked."""
+    """``last``: this run folder's ``checkpoints/last.ckpt`` (after a kill during its first write, the newest
+    complete checkpoint there). Absent, a fresh start only where that is clearly meant (the folder was named on
+    the command line: a restartable job's first start), with a notice; in a new timestamped folder resuming can
+    never work, so that is an error naming where it looked. Temporary files of a killed checkpoint write are
+    removed."""
     if ckpt_path is None:
         return None
     if ckpt_path != "last":
         if not Path(ckpt_path).is_file():
             raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
         return ckpt_path
+    sweep_partial_writes(folder / "checkpoints")
     last = folder / "checkpoints" / "last.ckpt"
     if last.exists():
         return str(last)
+    if (newest := newest_checkpoint(last.parent)) is not None:
+        log.warning("ckpt_path=last: %s is missing (a run killed while writing its first one); resuming from the "
+                    "newest complete checkpoint, %s", last, newest)
+        return str(newest)
     if not folder_given:
         raise FileNotFoundError(f"ckpt_path=last: no checkpoint in {last.parent}, a new run folder; name the run "
                                 f"to resume with hydra.run.dir=THAT_RUN (ckpt_path=last looks in the run's own "
                                 f"folder)")
     log.warning("ckpt_path=last: no checkpoint in %s yet: starting a fresh run there", last.parent)
     return None
+
+
+def sweep_partial_writes(folder: Path) -> None:
+    """Remove the temporary files that a process killed while writing a checkpoint left in ``folder``
+    (:func:`dider.io.atomic_write` names them ``.<name>.<random>.tmp``)."""
+    for tmp in folder.glob(".*.tmp"):
+        log.warning("%s: removing the temporary file of a checkpoint write that never finished", tmp)
+        tmp.unlink(missing_ok=True)
+
+
+def newest_checkpoint(folder: Path) -> Path | None:
+    """The checkpoint in ``folder`` with the most optimiser steps (a readable one; None if there is none)."""
+    best: tuple[int, Path] | None = None
+    for path in folder.glob("*.ckpt"):
+        try:
+            step = int(torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("global_step", -1))
+        except Exception:  # a damaged or foreign file is no candidate  # noqa: BLE001
+            continue
+        if best is None or step > best[0]:
+            best = (step, path)
+    return None if best is None else best[1]
+
+
+def eval_folder(folder: Path, name: str) -> Path:
+    """Where ``mode=eval`` writes its results: ``folder`` itself, unless it holds a training run (checkpoints, or a
+    training's ``metrics.json``), whose results an evaluation never replaces: then ``folder/eval/<name>``. A
+    folder that already holds an evaluation is refused, as a second training is."""
+    trained = any((folder / "checkpoints").glob("*.ckpt")) or recorded_mode(folder) == "train"
+    target = folder / "eval" / name if trained else folder
+    if (target / "metrics.json").exists():
+        raise RunRefused(f"{target} already holds an evaluation (metrics.json): evaluate into another folder "
+                         f"(eval.name=OTHER, or hydra.run.dir=...)")
+    return target
+
+
+def recorded_mode(folder: Path) -> str | None:
+    """The ``mode`` a folder's ``metrics.json`` records (None: no readable record)."""
+    try:
+        record = json.loads((folder / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict):
+        return None
+    config = record.get("config")
+    return record.get("mode") or (config.get("mode") if isinstance(config, dict) else None)
 
 
 def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
@@ -145,6 +197,14 @@ def open_run_folder(folder: Path, cfg: Mapping[str, Any] | None = None) -> None:
     _LOG.append(handler)
 
 
+def log_failure(error: BaseException) -> None:
+    """The error and its traceback into the run's log file only: the console already gets it once, from Hydra."""
+    record = logging.LogRecord(__name__, logging.ERROR, __file__, 0, "run failed: %s", (error,),
+                               (type(error), error, error.__traceback__))
+    for handler in _LOG:
+        handler.handle(record)
+
+
 def close_run_log() -> None:
     """Detach and close the run log :func:`open_run_folder` attached, if any."""
     while _LOG:
@@ -197,6 +257,15 @@ class RunLock:
         if self.held:
             self.path.unlink(missing_ok=True)
             self.held = False
+
+
+def owner_of(folder: Path) -> dict[str, Any] | None:
+    """The live run that holds ``folder``'s lock (its pid and host), or None (no lock, or its writer is gone)."""
+    try:
+        owner = json.loads((folder / LOCK).read_text())
+    except (OSError, ValueError):
+        return None
+    return owner if isinstance(owner, dict) and _alive(owner) else None
 
 
 def _alive(owner: Mapping[str, Any]) -> bool:

@@ -36,6 +36,7 @@ from dider.models.objective import DurationKL, EdgeKL, PriorFit, Sparsity
 from dider.models.prior import FixedPrior, LearnedPrior
 from dider.models.segment_end import SegmentEnd
 from dider.models.vae import RelationalVAE
+from dider.settings import NODES
 from dider.training.module import RelationalVAEModule
 
 # The classes the configs build, each stored as schema/<Class>: the network and its plugins (conf/model/net),
@@ -99,3 +100,5 @@ def register_schemas() -> None:
     for cls in (*PLUGINS, RelationalVAE, *TERMS, *DATA):
         store.store(group="schema", name=cls.__name__, node=schema(cls))
     store.store(group="schema", name=RelationalVAEModule.__name__, node=module_schema())
+    for cls in NODES.values():  # the app's own nodes (protocol, eval, predict): dataclasses already
+        store.store(group="schema", name=cls.__name__, node=cls)

@@ -1,0 +1,65 @@
+"""The app's own config nodes besides the model and the data: the forecast protocol (``protocol``), what
+``mode=eval`` and ``mode=predict`` take (``eval``, ``predict``). Each is a dataclass: its fields are the node's
+keys with their defaults and meaning, ``SETTINGS`` their rules. Its schema (``schema/<Class>``) makes composition
+refuse a key it does not have where a config file sets one, and the preflight refuses one added on the command line
+(``+predict.foo=1``), naming it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from omegaconf import MISSING
+
+from dider.protocol import BURN_IN_MODES
+from dider.validation import Rule, above, boolean, folder_name, integer, one_of, optional
+
+
+@dataclass
+class Protocol:
+    """The forecast protocol (:mod:`dider.protocol`), which the data and the model read alike (``conf/protocol``:
+    one per data set; ``protocol=NAME`` picks another)."""
+
+    burn_in: Any = MISSING  # frames observed before the roll-out
+    horizons: Any = MISSING  # test horizons: steps after the burn-in, each <= clip length - burn_in
+    # global: every agent observed for the clip's first burn_in frames; per_agent: each agent for its own first
+    # burn_in present frames (agents that enter mid-clip)
+    burn_in_mode: Any = "global"
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"burn_in": integer(1), "burn_in_mode": one_of(*BURN_IN_MODES)}
+
+
+@dataclass
+class EvalSettings:
+    """``mode=eval``: test a checkpoint (``ckpt_path``: a checkpoint file, a run folder, or ``last``, the run
+    folder's own)."""
+
+    # An evaluation never writes over a training run: in a folder that holds one (ckpt_path=last, or hydra.run.dir
+    # set to the run) it writes to eval/NAME there; null: the data config's name (eval/synth, eval/table, ...).
+    name: Any = None
+    # data.frame_rate and data.downsample shape the features: left out, the checkpoint's are used; set to another
+    # value, evaluation stops naming both, unless force is true.
+    force: Any = False
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"name": optional(folder_name), "force": boolean}
+
+
+@dataclass
+class PredictSettings:
+    """``mode=predict``: what a checkpoint says about every clip of ``data``, written to ``predictions/``."""
+
+    forecast_steps: Any = None  # also forecast this many steps after each clip's first burn_in frames (null: no)
+    burn_in: Any = None  # frames observed before the forecast (null: the model's burn_in)
+    progress_s: Any = 30  # a progress line (clips done, time left) every this many seconds
+    # data.frame_rate and data.downsample shape the features: left out, the checkpoint's are used; set to another
+    # value, prediction stops naming both, unless force is true.
+    force: Any = False
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "forecast_steps": optional(integer(1, " step")), "burn_in": optional(integer(1, " frame")),
+        "progress_s": above(0), "force": boolean,
+    }
+
+
+# The nodes, by the key that holds them.
+NODES: dict[str, type] = {"protocol": Protocol, "eval": EvalSettings, "predict": PredictSettings}
