@@ -28,7 +28,8 @@ def test_zhan_format_dnri_setting(tmp_path):
     assert dm.format == "zhan" and list(dm.hparams.horizons) == [1, 5, 9] and dm.hparams.burn_in == 40
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 36, "val": 4, "test": 12}
     batch = next(iter(dm.train_dataloader()))
-    assert set(batch) == {"states", "mask"} and batch["states"].shape == (8, 49, 5, 4) and batch["mask"].all()
+    assert set(batch) == {"states", "mask", "everyone"} and batch["everyone"]
+    assert batch["states"].shape == (8, 49, 5, 4) and batch["mask"].all()
     # test clip = offence columns 2..11 from step 1 on, velocity = finite difference * 6.25 (feet / s)
     data = torch.as_tensor(files["test.npz"], dtype=torch.float32)
     pos = data[:, :, 2:12].reshape(12, 50, 5, 2)

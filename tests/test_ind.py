@@ -80,7 +80,7 @@ def test_batches_are_padded_masked_and_finite(root, tmp_path):
     dm = make_dm(root, tmp_path / "cache")
     ds = dm.datasets["train"]
     batch = next(iter(dm.train_dataloader()))
-    assert set(batch) == {"states", "mask", "source"} and batch["states"].dtype == torch.float32
+    assert set(batch) == {"states", "mask", "source", "everyone"} and batch["states"].dtype == torch.float32
     b, t, n, f = batch["states"].shape
     # where each window came from: its recording (00 or 01 in train), its first frame, its track ids
     source = batch["source"]

@@ -204,9 +204,9 @@ def test_prior_per_step_is_dnris_online_prior_and_dider_holds_its_segments(make_
 def test_training_after_inference_in_the_same_process(make_cfg):
     """The edge indices are cached per agent count: first built under inference mode (an evaluation or a
     prediction first in the process), they must still serve a training step's backward."""
-    from dider.graph import _edge_index_cpu
+    from dider.graph import _edge_index
 
-    _edge_index_cpu.cache_clear()
+    _edge_index.cache_clear()
     model = build(make_cfg, "model=dnri")
     batch = clip(b=2, t=6, n=5)
     with torch.inference_mode():

@@ -175,11 +175,13 @@ def test_the_offset_table_reads_what_the_offset_layer_would():
     plugin = SegmentEnd(rnn_hidden=8, hidden=16, reads="remaining")
     feats, start = torch.randn(2, 3, 20, 16), torch.tensor([[0, 5, 19], [3, 12, 7]])
     offset = (torch.arange(20) - start.unsqueeze(-1)).clamp_min(0)
-    table = plugin.at(offset_features(torch.arange(20)))
+    table = plugin.candidates(feats)
     assert torch.allclose(table[offset], plugin.at(offset_features(offset)), atol=1e-6)
     s = plugin.start(feats.gather(2, start[..., None, None].expand(-1, -1, 1, 16)))
     direct = plugin.out(torch.nn.functional.elu(plugin.at(offset_features(offset)) + s)).squeeze(-1)
-    assert torch.allclose(plugin.posterior_logits(table, feats, start), direct, atol=1e-5)
+    assert torch.allclose(plugin.posterior_logits(feats, table, start), direct, atol=1e-5)
+    every = plugin.posterior_logits(feats, table)  # [B, E, S, T]: each start's row is its segment's hazards
+    assert torch.allclose(every.gather(2, start[..., None, None].expand(-1, -1, 1, 20)).squeeze(2), direct, atol=1e-5)
 
 
 @pytest.mark.parametrize("training", [True, False])
@@ -204,3 +206,67 @@ def test_the_segment_loop_ends_whatever_the_numbers(training, monkeypatch):
     seg = plugin.segment(torch.randn(2, 6, 12, 8), torch.randn(2, 6, 12, 8), torch.zeros(1))
     assert len(passes) <= 3 * 12  # the posterior, learned prior and fixed-rate ends: three per pass
     assert seg.assign.shape == (2, 6, 12, 12) and seg.valid[..., 0].all()
+
+
+class SharedNoise(SegmentEnd):
+    """Draws each segment's end with the noise of its start from one tensor [B, E, S, T+1], whichever path asks."""
+
+    noise: torch.Tensor
+
+    def gumbel(self, log_q, start):
+        if start.dim() == 2:  # segment after segment: this pass's starts [B, E]
+            index = start.clamp(max=self.noise.shape[2] - 1)[..., None, None].expand(-1, -1, 1, self.noise.shape[-1])
+            return self.noise.gather(2, index).squeeze(2)
+        return self.noise  # every start at once
+
+
+@pytest.mark.parametrize("reads", ["position", "remaining"])
+@pytest.mark.parametrize("burn_in", [None, 5])
+@pytest.mark.parametrize("agents_come_and_go", [False, True])
+def test_every_start_at_once_cuts_as_segment_after_segment(reads, burn_in, agents_come_and_go):
+    """The GPU's path (every candidate start at once, the chain by pointer jumping) and the CPU's (one pass per
+    segment) give the same cut and duration KL in evaluation, and in training with the same noise per start the same
+    draws, KL and gradients."""
+    from helpers.fixtures import comings_and_goings
+
+    torch.manual_seed(0)
+    plugin = SharedNoise(rnn_hidden=8, hidden=16, reads=reads, burn_in=burn_in, rate=0.15)
+    h_fwd, h_rev = torch.randn(3, 6, 20, 8), torch.randn(3, 6, 20, 8)
+    present = comings_and_goings(3, 6, 20) if agents_come_and_go else None
+    plugin.noise = -torch.empty(3, 6, 20, 21).exponential_().log()
+    cuts = []
+    for every_start in (True, False):
+        plugin.sync_free = every_start
+        evaluated = plugin.eval().segment(h_fwd, h_rev, None, present=present)
+        leaf = h_fwd.clone().requires_grad_()
+        trained = plugin.train().segment(leaf, h_rev, None, present=present)
+        ((trained.assign * torch.arange(20.0).view(1, 1, -1, 1)).sum() + trained.kl.sum()).backward()
+        cuts.append((evaluated.weight, evaluated.kl, trained.weight.detach(), trained.kl.detach(), leaf.grad))
+    assert torch.equal(cuts[0][0], cuts[1][0]) and torch.equal(cuts[0][2], cuts[1][2])
+    for a, b in zip(cuts[0][1:], cuts[1][1:], strict=True):
+        assert torch.allclose(a, b, atol=1e-6, rtol=1e-5)
+    assert cuts[0][2].sum() > 2 * 3 * 6  # several segments per edge: the chain is exercised
+
+
+def test_the_two_paths_draw_from_the_same_distribution():
+    """Independent draws, 300 each: how often each step starts a segment agrees within 4 binomial standard errors."""
+    torch.manual_seed(0)
+    plugin = SegmentEnd(rnn_hidden=8, hidden=16, rate=0.2).train()
+    h_fwd, h_rev = torch.randn(1, 2, 15, 8).expand(300, -1, -1, -1), torch.randn(1, 2, 15, 8).expand(300, -1, -1, -1)
+    freq = []
+    with torch.no_grad():
+        for every_start in (True, False):
+            plugin.sync_free = every_start
+            freq.append(plugin.segment(h_fwd, h_rev, None).valid.float().mean(0))  # [E, T]
+    se = (freq[0] * (1 - freq[0]) / 300).sqrt().clamp_min(1 / 300)
+    assert ((freq[0] - freq[1]).abs() <= 4 * se * 2**0.5).all()
+    assert 0.05 < freq[0][:, 1:].mean() < 0.95
+
+
+def test_chain_from_zero_by_hand():
+    from dider.models.segment_end import chain_from_zero
+
+    # ends of segments starting at 0..7: 0 -> 3 -> 4 -> 8 (the clip's end); 1, 2, 5, 6, 7 are never starts
+    end = torch.tensor([3, 5, 6, 4, 8, 7, 8, 8])
+    assert chain_from_zero(end).nonzero().view(-1).tolist() == [0, 3, 4]
+    assert chain_from_zero(torch.arange(1, 41)).all()  # one-step segments: 40 of them, 6 rounds of jumps

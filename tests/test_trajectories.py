@@ -35,7 +35,8 @@ def test_positions_only_finite_difference(tmp_path):
     dm = make_dm(tmp_path / "t.npz", frame_rate=2.0)
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 32, "val": 4, "test": 4}
     batch = next(iter(dm.train_dataloader()))
-    assert set(batch) == {"states", "mask", "source"} and batch["states"].shape == (8, 19, 3, 4) and batch["mask"].all()
+    assert set(batch) == {"states", "mask", "source", "everyone"} and batch["everyone"]
+    assert batch["states"].shape == (8, 19, 3, 4) and batch["mask"].all()
     # each clip's source: its index in the file, and the file's step 0 is frame 1 (differencing used frame 0)
     test_idx = split_indices(40, dm.hparams.split, dm.hparams.seed)["test"]
     test_batch = next(iter(dm.test_dataloader()))

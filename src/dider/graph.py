@@ -11,19 +11,23 @@ from functools import lru_cache
 import torch
 
 
-@lru_cache(maxsize=64)
-def _edge_index_cpu(num_agents: int) -> tuple[torch.Tensor, torch.Tensor]:
+@lru_cache(maxsize=256)
+def _edge_index(num_agents: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    # Built by arithmetic (no nonzero: its output shape depends on the values) directly on the device, once per
+    # device and agent count: a per-call copy from the host would make every training step wait for it.
     # Normal tensors even when first asked for under inference mode (an evaluation or prediction first in the
     # process): a cached inference tensor could never be saved for a later training step's backward.
     with torch.inference_mode(False):
-        send, recv = torch.where(~torch.eye(num_agents, dtype=torch.bool))
-    return send, recv
+        send = torch.arange(num_agents, device=device).view(-1, 1).expand(num_agents, max(num_agents - 1, 0))
+        other = torch.arange(max(num_agents - 1, 0), device=device).view(1, -1)
+        recv = other + (other >= send).long()  # every agent but the sender, in order
+    return send.reshape(-1), recv.reshape(-1)
 
 
 def edge_index(num_agents: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """Sender and receiver agent index of every directed edge, each [E] long, E = N(N-1)."""
-    send, recv = _edge_index_cpu(num_agents)
-    return send.to(device), recv.to(device)
+    """Sender and receiver agent index of every directed edge, each [E] long, E = N(N-1), on ``device`` (cached
+    there: never copied again)."""
+    return _edge_index(num_agents, str(torch.device(device)))
 
 
 def num_edges(num_agents: int) -> int:

@@ -85,7 +85,7 @@ def gemm_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
 
 def random_batch(case: Case, device: str) -> dict[str, torch.Tensor]:
     states = torch.rand(case.batch, case.steps, case.agents, 4, device=device) * 2 - 1
-    return {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device)}
+    return {"states": states, "mask": torch.ones(states.shape[:3], dtype=torch.bool, device=device), "everyone": True}
 
 
 def model_and_batch(case: Case, device: str) -> tuple[RelationalVAE, DictConfig, dict[str, torch.Tensor]]:

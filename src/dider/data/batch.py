@@ -9,6 +9,8 @@ A batch is a plain dict (collates and moves between devices for free):
   (:mod:`dider.data.pairs`), for the consistency check.
 - ``source``: dict of long tensors (optional): where each clip came from in the input (clip index, scene,
   first frame, agent ids; :mod:`dider.data.common`).
+- ``everyone``: a Python bool (optional): every agent present at every step of the batch, known where the batch
+  was made, so that the model need not ask the device (a host synchronisation) to skip its masking passes.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ class Batch(TypedDict):
     edges: NotRequired[torch.Tensor]
     pair_kind: NotRequired[torch.Tensor]
     source: NotRequired[dict[str, torch.Tensor]]
+    everyone: NotRequired[bool]
 
 
 class Normalizer:

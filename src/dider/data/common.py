@@ -51,9 +51,21 @@ class ClipDataset(Dataset):
     def __init__(self, states: torch.Tensor, mask: torch.Tensor, edges: torch.Tensor | None = None,
                  sources: dict[str, torch.Tensor] | None = None) -> None:
         self.states, self.mask, self.edges, self.sources = states, mask, edges, sources
+        self.everyone = bool(mask.all())  # every agent present in every clip: the batches say so (``everyone``)
 
     def __len__(self) -> int:
         return self.states.shape[0]
+
+    def __getitems__(self, indices: Sequence[int]) -> Batch:
+        """A batch in one gather per array (the DataLoader calls it with a batch's indices), with ``everyone``:
+        whether every agent of the batch is present, known on the host (no look at the mask on the device)."""
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.states.device)
+        batch: Batch = {"states": self.states[idx], "mask": self.mask[idx], "everyone": self.everyone}
+        if self.edges is not None:
+            batch["edges"] = self.edges[idx]
+        if self.sources is not None:
+            batch["source"] = select_sources(self.sources, idx)
+        return batch
 
     def __getitem__(self, i: int) -> Batch:
         item: Batch = {"states": self.states[i], "mask": self.mask[i]}
@@ -113,7 +125,8 @@ class PackedClipDataset(Dataset):
         rows = torch.where(valid, start[:, None] + slot[None, :], 0)
         states = self.states[rows] * valid[:, :, None, None].to(self.states.dtype)  # [B, N, T, 4]
         mask = self.mask[rows] & valid[:, :, None]  # [B, N, T]
-        batch: Batch = {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous()}
+        batch: Batch = {"states": states.transpose(1, 2).contiguous(), "mask": mask.transpose(1, 2).contiguous(),
+                        "everyone": bool(mask.all())}  # on the host, before the batch moves to a device
         if self.pairs is not None:
             batch["pair_kind"] = pair_kind_matrix(**self.pairs, windows=idx, n=n_max)
         if self.sources is not None or self.agent_ids is not None:
@@ -240,7 +253,7 @@ class ClipDataModule(L.LightningDataModule):
     }
     LOADER = Loader()  # this data set's loader defaults
 
-    collate_fn = None  # None: torch's default collate (fixed agent count)
+    collate_fn = staticmethod(pad_collate)  # passes the batches the data sets' __getitems__ make through
     units: str | None = None  # the positions' unit ("m", "ft"), for scale bars; None: unknown
     predicts = False  # True: setup("predict") builds every clip of the input (mode=predict, dider.load)
 

@@ -62,10 +62,17 @@ class StaticDuration(nn.Module):
         assign = h_fwd.new_ones(b, e, t, 1, dtype=torch.float32)
         fixed = torch.ones(b, e, t, dtype=torch.bool, device=h_fwd.device)  # no boundary is chosen
         seg = Segmentation(start, valid, assign, h_fwd.new_zeros(b, dtype=torch.float32), fixed=fixed)
-        return seg if present is None else seg.split_at(entries(present))  # one type per stretch of presence
+        if present is None:
+            return seg
+        static = h_fwd.is_cuda if self.sync_free is None else self.sync_free
+        return seg.split_at(entries(present), static)  # one type per stretch of presence
 
     def next_duration(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
         return torch.full(h_t.shape[:2], max(end - t, 1), dtype=torch.long, device=h_t.device)
+
+    # Where agents come and go, the slots split at entries in a shape fixed in advance (True: no host
+    # synchronisation) or as many as needed (False, the CPU's choice); None picks by device. The same cut.
+    sync_free: bool | None = None
 
 
 class LearnedDuration(nn.Module):
@@ -134,6 +141,10 @@ class LearnedDuration(nn.Module):
         # the first learned segment starts at transition burn_in-1, read from x_0..x_{burn_in-1}.
         self.observed = 0 if burn_in is None or fixed_duration is not None else burn_in - 1
         self.head = nn.Sequential(nn.Linear(rnn_hidden, hidden), nn.ELU(), nn.Linear(hidden, 2))
+        # Every slot's pass, also once the slots cover the clip (True: no host synchronisation, the form a CUDA graph
+        # captures; the slots past the end hold no step), or stop there (False: the CPU's choice); None picks by
+        # device. Both give the same cut.
+        self.sync_free: bool | None = None
         with torch.no_grad():  # start at the prior's mean fraction, with a small spread, not at rho = 0.5 +- 0.25
             self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
@@ -199,8 +210,9 @@ class LearnedDuration(nn.Module):
             bounds.append(s)
         if fixed is None and slots > 0:  # the head at every step in one call; each slot reads its first step's
             mu_all, sigma_all = self.gaussian(feats)  # [B, E, T]
+        every_slot = h_fwd.is_cuda if self.sync_free is None else self.sync_free
         for k in range(slots):
-            if k > 0 and not bool((s < t).any()):  # every edge's slots already cover the clip
+            if k > 0 and not every_slot and not bool((s < t).any()):  # every edge's slots already cover the clip
                 break
             start = s.detach().ceil().long().clamp(max=t - 1)  # first integer step of the slot
             starts.append(start)
@@ -230,7 +242,7 @@ class LearnedDuration(nn.Module):
         if present is not None:  # a slot starts where an edge enters; no choice where it is absent
             fixed_steps = fixed_steps | entries(present) | ~present
         seg = Segmentation(torch.stack(starts, dim=-1), valid, assign, kl, sigma, fixed=fixed_steps)
-        return seg if present is None else seg.split_at(entries(present))
+        return seg if present is None else seg.split_at(entries(present), every_slot)
 
     def _assignment(self, bounds: torch.Tensor, t: int, tau: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Continuous boundaries [B, E, S+1] -> step-to-slot assignment [B, E, T, S]: exactly one-hot in

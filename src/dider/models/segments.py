@@ -122,14 +122,16 @@ class Segmentation:
             out["sigma"] = self.sigma
         return out
 
-    def split_at(self, cuts: torch.Tensor) -> Segmentation:
+    def split_at(self, cuts: torch.Tensor, static: bool = False) -> Segmentation:
         """Start a new slot at every ``cuts`` step [B, E, T] bool (where an edge enters, say) that falls inside a
         slot: the slot's steps from the cut on become a slot of their own, whose type is read at the cut. The
         duration latents (``kl``, ``sigma``) stay as drawn, so a cut moves no boundary of theirs; the soft
         gradient of a boundary reaches the piece of its slot on the boundary's side. Slots are renumbered in
         order (S grows by the most cuts any edge has); a slot with no step gets start T-1.
         Segmentations with a slot per step (``assign`` None) or a gradient on their boundaries (``weight``)
-        are returned unchanged: they already start a slot wherever they need one."""
+        are returned unchanged: they already start a slot wherever they need one. ``static``: S grows by T, the
+        most cuts there can be (the extra slots hold no step), so the shape does not depend on the cuts and no
+        host synchronisation is needed to know it."""
         if self.assign is None or self.weight is not None:
             return self
         t = cuts.shape[-1]
@@ -137,7 +139,7 @@ class Segmentation:
         slot = self.assign.detach().argmax(-1)  # [B, E, T]
         inside = cuts & (self.start.gather(-1, slot) != step)  # a cut that is not already a slot's first step
         shift = inside.long().cumsum(-1)  # [B, E, T]: cuts at or before each step
-        extra = int(shift[..., -1].max()) if shift.numel() else 0
+        extra = t if static else (int(shift[..., -1].max()) if shift.numel() else 0)
         if extra == 0:
             return self
         width = self.assign.shape[-1] + extra

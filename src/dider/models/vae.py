@@ -118,12 +118,15 @@ class RelationalVAE(nn.Module):
               cut: torch.Tensor | None = None) -> Inference:
         """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame.
 
-        batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool. cut: [B, E, T-1] bool, a given segmentation
+        batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool, optionally ``everyone`` (a bool: every agent
+        present; without it the mask is read on the host). cut: [B, E, T-1] bool, a given segmentation
         (a segment starts at each true step; the fixed boundaries of :func:`forced_boundaries` are added) in
         place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.analysis.diagnose``)."""
         x, mask = batch["states"], batch["mask"]
-        # With every agent present (the synthetic sets) the plugins skip their masking passes.
-        plugin_mask = None if bool(mask.all()) else mask
+        # With every agent present (the synthetic sets) the plugins skip their masking passes. The batch says so
+        # where it was made (``everyone``); asking the mask would make the device wait for the host.
+        everyone = batch.get("everyone")
+        plugin_mask = None if (bool(mask.all()) if everyone is None else everyone) else mask
         enc = self.encoder(x, plugin_mask)
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         given = None if plugin_mask is None else present

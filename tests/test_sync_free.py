@@ -1,0 +1,96 @@
+"""A training step that never makes the host wait for the device: no ``aten._local_scalar_dense`` (``.item()``,
+``bool(tensor)``, ``int(tensor)``) and no op whose output shape depends on the values (``nonzero``, boolean indexing),
+in the forward pass, the loss or the backward, for every model option. A GPU runs such a step as one CUDA graph; the
+check runs here on the CPU, with the plugins' GPU paths (``sync_free``) chosen."""
+
+from __future__ import annotations
+
+import collections
+import traceback
+
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from dider.bench.steps import build_model
+from dider.data.common import ClipDataset, PackedClipDataset
+from dider.graph import edge_index
+from dider.models.plugins import Progress
+
+# ops that make the host wait: a value read back, or an output shape only the values decide
+WAITS = {"_local_scalar_dense", "nonzero", "masked_select", "_unique2", "unique_dim", "unique_consecutive",
+         "repeat_interleave", "masked_scatter"}
+
+
+class HostWaits(TorchDispatchMode):
+    """Counts the ops that synchronise with the host, by the dider source line that called them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.where: collections.Counter = collections.Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        name = func.__name__.split(".")[0]
+        boolean_index = name in ("index", "index_put", "index_put_") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else []) or [])
+        if name in WAITS or boolean_index:
+            frames = [f for f in traceback.extract_stack() if "/dider/" in f.filename]
+            self.where[f"{name} at {frames[-1].filename.split('/dider/')[-1]}:{frames[-1].lineno}" if frames
+                       else name] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def step_waits(overrides: list[str], masked: bool) -> dict[str, int]:
+    torch.manual_seed(0)
+    model, _ = build_model(overrides)
+    model.train()
+    if hasattr(model.duration, "sync_free"):
+        model.duration.sync_free = True  # the GPU's path
+    g = torch.Generator().manual_seed(1)
+    states = torch.rand(4, 20, 4, 4, generator=g) * 2 - 1
+    mask = torch.ones(4, 20, 4, dtype=torch.bool)
+    if masked:  # agents that enter late and leave for a while, as tables and inD have them
+        mask[:, :4, 2], mask[:, 9:13, 3] = False, False
+    batch = {"states": states * mask[..., None], "mask": mask, "everyone": not masked}
+    with HostWaits() as waits:
+        out = model.infer(batch, hard=False, progress=Progress(3, 100))
+        model.loss(out, Progress(3, 100))["loss"].backward()
+    return dict(waits.where)
+
+
+@pytest.mark.parametrize("model", ["dnri", "dider", "dider_skid", "dider_paper", "dider_gate", "nri"])
+@pytest.mark.parametrize("masked", [False, True])
+def test_a_training_step_never_waits_for_the_host(model, masked):
+    assert step_waits([f"model={model}"], masked) == {}
+
+
+def test_the_recurrent_decoder_step_never_waits_for_the_host():
+    assert step_waits(["model=dider", "model/net/decoder=recurrent"], masked=False) == {}
+
+
+def test_the_check_sees_a_wait():
+    """The dispatch mode does catch what it must: a batch that does not say whether everyone is present makes the
+    model read its mask on the host."""
+    model, _ = build_model(["model=dnri"])
+    batch = {"states": torch.zeros(2, 10, 3, 4), "mask": torch.ones(2, 10, 3, dtype=torch.bool)}
+    with HostWaits() as waits:
+        model.infer(batch, hard=False)
+    assert any(k.startswith("_local_scalar_dense at models/vae.py") for k in waits.where)
+
+
+def test_batches_say_whether_everyone_is_present():
+    full = ClipDataset(torch.zeros(5, 6, 3, 4), torch.ones(5, 6, 3, dtype=torch.bool))
+    assert full.__getitems__([0, 3])["everyone"] is True
+    mask = torch.ones(5, 6, 3, dtype=torch.bool)
+    mask[4, 2, 1] = False
+    assert ClipDataset(torch.zeros(5, 6, 3, 4), mask).__getitems__([0, 1])["everyone"] is False
+    packed = PackedClipDataset(torch.zeros(5, 6, 4), torch.ones(5, 6, dtype=torch.bool), torch.tensor([0, 2, 5]))
+    assert packed.__getitems__([1])["everyone"] is True
+    assert packed.__getitems__([0, 1])["everyone"] is False  # clip 0 padded to 3 agents
+
+
+def test_edge_index_is_the_off_diagonal_and_stays_on_its_device():
+    for n in (1, 2, 3, 6):
+        send, recv = edge_index(n)
+        assert (send.tolist(), recv.tolist()) == tuple(t.tolist() for t in torch.where(~torch.eye(n, dtype=torch.bool)))
+    assert edge_index(4)[0] is edge_index(4)[0]  # made once per device and agent count
