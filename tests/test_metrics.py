@@ -7,6 +7,7 @@ merged, equal one fed the whole). Inputs are fixed tensors, never random, so eve
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -566,9 +567,10 @@ def test_own_cut_by_hand() -> None:
     truth = torch.tensor([[[0, 0, 0, 0, 1, 1, 0, 0, 0, 1]]])
     m = OwnCut(tolerance=1)
     m.update(slot, held, free, truth)
-    on_switch, f1 = m.compute().tolist()
+    on_switch, f1, constant = m.compute().tolist()
     assert on_switch == pytest.approx(0.5)
     assert f1 == pytest.approx(0.8)
+    assert math.isnan(constant)  # this edge's truth switches: no constant edge yet
     # a true switch at a fixed step is not the plugin's to find
     free[..., 6] = False
     m = OwnCut(tolerance=1)
@@ -604,3 +606,17 @@ def test_displacement_values_and_the_verdict_against_constant_velocity() -> None
     assert cv_verdict({"test/mse/h01": 1.0}) is None
     assert list(leading_first(["test/mse/h01", "test/cv/ade/h01", "test/ade_vs_cv/h01", "test/ade/h01"])) == [
         "test/ade_vs_cv/h01", "test/ade/h01", "test/cv/ade/h01", "test/mse/h01"]
+
+
+def test_own_boundaries_per_constant_edge_by_hand() -> None:
+    """Three edges, 8 steps (step 0 fixed). Edge 0's truth never switches and it has own boundaries at 3 and 6;
+    edge 1's truth never switches and it has none; edge 2's truth switches at 4 (not a constant edge): 2 own
+    boundaries over 2 constant edges = 1.0."""
+    slot = torch.tensor([[[0, 0, 0, 3, 3, 3, 6, 6], [0] * 8, [0, 0, 0, 0, 4, 4, 4, 4]]])
+    held = torch.zeros(1, 3, 8, dtype=torch.long)
+    free = torch.ones(1, 3, 8, dtype=torch.bool)
+    free[..., 0] = False
+    truth = torch.tensor([[[1] * 8, [0] * 8, [0, 0, 0, 0, 1, 1, 1, 1]]])
+    m = OwnCut(tolerance=1)
+    m.update(slot, held, free, truth)
+    assert m.compute()[2].item() == pytest.approx(1.0)

@@ -20,7 +20,7 @@ from helpers.models import build, clip
 def test_each_model_reads_its_objective_from_the_config_group(make_cfg):
     terms = {m: list(build(make_cfg, f"model={m}").objective.terms) for m in ("dnri", "dider", "dider_paper", "nri")}
     assert terms == {"dnri": ["nll", "kl_edge", "kl_duration", "sparsity"],
-                     "dider": ["nll", "kl_edge", "kl_duration", "sparsity", "prior_fit"],
+                     "dider": ["nll", "kl_edge", "kl_duration", "sparsity", "prior_fit", "boundary_fit"],
                      "dider_paper": ["nll", "kl_edge", "kl_duration", "sparsity"],
                      "nri": ["nll", "kl_edge", "kl_duration"]}
     dider = build(make_cfg, "model=dider").objective.terms
@@ -38,7 +38,7 @@ def test_loss_is_the_weighted_sum_with_warm_up_and_capacities(make_cfg):
     m = {k: v.mean() for k, v in out.terms.items()}
     w, c = 25 / 30, 0.2 * 25 / 50
     expected = (m["nll"] + 0.5 * w * (m["kl_edge"] - c).abs() + 1.0 * w * m["kl_duration"].abs()
-                + 0.5 * w * m["sparsity"] + 2 * w * m["prior_fit"])
+                + 0.5 * w * m["sparsity"] + 2 * w * m["prior_fit"] + 1.0 * w * m["boundary_fit"])
     assert torch.allclose(terms["loss"], expected)
     assert net.schedule(progress)["capacity/kl_edge"] == pytest.approx(c)
     # nelbo: no schedule, no capacity, and not the prior fit (outside the ELBO)
@@ -149,11 +149,13 @@ OLD_DIDER = {"nll_variance": 5e-5, "beta_edge": 1.0, "beta_duration": 1.0, "capa
 
 def test_old_loss_settings_build_the_same_objective(make_cfg):
     """A model config from before the ``net`` and objective nodes (one flat node, its loss settings at the top)
-    builds the network of today's config, and weights that kept the variance as ``likelihood.variance`` load."""
-    new = make_cfg(["model=dider"]).model
+    builds the network of today's config (without the boundary fit, which came after), and weights that kept the
+    variance as ``likelihood.variance`` load."""
+    new = make_cfg(["model=dider", "model.net.objective.boundary_fit=null"]).model
     node = plain_config(new)
     net = {k: v for k, v in node["net"].items() if k != "objective"}
     old = {k: node[k] for k in MODULE_KEYS} | net | OLD_DIDER
+    node["net"]["objective"] = {k: v for k, v in node["net"]["objective"].items() if v is not None}  # terms set
     assert upgrade_model_config(old)["objective"] == node["net"]["objective"]
     assert split_model_config(old) == (node["net"], {k: node[k] for k in MODULE_KEYS})
     a, b = RelationalVAE.from_config(new), RelationalVAE.from_config(old)
@@ -186,7 +188,7 @@ def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_pa
 
     from dider.training.module import RelationalVAEModule
 
-    new = RelationalVAEModule.from_config(make_cfg(["model=dider"]).model)
+    new = RelationalVAEModule.from_config(make_cfg(["model=dider", "model.net.objective.boundary_fit=null"]).model)
     hparams = dict(new.hparams)
     hparams["model"] = {k: v for k, v in hparams.pop("net").items() if k != "objective"} | OLD_DIDER
     state = {k.replace("objective.terms.nll.", "likelihood."): v for k, v in new.state_dict().items()}
@@ -195,7 +197,8 @@ def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_pa
                 "pytorch-lightning_version": lightning.__version__}, path)
     old = RelationalVAEModule.load_from_checkpoint(path, map_location="cpu", weights_only=False)
     assert list(old.model.objective.terms) == list(new.model.objective.terms)
-    assert "model" not in old.hparams and old.hparams.net["objective"] == new.hparams.net["objective"]
+    terms = {k: v for k, v in new.hparams.net["objective"].items() if v is not None}  # the terms set
+    assert "model" not in old.hparams and old.hparams.net["objective"] == terms
     loaded = old.state_dict()
     assert loaded.keys() == new.state_dict().keys()
     assert all(torch.equal(loaded[k], v) for k, v in new.state_dict().items())

@@ -36,7 +36,7 @@ def reference_rollout(net, x, mask, burn_in, num_pred):
     sample = net.rollout_edges == "sample"
     h_past, enc_state = net.encoder.past(x[:, :burn_in], mask[:, :burn_in])
     etype = torch.zeros(b, h_past.shape[1], dtype=torch.long)
-    left = torch.zeros_like(etype)
+    left, start = torch.zeros_like(etype), torch.zeros_like(etype)
     dec_state = net.decoder.init_state(b, n, x)
     preds, types = [], []
     cur = x[:, 0]
@@ -46,7 +46,7 @@ def reference_rollout(net, x, mask, burn_in, num_pred):
             cur, h_t = x[:, t], h_past[:, :, t]
         else:
             h_t, enc_state = net.encoder.step(cur, enc_state, m_t)
-        etype, left = net.advance_edges(h_t, t, end, etype, left, sample)
+        etype, left, start = net.advance_edges(h_t, t, end, etype, left, sample, start=start)
         types.append(etype)
         if t < burn_in - 1 and net.decoder.stateless:
             continue

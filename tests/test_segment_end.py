@@ -5,17 +5,21 @@ import math
 import pytest
 import torch
 
-from dider.models.segment_end import SegmentEnd, end_kl, end_log_probs, median_end, offset_features
+from dider.models.end_categorical import end_kl, end_log_probs, median_end, offset_features
+from dider.models.segment_end import SegmentEnd
 from dider.models.segments import forced_boundaries
 
 
 def constant_hazards(plugin: SegmentEnd, posterior: float, prior: float) -> None:
-    """Both hazards' logits fixed at the given values, whatever they read."""
+    """Both hazards' logits fixed at the given values, whatever they read (the held type and age too)."""
     with torch.no_grad():
         plugin.out.weight.zero_()
         plugin.out.bias.fill_(posterior)
-        plugin.prior[-1].weight.zero_()
-        plugin.prior[-1].bias.fill_(prior)
+        plugin.prior.past[-1].weight.zero_()
+        plugin.prior.past[-1].bias.fill_(prior)
+        if plugin.prior.age is not None:
+            plugin.prior.age.weight.zero_()
+            plugin.prior.age.bias.zero_()
 
 
 def fixed_of(t, observed=0, present=None, shape=(1, 1)):
@@ -73,14 +77,20 @@ def test_segments_tile_the_clip_and_respect_the_fixed_boundaries(training, burn_
     assert torch.isfinite(seg.kl).all() and (seg.kl >= -1e-6).all()
 
 
-def test_evaluation_takes_each_segments_median_end():
+def test_evaluation_reads_each_segments_median_or_decided_end():
     """Posterior hazard 0.2 at every free step: from each start the median end is 4 steps on (1 - 0.8^3 =
-    0.488 < 1/2 <= 1 - 0.8^4); without a burn-in, boundaries at 4, 8, ..., 24 of 26 steps."""
-    plugin = SegmentEnd(rnn_hidden=8, hidden=8).eval()
+    0.488 < 1/2 <= 1 - 0.8^4); without a burn-in, boundaries at 4, 8, ..., 24 of 26 steps. Where it is decided (a
+    hazard past 1/2), a hazard of 0.2 never ends a segment: one segment; a hazard of 0.6 ends each at the next
+    step."""
+    plugin = SegmentEnd(rnn_hidden=8, hidden=8, end_readout="median").eval()
     constant_hazards(plugin, math.log(0.2 / 0.8), 0.0)
-    seg = plugin.segment(torch.randn(2, 6, 26, 8), torch.randn(2, 6, 26, 8), torch.zeros(1))
-    starts = seg.valid[0, 0].nonzero().view(-1).tolist()
-    assert starts == [0, 4, 8, 12, 16, 20, 24]
+    h_fwd, h_rev = torch.randn(2, 6, 26, 8), torch.randn(2, 6, 26, 8)
+    seg = plugin.segment(h_fwd, h_rev, torch.zeros(1))
+    assert seg.valid[0, 0].nonzero().view(-1).tolist() == [0, 4, 8, 12, 16, 20, 24]
+    plugin.end_readout = "threshold"
+    assert plugin.segment(h_fwd, h_rev, torch.zeros(1)).valid.sum(-1).eq(1).all()
+    constant_hazards(plugin, math.log(0.6 / 0.4), 0.0)
+    assert plugin.segment(h_fwd, h_rev, torch.zeros(1)).valid.all()
 
 
 def test_duration_kl_is_the_exact_kl_of_each_segment():
@@ -230,16 +240,17 @@ def test_every_start_at_once_cuts_as_segment_after_segment(reads, burn_in, agent
     from helpers.fixtures import comings_and_goings
 
     torch.manual_seed(0)
-    plugin = SharedNoise(rnn_hidden=8, hidden=16, reads=reads, burn_in=burn_in, rate=0.15)
+    plugin = SharedNoise(rnn_hidden=8, hidden=16, reads=reads, burn_in=burn_in, rate=0.15, num_types=3)
     h_fwd, h_rev = torch.randn(3, 6, 20, 8), torch.randn(3, 6, 20, 8)
+    types = torch.randn(3, 6, 20, 3).softmax(-1)  # the posterior's types at each start, which the prior reads
     present = comings_and_goings(3, 6, 20) if agents_come_and_go else None
     plugin.noise = -torch.empty(3, 6, 20, 21).exponential_().log()
     cuts = []
     for every_start in (True, False):
         plugin.sync_free = every_start
-        evaluated = plugin.eval().segment(h_fwd, h_rev, None, present=present)
+        evaluated = plugin.eval().segment(h_fwd, h_rev, None, present=present, types=types)
         leaf = h_fwd.clone().requires_grad_()
-        trained = plugin.train().segment(leaf, h_rev, None, present=present)
+        trained = plugin.train().segment(leaf, h_rev, None, present=present, types=types)
         ((trained.assign * torch.arange(20.0).view(1, 1, -1, 1)).sum() + trained.kl.sum()).backward()
         cuts.append((evaluated.weight, evaluated.kl, trained.weight.detach(), trained.kl.detach(), leaf.grad))
     assert torch.equal(cuts[0][0], cuts[1][0]) and torch.equal(cuts[0][2], cuts[1][2])
@@ -264,7 +275,7 @@ def test_the_two_paths_draw_from_the_same_distribution():
 
 
 def test_chain_from_zero_by_hand():
-    from dider.models.segment_end import chain_from_zero
+    from dider.models.end_categorical import chain_from_zero
 
     # ends of segments starting at 0..7: 0 -> 3 -> 4 -> 8 (the clip's end); 1, 2, 5, 6, 7 are never starts
     end = torch.tensor([3, 5, 6, 4, 8, 7, 8, 8])

@@ -5,39 +5,14 @@ check runs here on the CPU, with the plugins' GPU paths (``sync_free``) chosen."
 
 from __future__ import annotations
 
-import collections
-import traceback
-
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
 
 from dider.bench.steps import build_model
+from dider.bench.syncs import HostSyncs
 from dider.data.common import ClipDataset, PackedClipDataset
 from dider.graph import edge_index
 from dider.models.plugins import Progress
-
-# ops that make the host wait: a value read back, or an output shape only the values decide
-WAITS = {"_local_scalar_dense", "nonzero", "masked_select", "_unique2", "unique_dim", "unique_consecutive",
-         "repeat_interleave", "masked_scatter"}
-
-
-class HostWaits(TorchDispatchMode):
-    """Counts the ops that synchronise with the host, by the dider source line that called them."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.where: collections.Counter = collections.Counter()
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        name = func.__name__.split(".")[0]
-        boolean_index = name in ("index", "index_put", "index_put_") and any(
-            isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] if len(args) > 1 else []) or [])
-        if name in WAITS or boolean_index:
-            frames = [f for f in traceback.extract_stack() if "/dider/" in f.filename]
-            self.where[f"{name} at {frames[-1].filename.split('/dider/')[-1]}:{frames[-1].lineno}" if frames
-                       else name] += 1
-        return func(*args, **(kwargs or {}))
 
 
 def step_waits(overrides: list[str], masked: bool) -> dict[str, int]:
@@ -52,7 +27,7 @@ def step_waits(overrides: list[str], masked: bool) -> dict[str, int]:
     if masked:  # agents that enter late and leave for a while, as tables and inD have them
         mask[:, :4, 2], mask[:, 9:13, 3] = False, False
     batch = {"states": states * mask[..., None], "mask": mask, "everyone": not masked}
-    with HostWaits() as waits:
+    with HostSyncs() as waits:
         out = model.infer(batch, hard=False, progress=Progress(3, 100))
         model.loss(out, Progress(3, 100))["loss"].backward()
     return dict(waits.where)
@@ -73,7 +48,7 @@ def test_the_check_sees_a_wait():
     model read its mask on the host."""
     model, _ = build_model(["model=dnri"])
     batch = {"states": torch.zeros(2, 10, 3, 4), "mask": torch.ones(2, 10, 3, dtype=torch.bool)}
-    with HostWaits() as waits:
+    with HostSyncs() as waits:
         model.infer(batch, hard=False)
     assert any(k.startswith("_local_scalar_dense at models/vae.py") for k in waits.where)
 

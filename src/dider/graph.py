@@ -21,7 +21,7 @@ def _edge_index(num_agents: int, device: str) -> tuple[torch.Tensor, torch.Tenso
         send = torch.arange(num_agents, device=device).view(-1, 1).expand(num_agents, max(num_agents - 1, 0))
         other = torch.arange(max(num_agents - 1, 0), device=device).view(1, -1)
         recv = other + (other >= send).long()  # every agent but the sender, in order
-    return send.reshape(-1), recv.reshape(-1)
+        return send.reshape(-1), recv.reshape(-1)
 
 
 def edge_index(num_agents: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:

@@ -21,7 +21,7 @@ class Case:
     iters: int = 5
     warmup: int = 2
     settings: dict[str, Any] = field(default_factory=dict)
-    kind: str = "train"  # train | rollout | generate | preprocess | load | outputs | gemm | largest | result
+    kind: str = "train"  # train | job | rollout | generate | preprocess | load | outputs | gemm | largest | result
 
 
 # The encoder's edge-MLP matmul at batch 128, N = 3, T = 50: [B*T*E, 256] x [256, 256].
@@ -58,6 +58,10 @@ def cases() -> list[Case]:
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
     out.append(Case("train/dnri/recurrent/bf16", ["model=dnri", *recurrent], 128, 5, 40, iters=3,
                     settings={"autocast": "bf16"}))
+    for model in ("dnri", "dider"):  # a real job's step, the Lightning loop included: the paper's batch and 128
+        for batch in (16, 128):
+            out.append(Case(f"job/{model}/synth/b{batch:03d}", [f"model={model}"], batch, 3, 50, iters=20, warmup=5,
+                            kind="job"))
     for model in ("dnri", "dider"):
         out.append(Case(f"train/{model}/synth/bf16", [f"model={model}"], 128, 3, 50, settings={"autocast": "bf16"}))
         out.append(Case(f"train/{model}/synth/compile", [f"model={model}"], 128, 3, 50, warmup=3,

@@ -21,6 +21,7 @@ import torch
 
 from dider.bench.cases import CHECKPOINTING, Case, cases, memory_case
 from dider.bench.data import data_case
+from dider.bench.loop import loop_case
 from dider.bench.memory import largest_agents
 from dider.bench.reference import REFERENCE_CASES, REFERENCE_SIZES, compare_with_reference
 from dider.bench.result import JOBS, time_to_result
@@ -64,6 +65,8 @@ def largest_case(case: Case, records: list[dict[str, Any]], device: str, limit_g
 def run_case(case: Case, device: str, tmpdir: str | None = None) -> dict[str, Any]:
     if case.kind in ("train", "rollout"):
         step_s, extra = model_case(case, device)
+    elif case.kind == "job":
+        step_s, extra = loop_case(case, device)
     elif case.kind == "gemm":
         step_s, extra = gemm_case(case, device)
     else:

@@ -13,6 +13,7 @@ from hydra import compose, initialize_config_module
 from omegaconf import DictConfig
 
 from dider.bench.cases import GEMM_SHAPE, Case
+from dider.bench.syncs import HostSyncs
 from dider.models.vae import RelationalVAE
 from dider.perf import compile_modules
 
@@ -123,7 +124,11 @@ def model_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
         t0 = time.perf_counter()
         train_step(model, opt, batch, autocast)
         extra["compile_s"] = time.perf_counter() - t0
-    return timed(lambda: train_step(model, opt, batch, autocast), case.iters, case.warmup, device), extra
+    seconds = timed(lambda: train_step(model, opt, batch, autocast), case.iters, case.warmup, device)
+    with HostSyncs() as syncs:  # after the timing: counting slows the step
+        train_step(model, opt, batch, autocast)
+    extra["host_syncs_per_step"] = syncs.total
+    return seconds, extra
 
 
 def profile_case(case: Case, device: str, rows: int = 25) -> str:

@@ -17,14 +17,21 @@ EDGE_0_TO_2 = 1
 EDGE_1_TO_2 = 3
 
 
+PUSH_SHAPES = ("linear", "step")
+
+
 def simulate_push(
     num_samples: int,
     num_steps: int = 50,
     push_factor: float = 0.05,
     radius: float = 1.0,
     seed: int = 0,
+    shape: str = "linear",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Simulate the push system.
+    """Simulate the push system. ``shape``: how the push grows inside the radius: ``linear`` (DNRI's, push_factor *
+    (1 - d): it fades in and out smoothly as particle 2 crosses the radius) or ``step`` (push_factor / 3 wherever d <
+    radius, the linear push's mean over the unit disc: on and off at once; a positive control for boundaries, which
+    then have a discontinuity to land on).
 
     Returns:
         states: [S, T, 3, 4] float32, (x, y, vx, vy) after each step's update.
@@ -39,6 +46,8 @@ def simulate_push(
             raise ValueError(f"simulate_push: {name}={value!r}: need a finite number")
     if radius <= 0:
         raise ValueError(f"simulate_push: radius={radius!r}: must be > 0")
+    if shape not in PUSH_SHAPES:
+        raise ValueError(f"simulate_push: shape={shape!r}: expected one of {list(PUSH_SHAPES)}")
     if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or not -(2**63) <= seed < 2**64:
         raise ValueError(f"simulate_push: seed={seed!r}: need an integer in [-2**63, 2**64)")
     num_samples, num_steps, seed = int(num_samples), int(num_steps), int(seed)
@@ -57,7 +66,8 @@ def simulate_push(
         offset = pos[:, 2:3] - pos[:, :2]  # [S, 2, 2]: particle 2 relative to particles 0 and 1
         dist = offset.norm(dim=-1, keepdim=True)  # [S, 2, 1]
         active = dist < radius
-        push = torch.where(active, push_factor * (1 - dist) * offset / dist.clamp_min(1e-12), 0.0)
+        strength = push_factor * (1 - dist) if shape == "linear" else torch.full_like(dist, push_factor / 3)
+        push = torch.where(active, strength * offset / dist.clamp_min(1e-12), 0.0)
         vel[:, 2] += push.sum(dim=1)
         edges[:, t, EDGE_0_TO_2] = active[:, 0, 0].long()
         edges[:, t, EDGE_1_TO_2] = active[:, 1, 0].long()

@@ -13,8 +13,8 @@ from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
 from dider.data.loader import Loader
-from dider.data.simulate import simulate_push
-from dider.validation import Rule, check_settings, finite, integer
+from dider.data.simulate import PUSH_SHAPES, simulate_push
+from dider.validation import Rule, check_settings, finite, integer, one_of
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +33,7 @@ class SynthDataModule(ClipDataModule):
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
         "num_train": integer(1), "num_val": integer(1), "num_test": integer(1), "num_steps": integer(2),
         "push_factor": finite, "seed": integer(-(2**53) + 1, " (magnitude < 2**53)", 2**53 - 1),
+        "push": one_of(*PUSH_SHAPES),
     }
     LOADER = Loader(batch_size=16, eval_batch_size=256)
 
@@ -49,8 +50,11 @@ class SynthDataModule(ClipDataModule):
         cache_dir: str | None = None,
         horizons: tuple[int, ...] = (1, 15, 25),
         burn_in_mode: str = "global",
+        push: str = "linear",
     ) -> None:
-        """seed: the data seed (the top-level ``seed`` drives the model and training)."""
+        """seed: the data seed (the top-level ``seed`` drives the model and training). push: the push's shape inside
+        the radius, ``linear`` (DNRI's: fading in and out) or ``step`` (on and off at once: a positive control for
+        segment boundaries; :func:`~dider.data.simulate.simulate_push`)."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
@@ -59,8 +63,9 @@ class SynthDataModule(ClipDataModule):
     def _split_params(self, split: str) -> dict:
         h = self.hparams
         size = {"train": h.num_train, "val": h.num_val, "test": h.num_test}[split]
+        shape = {} if h.get("push", "linear") == "linear" else {"push": h.push}  # the linear push's caches stay valid
         return {"kind": "push", "split": split, "num_samples": size, "num_steps": h.num_steps,
-                "push_factor": h.push_factor, "seed": h.seed * 1000 + SPLITS.index(split), "version": 1}
+                "push_factor": h.push_factor, "seed": h.seed * 1000 + SPLITS.index(split), "version": 1, **shape}
 
     def _path(self, split: str) -> Path:
         return self.cache_dir / f"synth_{split}_{cache_key(self._split_params(split))}.pt"
@@ -68,7 +73,8 @@ class SynthDataModule(ClipDataModule):
     def _generate(self, split: str) -> dict:
         p = self._split_params(split)
         log.info("generating %d synthetic %s clips -> %s", p["num_samples"], split, self._path(split))
-        states, edges = simulate_push(p["num_samples"], p["num_steps"], p["push_factor"], seed=p["seed"])
+        states, edges = simulate_push(p["num_samples"], p["num_steps"], p["push_factor"], seed=p["seed"],
+                                      shape=p.get("push", "linear"))
         return {"states": states, "edges": edges, "params": p}
 
     def prepare_data(self) -> None:

@@ -250,16 +250,19 @@ class OwnCut(BoundaryF1):
     Only the boundaries a plugin chooses count: not the clip's first step, the burn-in's end or an edge's
     entry (``free`` false there). ``on_switch``: the share of own boundaries where the held type changes (a
     boundary whose new segment reads the type held before it cuts nothing readable); ``boundary_f1``: own
-    boundaries against the true type switches at the free steps, within +-``tolerance`` steps.
+    boundaries against the true type switches at the free steps, within +-``tolerance`` steps (unmerged: every own
+    boundary counts, also one between two segments of the same type); ``per_constant_edge``: own boundaries per
+    edge whose true type never switches at its free steps (the truth has none there).
 
     update(slot [B, E, T] long (each step's slot), held [B, E, T] long (the type held at each step), free
     [B, E, T] bool (steps where the plugin may start a segment), truth [B, E, T] long or None);
-    compute() -> [on_switch, boundary_f1] (on_switch NaN without an own boundary; boundary_f1 NaN without truth).
+    compute() -> [on_switch, boundary_f1, per_constant_edge] (on_switch NaN without an own boundary; the others
+    NaN without truth).
     """
 
     def __init__(self, tolerance: int = 2, **kwargs) -> None:
         super().__init__(tolerance, **kwargs)
-        for name in ("own", "own_on_switch", "with_truth"):
+        for name in ("own", "own_on_switch", "with_truth", "constant_own", "constant_edges"):
             self.add_state(name, torch.zeros((), dtype=torch.float64), dist_reduce_fx="sum")
 
     def update(self, slot: torch.Tensor, held: torch.Tensor, free: torch.Tensor,  # type: ignore[override]
@@ -269,12 +272,18 @@ class OwnCut(BoundaryF1):
         self.own_on_switch += (own & switches(held)).sum().double()
         if truth is not None:
             self.with_truth += 1
-            self.update_events(own, switches(truth) & free[..., 1:])
+            true = switches(truth) & free[..., 1:]
+            self.update_events(own, true)
+            constant = free[..., 1:].any(-1) & ~true.any(-1)  # [B, E]: free steps, and no true switch at them
+            self.constant_own += (own.sum(-1) * constant).sum().double()
+            self.constant_edges += constant.sum().double()
 
     def compute(self) -> torch.Tensor:
-        share = self.own_on_switch / self.own if self.own > 0 else torch.tensor(float("nan"), dtype=torch.float64)
-        f1 = super().compute() if self.with_truth > 0 else torch.tensor(float("nan"))
-        return torch.stack([share.float(), f1.float()])
+        nan = torch.tensor(float("nan"), dtype=torch.float64)
+        share = self.own_on_switch / self.own if self.own > 0 else nan
+        f1 = super().compute() if self.with_truth > 0 else nan
+        constant = self.constant_own / self.constant_edges if self.constant_edges > 0 else nan
+        return torch.stack([share.float(), f1.float(), constant.float()])
 
 
 class PairConsistency(Metric):

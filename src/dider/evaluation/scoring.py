@@ -210,8 +210,8 @@ def displacement_values(prefix: str, model: HorizonDisplacement, cv: HorizonDisp
 def own_cut_values(prefix: str, metric: OwnCut) -> dict[str, torch.Tensor]:
     """``prefix/on_switch`` (the share of own boundaries where the held type changes; left out without an own
     boundary) and, with ground truth, ``prefix/boundary_f1`` (own boundaries against the true switches, +-2
-    steps)."""
-    values = dict(zip(("on_switch", "boundary_f1"), metric.compute(), strict=True))
+    steps, unmerged) and ``prefix/per_constant_edge`` (own boundaries per edge whose true type never switches)."""
+    values = dict(zip(("on_switch", "boundary_f1", "per_constant_edge"), metric.compute(), strict=True))
     return {f"{prefix}/{k}": v for k, v in values.items() if not bool(torch.isnan(v))}  # NaN: no own boundary / truth
 
 

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from omegaconf import DictConfig, OmegaConf
 
 from dider.models.segments import Segmentation
@@ -31,10 +30,14 @@ class Inference:
     h_fwd: torch.Tensor  # [B, E, T-1, R]
     present: torch.Tensor  # [B, E, T-1] bool: the edges present at each transition
     terms: dict[str, torch.Tensor] = field(default_factory=dict)  # the objective's terms per clip, name -> [B]
+    # [B] the duration plugin's fit of its online boundary model (plugins with runs of one type), else None
+    boundary_fit: torch.Tensor | None = None
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
-        one_hot = F.one_hot(self.posterior_logits.argmax(-1), self.posterior_logits.shape[-1]).float()
+        k = self.posterior_logits.shape[-1]
+        # a comparison, not F.one_hot, whose range check synchronises with the host
+        one_hot = (self.posterior_logits.argmax(-1, keepdim=True) == torch.arange(k, device=self.pred.device)).float()
         return self.seg.spread(one_hot).argmax(-1)
 
 

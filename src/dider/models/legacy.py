@@ -8,6 +8,8 @@ resumed runs.
   computes the same loss (exactly where no capacity is set; with a capacity the sparsity term now sits outside
   the edge KL's |KL - C|; a prior fit at full weight from the first step, ``prior_fit_warmup: false``, is gone:
   the fit ramps with the KL warm-up).
+- Before the segment-end duration's prior read the held type, its config had no ``online_prior`` and no
+  ``end_readout``: the prior read the past alone (``past``) and evaluation read the median end (``median``).
 """
 
 from __future__ import annotations
@@ -55,10 +57,19 @@ def network_hparams(hparams: Mapping[str, Any]) -> Mapping[str, Any] | None:
     return hparams.get("net", hparams.get("model"))
 
 
+# The segment-end duration's settings before its prior read the held type and evaluation read a decided end: what an
+# older config that leaves them out meant.
+SEGMENT_END = "dider.models.segment_end.SegmentEnd"
+SEGMENT_END_BEFORE = {"end_readout": "median", "online_prior": "past"}
+
+
 def upgrade_model_config(node: Mapping[str, Any]) -> dict[str, Any]:
     """A model config (plain, resolved) with its loss settings as an ``objective`` node; one that has it already
     is returned as it is. The old defaults fill settings an old config left out."""
     node = dict(node)
+    duration = node.get("duration")
+    if isinstance(duration, Mapping) and duration.get("_target_") == SEGMENT_END:
+        node["duration"] = {**SEGMENT_END_BEFORE, **duration}
     if "objective" in node:
         return node
     old = {k: node.pop(k) for k in OLD_LOSS_KEYS if k in node}

@@ -127,6 +127,20 @@ class PriorFit(Term):
         return per_edge_step(fit * out.present, out.present)
 
 
+class BoundaryFit(Term):
+    """Outside the ELBO: the duration plugin's online boundary model (the prior hazard, given the held type and the
+    segment's age) fitted at every step to where the posterior's held type changes (its ``boundary_fit``; 0 for a
+    plugin without one). The end KL trains it at segment starts only, against the posterior's end; forecasting
+    reads it at every step. Warms up with the KL terms, as ``prior_fit`` does."""
+
+    in_nelbo = False
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        if out.boundary_fit is None:
+            return out.pred.new_zeros(out.pred.shape[0], dtype=torch.float32)
+        return out.boundary_fit
+
+
 class Objective(nn.Module):
     """The terms by name (``nll`` required; a term set to None is left out) and the schedules of their weights:
     ``kl_warmup`` and ``capacity_ramp``, fractions of training."""

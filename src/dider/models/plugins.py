@@ -63,8 +63,8 @@ class Duration(Protocol):
 
     Optional capabilities, each a Protocol below, read once when the network is built
     (:class:`DurationCapabilities`): :class:`EarlyBoundary`, :class:`ObservedSpan`, :class:`ScoresCuts`,
-    :class:`Annealed`, :class:`RetypesOnline`. Where an edge enters, the roll-out's state machine reads a new type
-    for every plugin and the duration runs on."""
+    :class:`Annealed`, :class:`RetypesOnline`, :class:`HeldTypeSegments`. Where an edge enters, the roll-out's
+    state machine reads a new type for every plugin and the duration runs on."""
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
                 progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
@@ -110,6 +110,19 @@ class Annealed(Protocol):
     def tau(self, progress: Progress) -> float: ...
 
 
+class HeldTypeSegments(Protocol):
+    """A duration plugin whose segments are runs of one type: its cut reads the posterior's type probabilities at
+    each candidate start (``segment(..., types=[B, E, T, K])``), its prior hazard is fitted at every step to where
+    the held type changes (``boundary_fit``), and online a boundary brings another type than the one held
+    (``excludes_held``); its ``boundary`` reads the held type and the segment's age."""
+
+    excludes_held: bool
+
+    def boundary_fit(self, h_fwd: torch.Tensor, held: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """h_fwd [B, E, T, R], held [B, E, T] long, present [B, E, T] bool -> [B]."""
+        ...
+
+
 class RetypesOnline(Protocol):
     """A duration plugin whose online segments also end where the prior, after the burn-in, reads another type
     than the one held (when ``online_retype`` is true)."""
@@ -126,6 +139,7 @@ class DurationCapabilities:
     cut_kl: bool = False  # ScoresCuts
     tau: bool = False  # Annealed
     online_retype: bool = False  # RetypesOnline, and on
+    held_type: bool = False  # HeldTypeSegments
 
     @classmethod
     def of(cls, duration: object) -> DurationCapabilities:
@@ -134,7 +148,8 @@ class DurationCapabilities:
 
         return cls(boundary=has(EarlyBoundary), observed=int(duration.observed) if has(ObservedSpan) else 0,
                    cut_kl=has(ScoresCuts), tau=has(Annealed),
-                   online_retype=has(RetypesOnline) and bool(duration.online_retype))
+                   online_retype=has(RetypesOnline) and bool(duration.online_retype),
+                   held_type=has(HeldTypeSegments))
 
 
 class Decoder(Protocol):

@@ -8,113 +8,99 @@ must predict the end from there, and pushed through the fraction map its prior i
 the learned slots collapse to one step; scoring each candidate end where it would be, as every working
 segment model does, lets boundaries sit where the interaction changes.
 
-For an edge's segment k starting at s_k:
+For an edge's segment k starting at s_k, holding type z_k:
 - posterior: a hazard at each later step t, sigmoid(f_q(h_fwd_t, h_rev_t, h_fwd_s, h_rev_s)): the features
   at t (the past and the remaining trajectory) against those at the segment's start. The end's categorical is
   q(e) = h_e prod_{s<t<e} (1 - h_t) over s < e < L, and the rest of the mass at L, the next fixed boundary
   (where an edge enters, where the forecast starts, or the clip's end: "runs to the end");
-- prior: the past-only hazard of :class:`~dider.models.hazard.HazardPrior` in the same form, mixed with a fixed
-  boundary rate: per segment, KL(q_k || p_k) is exact (a sum over the candidate ends);
+- prior: a past-only hazard in the same form (:class:`~dider.models.held_hazard.HeldHazard`): with
+  ``online_prior: held_type`` it reads the type the segment holds and its age besides the past, p(end at t | z_k,
+  t - s_k, h_fwd_t); mixed with a fixed boundary ``rate``, what a boundary costs. The duration KL of a segment is
+  E_{q(z_k)} KL(q(e_k) || p(e_k | z_k)), exact (a sum over the candidate ends and types), q(z_k) the posterior's
+  type at the segment's start;
 - training draws e_k with a straight-through Gumbel-softmax over the candidate ends (exactly one end forward,
   the soft sample's gradient to every candidate); the soft sample enters the held assignment at every
   candidate, so each candidate end gets the gradient of switching the held type there;
 - segment k + 1 exists where segment k ends before the clip's end: its edge KL and duration KL are weighted by
   that straight-through indicator, so the number of segments has a gradient;
-- evaluation takes each segment's median end (the first e with q(end <= e) >= 1/2);
+- evaluation reads each segment's end where it is decided (``end_readout: threshold``: the first candidate whose
+  posterior hazard passes 1/2), or at the median of q(end) (``median``);
 - every candidate start's end categorical is computed at once and the chain of segments from step 0 followed by
   pointer jumping: the same cut as drawing segment after segment, in a fixed number of steps (no host
   synchronisation, one CUDA graph);
-- the edge type is read at the segment's start and held (``model.net.posterior_readout: start``); forecasting
-  runs the prior's hazard through the online state machine.
+- the edge type is read at the segment's start and held (``model.net.posterior_readout: start``); online, a
+  segment ends where the prior hazard passes ``online_threshold`` and the next type is the prior's, the held type
+  excluded (:meth:`RelationalVAE.advance_edges`). The prior hazard is also fitted at every step to where the
+  posterior's held type changes (:meth:`boundary_fit`, the objective's ``boundary_fit`` term).
 
-Shapes: B batch, E edges, T transitions, R LSTM width, H hidden width, S = T slots (slot s starts at step s).
+Shapes: B batch, E edges, T transitions, R LSTM width, H hidden width, K edge types, S = T slots (slot s starts at
+step s).
 """
 
 from __future__ import annotations
-
-import math
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from dider.models.end_categorical import (
+    OFFSET_SCALES,
+    chain_from_zero,
+    decided_end,
+    end_kl,
+    end_log_probs,
+    median_end,
+    offset_features,
+)
 from dider.models.hazard import HazardPrior, hold_assignment
+from dider.models.held_hazard import HeldHazard
 from dider.models.layers import SumLinear
 from dider.models.plugins import Progress
 from dider.models.segments import Segmentation
-from dider.validation import above, check_settings, one_of
-
-# A log-probability that is 0 in fp32 after exp (finite, so 0 * (log q - log p) stays 0 with its gradient).
-IMPOSSIBLE = -1e4
-
-
-# Offsets (in steps) around which a candidate end's offset from its segment's start is encoded (reads=remaining).
-OFFSET_SCALES = (1, 2, 4, 8, 16, 32, 64)
-
-
-def offset_features(offset: torch.Tensor) -> torch.Tensor:
-    """[...] steps >= 0 -> [..., len(OFFSET_SCALES)]: Gaussian bumps on log(1 + offset) at each scale."""
-    centres = torch.tensor(OFFSET_SCALES, device=offset.device, dtype=torch.float32).log1p()
-    return torch.exp(-2.0 * (offset.float().log1p().unsqueeze(-1) - centres) ** 2)
-
-
-def end_log_probs(logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
-    """The categorical over a segment's end given hazards at every step.
-
-    logits [B, E, T]: each step's hazard (a boundary there, given none since the start); start [B, E] long;
-    fixed, value [B, E, T] bool: steps whose boundary is fixed, and whether it is a boundary. -> [B, E, T+1]
-    log q(e): e in (start, L], L the first fixed boundary after the start or T (the clip's end), the mass not
-    ended before L put on L; IMPOSSIBLE elsewhere."""
-    t = logits.shape[-1]
-    after = torch.arange(t, device=logits.device) > start.unsqueeze(-1)
-    log_h = torch.where(fixed, torch.where(value, 0.0, IMPOSSIBLE), F.logsigmoid(logits))
-    log_stay = torch.where(fixed, torch.where(value, IMPOSSIBLE, 0.0), F.logsigmoid(-logits))
-    log_stay = torch.where(after, log_stay, 0.0)
-    survive = log_stay.cumsum(-1)  # log P(no boundary in (start, t])
-    before = F.pad(survive[..., :-1], (1, 0))  # log P(no boundary in (start, t)), exact (no subtraction)
-    log_q = torch.where(after, log_h + before, IMPOSSIBLE)
-    return torch.cat([log_q, survive[..., -1:]], -1).clamp_min(IMPOSSIBLE)
-
-
-def median_end(log_q: torch.Tensor) -> torch.Tensor:
-    """[B, E, T+1] log q(e) -> [B, E] long: the first e with q(end <= e) >= 1/2."""
-    return (log_q.exp().cumsum(-1) >= 0.5 - 1e-6).to(torch.uint8).argmax(-1)
-
-
-def end_kl(log_q: torch.Tensor, log_p: torch.Tensor) -> torch.Tensor:
-    """KL(q || p) of two end categoricals [B, E, T+1] (log-probabilities) -> [B, E]."""
-    return (log_q.exp() * (log_q - log_p)).sum(-1)
+from dider.validation import above, check_settings, integer, one_of
 
 
 class SegmentEnd(HazardPrior):
     """One latent per segment, its end, scored at each candidate end (see the module docstring).
 
     ``temperature``: of the Gumbel-softmax over the candidate ends. ``reads``: ``position`` (DIDER) or
-    ``remaining`` (SKID). ``rate``, ``rate_mix``, ``online_threshold`` and ``burn_in``:
-    :class:`~dider.models.hazard.HazardPrior` (the fixed ``rate``, mixed into the prior, is what a boundary costs).
+    ``remaining`` (SKID). ``end_readout``: where evaluation reads a segment's end, ``threshold`` (where its hazard
+    passes 1/2) or ``median``. ``online_prior``: the prior hazard reads the held type and the segment's age besides
+    the past (``held_type``) or the past alone (``past``; online, a segment then also ends where the prior's type
+    flips). ``num_types``: the edge types (the held type's outputs). ``rate``, ``rate_mix``, ``online_threshold``
+    and ``burn_in``: :class:`~dider.models.hazard.HazardPrior` (the fixed ``rate``, mixed into the prior, is what a
+    boundary costs).
     """
 
-    SETTINGS = HazardPrior.SETTINGS | {"temperature": above(0), "reads": one_of("position", "remaining")}
+    SETTINGS = HazardPrior.SETTINGS | {
+        "temperature": above(0), "reads": one_of("position", "remaining"), "end_readout": one_of("threshold", "median"),
+        "online_prior": one_of("held_type", "past"), "num_types": integer(1),  # >= 2: the network's num_edges says
+    }
 
     def __init__(
         self,
         rnn_hidden: int = 64,
         hidden: int = 64,
-        rate: float = 0.02,
+        rate: float = 0.05,
         rate_mix: float = 0.5,
         temperature: float = 0.5,
         online_threshold: float = 0.5,
         burn_in: int | None = None,
         reads: str = "position",
+        end_readout: str = "threshold",
+        online_prior: str = "held_type",
+        num_types: int = 2,
     ) -> None:
         check_settings(self, locals())
         super().__init__(rnn_hidden, hidden, rate, rate_mix, online_threshold, burn_in)
-        self.temperature = temperature
-        # Online, a segment also ends where the prior reads another type than the one held: the prior hazard is
-        # trained to foresee where the posterior ends a segment, which the past rarely can, so on its own it
-        # seldom fires (:meth:`RelationalVAE.advance_edges`).
+        self.temperature, self.reads, self.end_readout = temperature, reads, end_readout
+        self.prior = HeldHazard(rnn_hidden, hidden, num_types, online_prior == "held_type", self.rate_logit)
+        # Online, a segment also ends where the prior's type head reads another type than the one held: an onset is
+        # rare and its step uncertain, so even a hazard that ranks onsets well (the held type's: AUC 0.92 on the
+        # synthetic set) seldom passes 1/2 at one; the head's flip finds five times the onsets and forecasts better
+        # (docs/models.md).
         self.online_retype = True
-        self.reads = reads
+        self.excludes_held = online_prior == "held_type"  # online, a boundary brings another type (runs of one type)
         # The cut's computation: every candidate start at once (True: no host synchronisation, the form a CUDA graph
         # captures), segment after segment (False: T times less work, the CPU's choice); None picks by device. Both
         # give the same cut and gradients (tests/test_segment_end.py).
@@ -127,6 +113,11 @@ class SegmentEnd(HazardPrior):
         self.out = SumLinear(hidden, 1)
         with torch.no_grad():  # start at the prior's rate: segments of about 1 / rate steps
             self.out.bias.fill_(self.rate_logit)
+        self.register_load_state_dict_pre_hook(_past_prior_keys)
+
+    def prior_logits(self, h_fwd: torch.Tensor) -> torch.Tensor:
+        """The prior hazard's logits at every step, the held type unknown: [..., R] -> [...] (its mean over types)."""
+        return self.prior.steps(h_fwd).mean(-1)
 
     def candidates(self, feats: torch.Tensor) -> torch.Tensor:
         """What the posterior hazard reads of each candidate end, once per clip: W_at applied to the features there,
@@ -157,14 +148,12 @@ class SegmentEnd(HazardPrior):
         """Gumbel noise for the end draws of the segments starting at ``start`` (log_q [..., T+1])."""
         return -torch.empty_like(log_q).exponential_().log()
 
-    def read_end(self, log_q: torch.Tensor) -> torch.Tensor:
-        """The end evaluation reads from each segment's end categorical [..., T+1] -> [...] long."""
-        return median_end(log_q)
-
-    def _draw(self, log_q: torch.Tensor, start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each segment's end from its categorical log_q [..., T+1] (start [...] long): drawn in training with a
-        straight-through Gumbel-softmax, read (:meth:`read_end`) in evaluation -> the end [...] long and its
-        straight-through one-hot [..., T+1] (exactly one-hot forward, the soft sample's gradient)."""
+    def _draw(self, log_q: torch.Tensor, logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor,
+              value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each segment's end from its categorical log_q [..., T+1] (its hazards' logits [..., T], start [...]
+        long): drawn in training with a straight-through Gumbel-softmax, read in evaluation (``end_readout``) -> the
+        end [...] long and its straight-through one-hot [..., T+1] (exactly one-hot forward, the soft sample's
+        gradient)."""
         t = log_q.shape[-1] - 1
         if self.training:
             # exp(z - logsumexp z), not F.softmax: ATen's softmax over a long row rounds with the CPU's vector
@@ -172,8 +161,10 @@ class SegmentEnd(HazardPrior):
             z = (log_q + self.gumbel(log_q, start)) / self.temperature
             soft = (z - z.logsumexp(-1, keepdim=True)).exp()
             end = soft.argmax(-1)
+        elif self.end_readout == "threshold":
+            soft, end = None, decided_end(logits, start, fixed, value)
         else:
-            soft, end = None, self.read_end(log_q)
+            soft, end = None, median_end(log_q)
         # a segment ends after its start, whatever the numbers (NaN hazards would otherwise hold it there)
         end = torch.maximum(end, start + 1).clamp(max=t)
         one_hot = (end.unsqueeze(-1) == torch.arange(t + 1, device=end.device)).to(log_q.dtype)  # not F.one_hot:
@@ -181,32 +172,39 @@ class SegmentEnd(HazardPrior):
         drawn = one_hot if soft is None or not torch.is_grad_enabled() else one_hot + soft - soft.detach()
         return end, drawn
 
-    def _kl(self, log_q: torch.Tensor, p: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor,
-            value: torch.Tensor) -> torch.Tensor:
-        """The duration KL of each segment: its end categorical log_q [..., T+1] against the learned prior hazard p
-        and the fixed rate, mixed by ``rate_mix`` -> [...]."""
-        learned = end_log_probs(p, start, fixed, value)
-        rate = end_log_probs(torch.full_like(p, self.rate_logit), start, fixed, value)
-        return (1 - self.rate_mix) * end_kl(log_q, learned) + self.rate_mix * end_kl(log_q, rate)
+    def _kl(self, log_q: torch.Tensor, prior: torch.Tensor, types: torch.Tensor, start: torch.Tensor,
+            fixed: torch.Tensor, value: torch.Tensor) -> torch.Tensor:
+        """The duration KL of each segment: its end categorical log_q [..., T+1] against the prior's for each held
+        type (prior [..., K', T] logits), weighted by the segment's type probabilities ``types`` [..., K'], mixed with
+        the fixed rate's by ``rate_mix`` -> [...]. start, fixed, value broadcast against log_q's leading dims."""
+        k_start, k_fixed, k_value = start.unsqueeze(-1), fixed.unsqueeze(-2), value.unsqueeze(-2)
+        learned = end_kl(log_q.unsqueeze(-2), end_log_probs(prior, k_start, k_fixed, k_value))  # [..., K']
+        rate = end_log_probs(torch.full_like(prior[..., 0, :], self.rate_logit), start, fixed, value)
+        return (1 - self.rate_mix) * (types * learned).sum(-1) + self.rate_mix * end_kl(log_q, rate)
 
     def segment(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, x: torch.Tensor,
-                progress: Progress = Progress(), present: torch.Tensor | None = None) -> Segmentation:
+                progress: Progress = Progress(), present: torch.Tensor | None = None,
+                types: torch.Tensor | None = None) -> Segmentation:
+        """types: [B, E, T, K] the posterior's type probabilities at each step (a segment's type is read at its
+        start), which the held type's prior reads; None: every type alike."""
         b, e, t, _ = h_fwd.shape
         fixed, value = self.forced(t, h_fwd.device, present)
         fixed, value = fixed.expand(b, e, t), value.expand(b, e, t)
         feats = torch.cat([h_fwd, h_rev], -1)
-        p = self.prior_logits(h_fwd)
+        steps, width = self.prior.steps(h_fwd), self.prior.width  # [B, E, T, K']
+        if not self.prior.held or types is None:
+            types = steps.new_full((b, e, t, width), 1.0 / width)
         every_start = h_fwd.is_cuda if self.sync_free is None else self.sync_free
         cut = self._every_start if every_start else self._segment_by_segment
-        ends, kl = cut(feats, p, fixed, value)
+        ends, kl = cut(feats, steps, types.float(), fixed, value)
         gate = torch.where(fixed, value.to(ends.dtype), ends[..., :t])  # step 0 is fixed: the first segment's start
-        steps = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
+        n = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
         slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         valid = gate.detach() > 0.5
-        return Segmentation(slots, valid, hold_assignment(gate), kl.sum(1) / steps, weight=gate, fixed=fixed)
+        return Segmentation(slots, valid, hold_assignment(gate), kl.sum(1) / n, weight=gate, fixed=fixed)
 
-    def _every_start(self, feats: torch.Tensor, p: torch.Tensor, fixed: torch.Tensor, value: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _every_start(self, feats: torch.Tensor, steps: torch.Tensor, types: torch.Tensor, fixed: torch.Tensor,
+                     value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The cut with every candidate start's end categorical at once ([B, E, S, T+1]: given the features, the
         ends of different starts are independent), one end drawn (or read) per start, and the chain of segments
         from step 0 found by pointer jumping (log2 T gathers): a fixed number of operations, no host
@@ -214,10 +212,10 @@ class SegmentEnd(HazardPrior):
         t = feats.shape[2]
         starts = torch.arange(t, device=feats.device)
         at_start, fixed_s, value_s = starts.view(1, 1, t), fixed.unsqueeze(2), value.unsqueeze(2)
-        log_q = end_log_probs(self.posterior_logits(feats, self.candidates(feats)), at_start, fixed_s,
-                              value_s)  # [B, E, S, T+1]
-        seg_kl = self._kl(log_q, p.unsqueeze(2), at_start, fixed_s, value_s)  # the prior reads no start
-        end, drawn = self._draw(log_q, starts.expand(*log_q.shape[:-1]))
+        logits = self.posterior_logits(feats, self.candidates(feats))  # [B, E, S, T]
+        log_q = end_log_probs(logits, at_start, fixed_s, value_s)  # [B, E, S, T+1]
+        seg_kl = self._kl(log_q, self.prior.of_start(steps, starts), types, at_start, fixed_s, value_s)
+        end, drawn = self._draw(log_q, logits, starts.expand(*log_q.shape[:-1]), fixed_s, value_s)
         on = chain_from_zero(end).to(log_q.dtype)  # [B, E, S]: the starts of the segments from step 0
         ends = (on.unsqueeze(-1) * drawn).sum(2)  # the chain's drawn ends (fp32, not a matmul under autocast)
         # a segment exists (weight 1 forward) where the previous one's drawn end opens it: the straight-through value
@@ -227,8 +225,8 @@ class SegmentEnd(HazardPrior):
         exists = torch.where(starts == 0, 1.0, torch.zeros_like(ends).scatter_add(-1, end, opens * on)[..., :t])
         return ends, (seg_kl * exists * on).sum(-1)
 
-    def _segment_by_segment(self, feats: torch.Tensor, p: torch.Tensor, fixed: torch.Tensor, value: torch.Tensor
-                            ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _segment_by_segment(self, feats: torch.Tensor, steps: torch.Tensor, types: torch.Tensor,
+                            fixed: torch.Tensor, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The same cut drawn segment after segment (one pass per segment, vectorised over batch and edges, at most
         T passes whatever the numbers): on a CPU cheaper than every start at once (a pass costs a T-th of it),
         but each pass asks the host whether an edge still runs."""
@@ -242,9 +240,12 @@ class SegmentEnd(HazardPrior):
         for _ in range(t):
             if not bool(running.any()):
                 break
-            log_q = end_log_probs(self.posterior_logits(feats, at, start), start, fixed, value)
-            kl = kl + self._kl(log_q, p, start, fixed, value) * exists * running
-            end, drawn = self._draw(log_q, start)
+            logits = self.posterior_logits(feats, at, start)
+            log_q = end_log_probs(logits, start, fixed, value)
+            held = types.gather(2, start.clamp(max=t - 1)[..., None, None].expand(-1, -1, 1, types.shape[-1]))
+            seg_kl = self._kl(log_q, self.prior.of_start(steps, start), held.squeeze(2), start, fixed, value)
+            kl = kl + seg_kl * exists * running
+            end, drawn = self._draw(log_q, logits, start, fixed, value)
             ends = ends + drawn * running.unsqueeze(-1)
             # the next segment's existence: forced where the end is a fixed boundary, else the drawn end's
             opens = drawn.gather(-1, end.unsqueeze(-1)).squeeze(-1)
@@ -254,17 +255,46 @@ class SegmentEnd(HazardPrior):
             running = start < t
         return ends, kl
 
+    # ------------------------------------------------------------------ the prior hazard, at every step and online
+    def boundary(self, h_t: torch.Tensor, t: int, end: int, held: torch.Tensor | None = None,
+                 age: torch.Tensor | None = None) -> torch.Tensor:
+        """Online: [B, E] bool, where a new segment starts at step t: after the burn-in, where the prior hazard of
+        the held type ``held`` at the segment's ``age`` ([B, E] long) passes ``online_threshold``."""
+        if t <= self.observed:
+            return torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
+        return torch.sigmoid(self.prior.at(h_t, held, age)) > self.online_threshold
 
-def chain_from_zero(end: torch.Tensor) -> torch.Tensor:
-    """The segments that follow each other from step 0: end [..., S] long, the end of a segment starting at each
-    step s (in (s, S]; S: the clip's end) -> [..., S] bool, whether s starts one of them. Pointer jumping: after
-    round j the starts reached in fewer than 2^j segments are known, and the pointers jump 2^j segments; ceil(log2
-    (S + 1)) rounds of a scatter and a gather, whatever the ends."""
-    size = end.shape[-1]
-    jump = torch.cat([end, torch.full_like(end[..., :1], size)], -1)  # [..., S+1]; the clip's end absorbs
-    reached = torch.zeros_like(jump, dtype=torch.long)
-    reached[..., 0] = 1
-    for _ in range(max(1, math.ceil(math.log2(size + 1)))):
-        reached = reached | torch.zeros_like(reached).scatter_add(-1, jump, reached).clamp(max=1)
-        jump = jump.gather(-1, jump)
-    return reached[..., :size].bool()
+    def boundary_fit(self, h_fwd: torch.Tensor, held: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        """The prior hazard fitted at every free step to where the posterior's held type changes (a binary cross
+        entropy, the posterior's types stopped): h_fwd [B, E, T, R], held [B, E, T] long, present [B, E, T] bool ->
+        [B], per present edge-step. It trains the online boundary model where it is used: at every step, with the
+        held type and the age of the run it is in."""
+        t = held.shape[-1]
+        change = F.pad(held[..., 1:] != held[..., :-1], (1, 0), value=True)  # a new run of one type starts
+        logits = self.prior.along(h_fwd, held, change)
+        fixed, _ = self.forced(t, h_fwd.device, present)
+        free = present & ~fixed
+        nll = F.binary_cross_entropy_with_logits(logits, change.float(), reduction="none")
+        return (nll * free).flatten(1).sum(1) / present.flatten(1).sum(1).clamp_min(1)
+
+    def cut_kl(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, gate: torch.Tensor, free: torch.Tensor,
+               steps: torch.Tensor, held: torch.Tensor | None = None) -> torch.Tensor:
+        """The duration KL of a posterior certain of a given cut: -log p(cut) under the prior, mixed as the duration
+        KL is (:class:`~dider.models.hazard.HazardPrior`), the held type's hazard read with ``held`` [B, E, T]
+        long (each step's type; None: the mean over types)."""
+        b = gate.float()
+        typed = held is not None and self.prior.held
+        logits = self.prior.along(h_fwd, held, gate) if typed else self.prior_logits(h_fwd)
+
+        def nll(x: torch.Tensor) -> torch.Tensor:
+            return -(b * F.logsigmoid(x) + (1 - b) * F.logsigmoid(-x))
+
+        per_step = (1 - self.rate_mix) * nll(logits) + self.rate_mix * nll(torch.full_like(logits, self.rate_logit))
+        return (per_step * free).flatten(1).sum(1) / steps
+
+
+def _past_prior_keys(module: nn.Module, state: dict, prefix: str, *args: object) -> None:
+    """Checkpoints from before the prior hazard read the held type keep its MLP as ``prior.0`` / ``prior.2``:
+    today's ``prior.past.0`` / ``prior.past.2``."""
+    for old in [k for k in state if k.startswith((f"{prefix}prior.0.", f"{prefix}prior.2."))]:
+        state[f"{prefix}prior.past." + old.removeprefix(f"{prefix}prior.")] = state.pop(old)

@@ -130,8 +130,13 @@ class RelationalVAE(nn.Module):
         enc = self.encoder(x, plugin_mask)
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         given = None if plugin_mask is None else present
-        seg: Segmentation = (self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given) if cut is None
-                             else self.cut_segmentation(enc.h_fwd, enc.h_rev, cut, present))
+        if cut is not None:
+            seg: Segmentation = self.cut_segmentation(enc.h_fwd, enc.h_rev, cut, present, enc.posterior_logits)
+        elif self.capabilities.held_type:  # the end's prior reads each segment's type: the posterior's at each start
+            seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given,
+                                        types=F.softmax(enc.posterior_logits.float(), -1))
+        else:
+            seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
         # The prior always reads a segment's first step, so it stays online.
         p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
@@ -140,11 +145,13 @@ class RelationalVAE(nn.Module):
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         probs = seg.spread(F.softmax(q_seg, dim=-1))
         out = Inference(pred, q_seg, seg.gather(p_step), probs, enc.posterior_logits, p_step, seg, enc.h_fwd, present)
+        if self.capabilities.held_type:  # the online boundary model, fitted at every step to the held type's changes
+            out.boundary_fit = self.duration.boundary_fit(enc.h_fwd, out.posterior_types().detach(), present)
         out.terms = self.objective.values(out, batch)
         return out
 
     def cut_segmentation(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, cut: torch.Tensor,
-                         present: torch.Tensor) -> Segmentation:
+                         present: torch.Tensor, step_logits: torch.Tensor | None = None) -> Segmentation:
         """A given cut as a segmentation of held types: cut, present [B, E, T] bool -> slots starting at each cut
         step and at the fixed boundaries (the clip's start, the burn-in's end where the plugin has one, entries),
         with the duration KL of a posterior certain of the cut (the plugin's ``cut_kl``; 0 for a plugin without
@@ -153,7 +160,11 @@ class RelationalVAE(nn.Module):
         fixed, value = forced_boundaries(t, self.capabilities.observed, h_fwd.device, present)
         gate = torch.where(fixed, value, cut)
         steps = present.flatten(1).sum(1).clamp_min(1)
-        if self.capabilities.cut_kl:
+        if self.capabilities.cut_kl and self.capabilities.held_type and step_logits is not None:
+            held = hold_assignment(gate.float()).argmax(-1)  # each step's segment; its type read at its start
+            held = step_logits.argmax(-1).gather(-1, held)
+            kl = self.duration.cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps, held)
+        elif self.capabilities.cut_kl:
             kl = self.duration.cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps)
         else:
             kl = h_fwd.new_zeros(b, dtype=torch.float32)
@@ -197,24 +208,38 @@ class RelationalVAE(nn.Module):
     # ------------------------------------------------------------------ online edges and roll-out
     def advance_edges(
         self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool,
-        entered: torch.Tensor | None = None,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps
-        left, or the duration plugin's optional ``boundary(h_t, t, end)`` fires, a new type comes
-        from the prior and a new duration from the duration plugin. entered: [B, E] bool, the edges present
-        at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's duration
-        runs on, as training splits a slot at an entry (``Segmentation.split_at``)."""
-        need = left <= 0
+        entered: torch.Tensor | None = None, start: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps left (the
+        burn-in's end, or a duration run out), a new type comes from the prior and a new duration from the duration
+        plugin; where the plugin's optional ``boundary`` fires first, the segment ends there too. A plugin whose
+        segments are runs of one type (``excludes_held``) reads its boundary with the held type and the segment's
+        age, and a boundary of its brings the prior's most likely other type. entered: [B, E] bool, the edges
+        present at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's
+        duration runs on, as training splits a slot at an entry (``Segmentation.split_at``). start: [B, E] long,
+        the step each edge's segment started (None: 0). -> the types held at t, the steps left, the starts."""
         caps = self.capabilities
+        start = torch.zeros_like(etype) if start is None else start
+        ran_out = left <= 0
+        fired = torch.zeros_like(ran_out)
         if caps.boundary:
-            need = need | self.duration.boundary(h_t, t, end)
+            fired = self.duration.boundary(h_t, t, end, etype, t - start) if caps.held_type else \
+                self.duration.boundary(h_t, t, end)
         logits = self.prior(h_t)
         if caps.online_retype and t > caps.observed:
-            need = need | (logits.argmax(-1) != etype)  # the past shows another type than the one held
-        retype = need if entered is None else need | entered
-        etype = torch.where(retype, pick_types(logits, sample), etype)
+            fired = fired | (logits.argmax(-1) != etype)  # the past shows another type than the one held
+        need = ran_out | fired
+        fresh = ran_out if entered is None else ran_out | entered  # read afresh: any type
+        new = pick_types(logits, sample)
+        if caps.held_type and self.duration.excludes_held:  # a boundary of a run: another type than the held one
+            other = pick_types(logits.masked_fill(etype.unsqueeze(-1) == torch.arange(
+                logits.shape[-1], device=logits.device), float("-inf")), sample)
+            new = torch.where(fired & ~fresh, other, new)
+        retype = need | fresh
+        etype = torch.where(retype, new, etype)
+        start = torch.where(retype, t, start)
         left = torch.where(need, self.duration.next_duration(h_t, t, end), left) - 1
-        return etype, left
+        return etype, left, start
 
     @torch.no_grad()
     def online_types(self, h_fwd: torch.Tensor, present: torch.Tensor | None = None) -> torch.Tensor:
@@ -222,12 +247,13 @@ class RelationalVAE(nn.Module):
         edges present at each step; None: all) -> [B, E, T] long."""
         b, e, t, _ = h_fwd.shape
         etype = torch.zeros(b, e, dtype=torch.long, device=h_fwd.device)
-        left = torch.zeros_like(etype)
+        left, start = torch.zeros_like(etype), torch.zeros_like(etype)
         entered = None if present is None else entries(present)
         types = []
         for s in range(t):
             step_entered = None if entered is None else entered[..., s]
-            etype, left = self.advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False, entered=step_entered)
+            etype, left, start = self.advance_edges(h_fwd[:, :, s], s, t, etype, left, sample=False,
+                                                    entered=step_entered, start=start)
             types.append(etype)
         return torch.stack(types, dim=2)
 
@@ -284,7 +310,7 @@ class RelationalVAE(nn.Module):
         elif edges.shape[-1] < end:
             raise ValueError(f"rollout: edges cover {edges.shape[-1]} transitions, need {end}")
         etype = torch.zeros(b, n * (n - 1), dtype=torch.long, device=x.device)
-        left = torch.zeros_like(etype)
+        left, start = torch.zeros_like(etype), torch.zeros_like(etype)
         dec_state = decoder.init_state(b, n, x)
         preds, types = [], []
         cur = x[:, 0]
@@ -302,7 +328,7 @@ class RelationalVAE(nn.Module):
                 if online:
                     h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
             if online:
-                etype, left = self.advance_edges(h_t, t, end, etype, left, sample, entered[..., t])
+                etype, left, start = self.advance_edges(h_t, t, end, etype, left, sample, entered[..., t], start)
             else:
                 etype = edges[:, :, t]
             types.append(etype)

@@ -158,7 +158,8 @@ class RelationalVAEModule(L.LightningModule):
         terms = [*self.model.objective.terms, "loss", "nelbo"]
         segments = ["segments_per_edge", "steps_per_segment", "sigma"]
         val = {*(f"val/{k}" for k in [*terms, "select"]), *(f"val/segments/{k}" for k in segments),
-               "val/segments/on_switch", "val/segments/boundary_f1", "val/edge_acc/posterior/none",
+               "val/segments/on_switch", "val/segments/boundary_f1", "val/segments/per_constant_edge",
+               "val/edge_acc/posterior/none",
                "val/edge_acc/posterior/interaction"}
         val |= {f"val/{kind}/{h}" for kind in ("mse", "ade", "fde", "cv/ade", "cv/fde", "ade_vs_cv") for h in hs}
         train = {*(f"train/{k}_{when}" for k in terms for when in ("step", "epoch")),
