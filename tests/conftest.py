@@ -22,7 +22,7 @@ torch.set_num_threads(min(2, torch.get_num_threads()))
 # Small and fast: a few hundred clips, narrow networks, a couple of epochs.
 TINY = [
     "data.num_train=64", "data.num_val=16", "data.num_test=16", "data.loader.batch_size=16",
-    "data.loader.eval_batch_size=16",
+    "data.loader.eval_batch_size=16", "protocol.samples=0",
     "model.net.encoder.hidden=32", "model.net.encoder.rnn_hidden=16", "model.net.encoder.head_hidden=16",
     "model.net.decoder.hidden=32", "trainer.max_epochs=1", "trainer.accelerator=cpu",
     "trainer.enable_progress_bar=false", "trainer.enable_model_summary=false",

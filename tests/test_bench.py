@@ -70,6 +70,7 @@ def test_allocator_ratios_pair_each_round_by_hand():
                    "allocator/thresholds_over_heap/train/x/peak": pytest.approx(100 / 110)}
 
 
+@pytest.mark.slow  # two real benchmark cases under each allocator setting
 def test_allocator_comparison_runs_each_case_under_each_setting_in_turn(monkeypatch, tmp_path):
     """``--allocator heap thresholds``: every round runs the case once under each (fresh processes, the order
     reversed every other round), each record says the setting its process ran with, and the environment is

@@ -123,7 +123,7 @@ def test_a_debug_run_and_its_output(tmp_path):
     text = log.read_text()
     assert proc.returncode == 0, text[-3000:]
     assert len(re.findall(r"epoch \d/2  train/loss_epoch \S+  val/nll \S+ .*  val/ade_vs_cv/h\d\d \S+  "
-                          r"\(\d+s, about \S+ left\)", text)) == 2
+                          r"\((\d+m)?\d+s, about \S+ left\)", text)) == 2
     assert text.count("test/ade_vs_cv/h01") == 1 and "Test metric" not in text
     assert "Tip" not in text and "LeafSpec" not in text and "configure_callbacks" not in text
 

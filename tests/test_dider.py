@@ -161,9 +161,9 @@ def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
     latent: dict[int, torch.Tensor] = {}  # t -> [B, E] its latent's mean (durations are rounded to steps)
     advance, next_duration = net.advance_edges, net.duration.next_duration
 
-    def spy_advance(h_t, t, end, etype, left, sample, entered=None, start=None):
+    def spy_advance(h_t, t, end, etype, left, sample, *rest):
         new_segment[t] = left <= 0
-        return advance(h_t, t, end, etype, left, sample, entered, start)
+        return advance(h_t, t, end, etype, left, sample, *rest)
 
     def spy_duration(h_t, t, end):
         drawn[t], latent[t] = next_duration(h_t, t, end), net.duration.gaussian(h_t)[0]

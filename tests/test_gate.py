@@ -206,9 +206,9 @@ def test_rollout_tells_the_gate_where_an_edge_enters(make_cfg):
     seen: dict[int, torch.Tensor | None] = {}
     advance = net.advance_edges
 
-    def spy(h_t, t, end, etype, left, sample, entered=None, start=None):
+    def spy(h_t, t, end, etype, left, sample, entered=None, *rest):
         seen[t] = entered
-        return advance(h_t, t, end, etype, left, sample, entered, start)
+        return advance(h_t, t, end, etype, left, sample, entered, *rest)
 
     net.advance_edges = spy
     net.rollout(batch["states"], mask, 8, 12)

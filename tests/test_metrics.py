@@ -620,3 +620,23 @@ def test_own_boundaries_per_constant_edge_by_hand() -> None:
     m = OwnCut(tolerance=1)
     m.update(slot, held, free, truth)
     assert m.compute()[2].item() == pytest.approx(1.0)
+
+
+def test_the_edges_verdict_by_hand() -> None:
+    from dider.evaluation.scoring import edges_verdict
+
+    assert edges_verdict({"test/ade_vs_no_edges/h01": 1.3, "test/ade_vs_no_edges/h15": 0.8}) is None
+    text = edges_verdict({"test/ade_vs_no_edges/h01": 0.9, "test/ade_vs_no_edges/h15": 1.05})
+    assert text.startswith("the edges do not earn their keep") and "h01 0.90x, h15 1.05x" in text
+    assert edges_verdict({"test/ade/h15": 1.0}) is None
+
+
+def test_a_test_pass_compares_the_forecast_with_its_edges_off(make_cfg, tmp_path) -> None:
+    """Every test pass of a model with edges rolls it out again with every edge off: the ratio of the two ADEs."""
+    from dider.run import train
+
+    metrics = train(make_cfg(["logger=none", "model=dnri"], out=tmp_path / "run"))
+    for h in (1, 15, 25):
+        assert metrics[f"test/ade_vs_no_edges/h{h:02d}"] > 0
+    static = train(make_cfg(["logger=none", "model=static_decoder"], out=tmp_path / "static"))
+    assert not any("ade_vs_no_edges" in k for k in static)

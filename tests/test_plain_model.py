@@ -94,11 +94,12 @@ def test_a_plugin_lacking_its_interface_is_named(make_cfg):
     ("dnri", DurationCapabilities()),
     ("dider_paper", DurationCapabilities(observed=4, cut_kl=True, tau=True)),
     ("dider_gate", DurationCapabilities(boundary=True, cut_kl=True)),
-    ("dider", DurationCapabilities(boundary=True, observed=4, cut_kl=True, online_retype=True)),
+    ("dider", DurationCapabilities(boundary=True, observed=4, cut_kl=True, online_retype=True, held_type=True)),
 ])
 def test_optional_plugin_members_are_read_once_at_build(make_cfg, model, expected):
     """The duration's optional members (boundary, the burn-in's span, cut scoring, an annealed temperature,
-    online re-typing) are declared Protocols read when the network is built (burn-in 5: a span of 4)."""
+    online re-typing, a prior that reads the held type) are declared Protocols read when the network is built
+    (burn-in 5: a span of 4)."""
     from dider.models.vae import RelationalVAE
 
     net = RelationalVAE.from_config(make_cfg([f"model={model}"]).model)

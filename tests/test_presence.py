@@ -109,9 +109,9 @@ def test_online_types_reread_at_an_entry_and_keep_the_duration(make_cfg):
     lefts: list[torch.Tensor] = []
     advance = net.advance_edges
 
-    def spy(h_t, t, end, etype, left, sample, entered=None):
+    def spy(h_t, t, end, etype, left, sample, entered=None, **rest):
         lefts.append(left)
-        return advance(h_t, t, end, etype, left, sample, entered)
+        return advance(h_t, t, end, etype, left, sample, entered, **rest)
 
     net.advance_edges = spy
     net.online_types(h_fwd)

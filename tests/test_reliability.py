@@ -200,6 +200,27 @@ def test_non_finite_loss_stops_naming_step_batch_and_term(make_cfg, tmp_path, mo
     assert not (tmp_path / "run" / "metrics.json").exists()
 
 
+def test_the_gpus_deferred_check_names_the_first_bad_step(make_cfg, tmp_path, monkeypatch):
+    """On a GPU the guard accumulates its checks on the device and reads them every n steps (no per-step read-back);
+    forced here with n = 3: a NaN at step 1 stops the run at step 3, naming step 1."""
+    from dider.training import callbacks
+
+    calls, real = [], likelihood_mod.gaussian_nll
+
+    def nan_on_second_call(*args, **kwargs):
+        calls.append(1)
+        out = real(*args, **kwargs)
+        return out * float("nan") if len(calls) == 2 else out
+
+    monkeypatch.setattr(likelihood_mod, "gaussian_nll", nan_on_second_call)
+    init = callbacks.FiniteGuard.__init__
+    monkeypatch.setattr(callbacks.FiniteGuard, "__init__", lambda self, every=None: init(self, every=3))
+    cfg = make_cfg(["logger=none", "model=dnri"], out=tmp_path / "run")
+    with pytest.raises(NonFiniteError, match=r"non-finite loss at step 1 \(found at step 3: the checks are read "
+                                             r"every 3 steps"):
+        train(cfg)
+
+
 def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypatch):
     real = RelationalVAE.infer
 

@@ -69,3 +69,17 @@ def test_edge_index_is_the_off_diagonal_and_stays_on_its_device():
         send, recv = edge_index(n)
         assert (send.tolist(), recv.tolist()) == tuple(t.tolist() for t in torch.where(~torch.eye(n, dtype=torch.bool)))
     assert edge_index(4)[0] is edge_index(4)[0]  # made once per device and agent count
+
+
+def test_in_memory_clips_move_to_the_models_device(make_cfg):
+    """``to_device`` (which a GPU run calls at fit start) moves the in-memory splits and makes the next loaders
+    worker-free; its batches are then gathered on that device (a dry run on the CPU here)."""
+    from hydra.utils import instantiate
+
+    dm = instantiate(make_cfg(["data.loader.num_workers=2"]).data, _convert_="all")
+    dm.prepare_data()
+    dm.setup("fit")
+    dm.to_device(torch.device("cpu"))
+    assert dm.loader.num_workers == 0 and not dm.loader.pin_memory
+    batch = next(iter(dm.train_dataloader()))
+    assert batch["states"].device.type == "cpu" and batch["everyone"] is True and "edges" in batch

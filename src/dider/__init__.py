@@ -1,6 +1,7 @@
 """dider: relational inference of dynamically evolving interactions (DIDER, DNRI, NRI).
 
-``dider.load(run_or_checkpoint)`` gives a trained model for new data (:mod:`dider.trained`)."""
+``dider.load(run_or_checkpoint)`` gives a trained model for new data (:mod:`dider.trained`); ``dider.pretrained()``
+lists the trained models shipped with the package, each loaded by its name (``dider.load("synth/dider")``)."""
 
 from __future__ import annotations
 
@@ -15,4 +16,8 @@ def __getattr__(name: str) -> Any:
         from dider import trained
 
         return getattr(trained, name)
+    if name == "pretrained":
+        from dider.shipped import pretrained
+
+        return pretrained
     raise AttributeError(f"module 'dider' has no attribute {name!r}")

@@ -22,7 +22,7 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from dider.evaluation.scoring import cv_verdict
+from dider.evaluation.scoring import cv_verdict, edges_verdict
 from dider.io import atomic_write_text
 from dider.outputs.prediction import PredictionWriter, PredictProgress
 from dider.outputs.run_record import (
@@ -34,6 +34,7 @@ from dider.outputs.run_record import (
     provenance,
     write_metrics,
 )
+from dider.outputs.summary import run_summary
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
@@ -120,6 +121,7 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     for warning in input_warnings(clips.states, clips.mask, trained.normalizer, where):
         log.warning(warning)
     module.predict_forecast = (burn_in, cfg.predict.forecast_steps) if cfg.predict.forecast_steps else None
+    module.predict_samples = int(cfg.predict.samples) if cfg.predict.forecast_steps else 0
     open_run_folder(out_dir, cfg)
     shutil.rmtree(staging, ignore_errors=True)  # a killed prediction's files: never part of this one
     writer = PredictionWriter(staging, burn_in)
@@ -299,6 +301,8 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         print(f"\n{format_table(metrics)}\n")
         if verdict := cv_verdict(metrics):
             (log.info if verdict[1] else log.warning)(verdict[0])
+        if warning := edges_verdict(metrics):
+            log.warning(warning)
         print(f"metrics: {out_dir / 'metrics.json'}", flush=True)
     if figures := draw_figures(trainer, model):  # after the results: a figure never costs them
         # logdir_spec names the run in TensorBoard's HParams table (with --logdir it is the folder "tb")
@@ -306,6 +310,10 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir_spec {name}:{out_dir})")
     if trainer.is_global_zero and (out_dir / "clips.npz").exists():
         print(f"explorer: python -m dider.analysis.explore {out_dir}  (writes {out_dir / 'explorer.html'})")
+    if trainer.is_global_zero and metrics:
+        data = HydraConfig.get().runtime.choices.get("data") if HydraConfig.initialized() else None
+        print("\n" + run_summary(metrics, out_dir, str(cfg.model.get("name", "")), data,
+                                 getattr(datamodule, "units", None)), flush=True)
     return metrics, objective
 
 

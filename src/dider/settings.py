@@ -25,8 +25,13 @@ class Protocol:
     # global: every agent observed for the clip's first burn_in frames; per_agent: each agent for its own first
     # burn_in present frames (agents that enter mid-clip)
     burn_in_mode: Any = "global"
+    # sampled futures scored in every test pass: minADE_K / minFDE_K per horizon over K roll-outs whose online edges
+    # are drawn from the prior (0: none)
+    samples: Any = 6
+    miss_threshold: Any = None  # data units: a sampled forecast's miss (minFDE_K above it; null: no miss rate)
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"burn_in": integer(1), "burn_in_mode": one_of(*BURN_IN_MODES)}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"burn_in": integer(1), "burn_in_mode": one_of(*BURN_IN_MODES),
+                                           "samples": integer(0), "miss_threshold": optional(above(0))}
 
 
 @dataclass
@@ -49,6 +54,9 @@ class PredictSettings:
     """``mode=predict``: what a checkpoint says about every clip of ``data``, written to ``predictions/``."""
 
     forecast_steps: Any = None  # also forecast this many steps after each clip's first burn_in frames (null: no)
+    # with forecast_steps: that many sampled futures of each clip too, their online edges drawn from the prior
+    # (forecast.csv's rows of sample 1..K; sample 0 is the forecast itself)
+    samples: Any = 0
     burn_in: Any = None  # frames observed before the forecast (null: the model's burn_in)
     progress_s: Any = 30  # a progress line (clips done, time left) every this many seconds
     # data.frame_rate and data.downsample shape the features: left out, the checkpoint's are used; set to another
@@ -57,7 +65,7 @@ class PredictSettings:
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
         "forecast_steps": optional(integer(1, " step")), "burn_in": optional(integer(1, " frame")),
-        "progress_s": above(0), "force": boolean,
+        "progress_s": above(0), "force": boolean, "samples": integer(0),
     }
 
 

@@ -30,6 +30,7 @@ from dider.models.legacy import network_hparams
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
+from dider.shipped import pretrained, resolve
 from dider.training.preflight import input_warnings, version_problem
 from dider.validation import above, check_arguments, integer, optional
 
@@ -39,12 +40,15 @@ log = logging.getLogger(__name__)
 
 def find_checkpoint(path: str | Path) -> Path:
     """A checkpoint file, or a run folder's: the best checkpoint its ``metrics.json`` names, else
-    ``checkpoints/last.ckpt``."""
+    ``checkpoints/last.ckpt``; or a shipped model's name (``dider.pretrained()``) that no file or folder has."""
     path = Path(path).expanduser()
     if path.is_file():
         return path
     if not path.is_dir():
-        raise FileNotFoundError(f"{path}: no such checkpoint file or run folder")
+        if (shipped := resolve(path)) is not None:
+            return shipped
+        raise FileNotFoundError(f"{path}: no such checkpoint file or run folder, nor a shipped model "
+                                f"({', '.join(pretrained()) or 'none'})")
     record = path / "metrics.json"
     if record.is_file():
         best = json.loads(record.read_text()).get("checkpoint")
@@ -168,14 +172,16 @@ class TrainedModel:
     @torch.no_grad()
     def forecast(self, positions: ArrayLike, burn_in: int, steps: int, mask: ArrayLike | None = None,
                  velocities: ArrayLike | None = None, frame_rate: float | None = None,
-                 seed: int | None = None) -> np.ndarray:
+                 seed: int | None = None, samples: int = 0) -> np.ndarray:
         """Positions [S, steps, N, 2] (input units) after the first ``burn_in`` frames of the model's input
         (frames 1..burn_in of the input with finite-difference velocities); agents present at the burn-in's
         last frame carry on, others are NaN. A model that samples its roll-out edges (DNRI's default)
         draws them from ``seed`` (default: the model's ``eval_seed``, as evaluation and ``mode=predict``
-        do), leaving the global random state alone."""
+        do), leaving the global random state alone. ``samples`` K > 0: K sampled futures instead, their online edges
+        drawn from the prior (types and segment ends) -> [K, S, steps, N, 2]."""
         check_arguments("TrainedModel.forecast", {"burn_in": (burn_in, integer(1)), "steps": (steps, integer(1)),
-                                                  "seed": (seed, optional(integer(0)))})
+                                                  "seed": (seed, optional(integer(0))),
+                                                  "samples": (samples, integer(0))})
         states, m, _ = self.states(positions, mask, velocities, frame_rate)
         if burn_in > states.shape[1]:
             raise ValueError(f"TrainedModel.forecast: burn_in={burn_in}: more than the {states.shape[1]} steps of the "
@@ -183,7 +189,9 @@ class TrainedModel:
         self.network.eval()
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.config.get("eval_seed", 0) if seed is None else seed)
-            pred = self.network.forecast_after(states, m, burn_in, steps)
+            pred = self.network.forecast_after(states, m, burn_in, steps, samples=samples)
+        if samples:  # [S, K, ...] -> [K, S, ...]
+            pred = pred.transpose(0, 1)
         xy = self.normalizer.denormalize(pred.float().cpu())[..., :2]
         return xy.masked_fill(~m[:, burn_in - 1, None, :, None].cpu(), float("nan")).numpy()
 

@@ -122,6 +122,8 @@ RULES: dict[str, Rule] = {
     "model.optimizer.lr": above(0),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
+    "model.samples": integer(0),
+    "model.miss_threshold": optional(above(0)),
     "model.burn_in": integer(1),
 }
 

@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 DEFAULT_METRICS = (
     "test/ade/h01", "test/ade/h15", "test/ade/h25", "test/cv/ade/h01", "test/cv/ade/h15", "test/cv/ade/h25",
     "test/ade_vs_cv/h01", "test/ade_vs_cv/h15", "test/ade_vs_cv/h25", "test/mse/h01", "test/mse/h15", "test/mse/h25",
+    "test/ade_vs_no_edges/h15", "test/ade_vs_no_edges/h25", "test/min_ade_6/h15", "test/min_ade_6/h25",
+    "test/min_fde_6/h25", "test/segments/per_constant_edge",
     "test/mse_posterior/h15", "test/mse_posterior/h25",
     "test/mse_oracle/h15", "test/mse_oracle/h25", "test/edge_acc/posterior/none",
     "test/edge_acc/posterior/interaction", "test/edge_acc/prior/none", "test/edge_acc/prior/interaction",

@@ -46,6 +46,9 @@ log = logging.getLogger(__name__)
 
 SECTIONS = (("Forecast against constant velocity: ADE over constant velocity's, same clips", r"ade_vs_cv/h\d+$"),
             ("Forecast against DNRI: error over DNRI's, paired by seed", r"(ade|fde)_vs_dnri/h\d+$"),
+            ("Forecast against the same model with every edge off: ADE over the edge-free roll-out's",
+             r"ade_vs_no_edges/h\d+$"),
+            ("Sampled futures: the best of K per agent (data units)", r"(min_ade|min_fde|miss_rate)_\d+/h\d+$"),
             ("Displacement error of the forecast positions (data units)", r"(cv/)?(ade|fde)/h\d+$"),
             ("Forecast MSE (normalised units)", r"mse/h\d+$"), ("Forecast MSE (data units)", r"mse_raw/h\d+$"),
             ("Forecast MSE with the edges inferred from the whole clip", r"mse_posterior/h\d+$"),

@@ -24,7 +24,7 @@ T975 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2
         2.042)
 BASELINE = "dnri"  # the ratio columns' model, when the sweep has it
 RATIO_OF = r"test/(ade|fde)/h\d+"  # the errors a ratio column divides (data units: a ratio is unit-free)
-LOWER_IS_BETTER = r"test/(ade|fde|ade_vs_cv|(ade|fde)_vs_\w+|mse\w*)/h\d+"  # not cv/: the same for every row
+LOWER_IS_BETTER = r"test/(ade|fde|ade_vs_cv|(ade|fde)_vs_\w+|mse\w*|(min_ade|min_fde|miss_rate)_\d+)/h\d+"  # not cv/
 HIGHER_IS_BETTER = r"test/(edge_acc/.*|boundary_f1)"
 
 

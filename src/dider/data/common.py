@@ -56,6 +56,14 @@ class ClipDataset(Dataset):
     def __len__(self) -> int:
         return self.states.shape[0]
 
+    def to(self, device: torch.device | str) -> ClipDataset:
+        """The clips moved to ``device`` (a GPU the model trains on: batches are then gathered there, with no copy
+        from the host a step but the batch's indices)."""
+        self.states, self.mask = self.states.to(device), self.mask.to(device)
+        self.edges = None if self.edges is None else self.edges.to(device)
+        self.sources = None if self.sources is None else {k: v.to(device) for k, v in self.sources.items()}
+        return self
+
     def __getitems__(self, indices: Sequence[int]) -> Batch:
         """A batch in one gather per array (the DataLoader calls it with a batch's indices), with ``everyone``:
         whether every agent of the batch is present, known on the host (no look at the mask on the device)."""
@@ -280,6 +288,16 @@ class ClipDataModule(L.LightningDataModule):
         the checkpoint's."""
         if self.normalizer is None and "normalizer" in state:
             self.normalizer = Normalizer(**state["normalizer"])
+
+    def to_device(self, device: torch.device) -> None:
+        """Hold the in-memory clips on ``device`` (the model's GPU), so batches are made there; clips padded per
+        batch (:class:`PackedClipDataset`) stay on the host. Loaders made afterwards take no worker processes (a
+        worker cannot gather on the GPU) and no pinned memory."""
+        moved = [split for split, ds in self.datasets.items() if isinstance(ds, ClipDataset)]
+        for split in moved:
+            self.datasets[split] = self.datasets[split].to(device)
+        if moved:
+            self.loader = replace(self.loader, num_workers=0, pin_memory=False)
 
     def use_normalizer(self, normalizer: Normalizer) -> None:
         """Normalise with a trained model's normaliser instead of fitting one (before ``setup``: prediction, and

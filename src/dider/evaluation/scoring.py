@@ -28,6 +28,7 @@ from dider.evaluation.metrics import (
     PairConsistency,
     SegmentStats,
 )
+from dider.evaluation.sampled import MinDisplacement, sampled_values
 from dider.evaluation.type_meaning import TypeProfile, pair_features, profile_values
 from dider.graph import edge_mask
 
@@ -53,12 +54,15 @@ EDGE_SOURCES = ("posterior", "oracle")
 class TestMetrics(nn.Module):
     """update() per test batch, compute() once at the end: ``test/...`` name -> value."""
 
-    def __init__(self, horizons: Sequence[int], num_types: int) -> None:
+    def __init__(self, horizons: Sequence[int], num_types: int, samples: int = 0,
+                 miss_threshold: float | None = None) -> None:
         super().__init__()
+        self.samples = samples  # the sampled futures' count, K (0: none scored)
+        self.sampled = MinDisplacement(horizons, miss_threshold)
         self.mse, self.mse_raw = HorizonMSE(horizons), HorizonMSE(horizons)
         # ADE / FDE of positions in data units, the model's and constant velocity's on the same clips and masks:
         # the bar a forecaster has to clear, in the units its users read.
-        self.displacement = nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
+        self.displacement = nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv", "no_edges")})
         self.mse_by_edges = nn.ModuleDict({k: HorizonMSE(horizons) for k in EDGE_SOURCES})
         self.acc_posterior, self.acc_prior = EdgeAccuracy(), EdgeAccuracy()
         # The prior read at every step, as if it could re-decide each step (for DNRI it is ``prior``): beside
@@ -76,21 +80,26 @@ class TestMetrics(nn.Module):
     def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
                normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
                prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None,
-               cv: Forecast | None = None) -> None:
+               cv: Forecast | None = None, futures: torch.Tensor | None = None,
+               no_edges: Forecast | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
         by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
         prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held).
         own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own).
-        cv: the constant-velocity forecast of the same clips under the same protocol."""
+        cv: the constant-velocity forecast of the same clips under the same protocol. futures: [B, K, P, N, D] the
+        sampled forecasts (:meth:`~dider.models.vae.RelationalVAE.sample_futures`), scored in data units.
+        no_edges: the model's own roll-out with every edge off (its decoder's dynamics alone), on the same clips."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
         units = data_units(normalizer)
-        for name, f in {"model": forecast, "cv": cv}.items():
+        for name, f in {"model": forecast, "cv": cv, "no_edges": no_edges}.items():
             if f is not None:
                 self.displacement[name].update(units(f.pred), units(f.target), f.mask, f.horizon)
         if normalizer is not None:
             self.mse_raw.update(units(forecast.pred), units(forecast.target), forecast.mask, forecast.horizon)
+        if futures is not None:
+            self.sampled.update(units(futures), units(forecast.target), forecast.mask, forecast.horizon)
         # One rule for the edge-steps the type table and the interaction rates count: both agents present at t
         # and the receiver at t+1 (where its acceleration is defined).
         features, steps = pair_features(units(batch["states"]), batch["mask"])  # [B, E, T-1, F], [B, E, T-1]
@@ -114,6 +123,11 @@ class TestMetrics(nn.Module):
     def compute(self) -> dict[str, torch.Tensor]:
         """Every metric that saw data, then reset them all."""
         out = displacement_values("test", self.displacement["model"], self.displacement["cv"])
+        if (off := self.displacement["no_edges"]).update_count:  # what the edges add to the decoder's dynamics
+            (ade, _), (ade_off, _) = self.displacement["model"].compute(), off.compute()
+            out |= {f"test/ade_vs_no_edges/h{h:02d}": a / b for h, a, b in zip(off.horizons, ade, ade_off, strict=True)}
+        if self.sampled.update_count:
+            out |= sampled_values("test", self.sampled, self.samples)
         out |= horizon_values("test/mse", self.mse)
         if self.mse_raw.update_count:
             out |= horizon_values("test/mse_raw", self.mse_raw)
@@ -239,6 +253,19 @@ def leading_first(names: Sequence[str]) -> list[str]:
     def rank(name: str) -> tuple[int, str]:
         return next((i for i, p in enumerate(LEADING) if name.startswith(p)), len(LEADING)), name
     return sorted(names, key=rank)
+
+
+def edges_verdict(metrics: Mapping[str, float]) -> str | None:
+    """A warning when the edges do not earn their keep: the forecast with the model's own edges is no better than
+    the same roll-out with every edge off (``.../ade_vs_no_edges/hXX`` >= 1 at the longest horizon); None
+    otherwise, or without the ratio."""
+    ratios = dict(sorted((k.rsplit("/", 1)[1], float(v)) for k, v in metrics.items()
+                         if "/ade_vs_no_edges/" in k and math.isfinite(float(v))))
+    if not ratios or ratios[list(ratios)[-1]] < 1.0:
+        return None
+    text = ", ".join(f"{h} {v:.2f}x" for h, v in ratios.items())
+    return (f"the edges do not earn their keep: the forecast is no better than the same model's with every edge off "
+            f"(position ADE over the edge-free roll-out's: {text}); read its edge types with care")
 
 
 def cv_verdict(metrics: Mapping[str, float]) -> tuple[str, bool] | None:

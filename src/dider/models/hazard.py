@@ -120,10 +120,16 @@ class HazardPrior(nn.Module):
         left = self.observed - t if t < self.observed else end - t
         return torch.full(h_t.shape[:2], left, dtype=torch.long, device=h_t.device)
 
-    def boundary(self, h_t: torch.Tensor, t: int, end: int) -> torch.Tensor:
+    def boundary(self, h_t: torch.Tensor, t: int, end: int, draw: bool = False) -> torch.Tensor:
         """Online: [B, E] bool, where a new segment starts at step t: after the burn-in, where the prior hazard
-        (past only) exceeds ``online_threshold``. Where an edge enters, the roll-out's state machine reads a
-        new type anyway (:meth:`RelationalVAE.advance_edges`), and a segment lasts to the next boundary."""
+        (past only) exceeds ``online_threshold`` (``draw``: with the hazard's probability, a sampled future). Where
+        an edge enters, the roll-out's state machine reads a new type anyway (:meth:`RelationalVAE.advance_edges`),
+        and a segment lasts to the next boundary."""
         if t <= self.observed:
             return torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
-        return torch.sigmoid(self.prior_logits(h_t)) > self.online_threshold
+        return fires(torch.sigmoid(self.prior_logits(h_t)), self.online_threshold, draw)
+
+
+def fires(p: torch.Tensor, threshold: float, draw: bool) -> torch.Tensor:
+    """A boundary with probability ``p``: drawn (a sampled future), or where p passes ``threshold``."""
+    return torch.rand_like(p) < p if draw else p > threshold

@@ -28,7 +28,8 @@ OLD_LOSS_KEYS = ("nll_variance", "beta_edge", "beta_duration", "capacity_edge", 
 
 
 # The keys of an older flat model config that configured the LightningModule, not the network.
-MODULE_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite")
+MODULE_KEYS = ("optimizer", "scheduler", "burn_in", "horizons", "burn_in_mode", "eval_seed", "check_finite", "samples",
+               "miss_threshold")
 
 
 def split_model_config(node: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:

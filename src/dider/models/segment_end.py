@@ -52,7 +52,7 @@ from dider.models.end_categorical import (
     median_end,
     offset_features,
 )
-from dider.models.hazard import HazardPrior, hold_assignment
+from dider.models.hazard import HazardPrior, fires, hold_assignment
 from dider.models.held_hazard import HeldHazard
 from dider.models.layers import SumLinear
 from dider.models.plugins import Progress
@@ -257,12 +257,13 @@ class SegmentEnd(HazardPrior):
 
     # ------------------------------------------------------------------ the prior hazard, at every step and online
     def boundary(self, h_t: torch.Tensor, t: int, end: int, held: torch.Tensor | None = None,
-                 age: torch.Tensor | None = None) -> torch.Tensor:
+                 age: torch.Tensor | None = None, draw: bool = False) -> torch.Tensor:
         """Online: [B, E] bool, where a new segment starts at step t: after the burn-in, where the prior hazard of
-        the held type ``held`` at the segment's ``age`` ([B, E] long) passes ``online_threshold``."""
+        the held type ``held`` at the segment's ``age`` ([B, E] long) passes ``online_threshold`` (``draw``: with
+        the hazard's probability, a sampled future)."""
         if t <= self.observed:
             return torch.zeros(h_t.shape[:2], dtype=torch.bool, device=h_t.device)
-        return torch.sigmoid(self.prior.at(h_t, held, age)) > self.online_threshold
+        return fires(torch.sigmoid(self.prior.at(h_t, held, age)), self.online_threshold, draw)
 
     def boundary_fit(self, h_fwd: torch.Tensor, held: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """The prior hazard fitted at every free step to where the posterior's held type changes (a binary cross
@@ -274,7 +275,8 @@ class SegmentEnd(HazardPrior):
         logits = self.prior.along(h_fwd, held, change)
         fixed, _ = self.forced(t, h_fwd.device, present)
         free = present & ~fixed
-        nll = F.binary_cross_entropy_with_logits(logits, change.float(), reduction="none")
+        y = change.float()  # log-sigmoids, not BCE-with-logits: its gradient's sigmoid rounds by vector width
+        nll = -(y * F.logsigmoid(logits) + (1 - y) * F.logsigmoid(-logits))
         return (nll * free).flatten(1).sum(1) / present.flatten(1).sum(1).clamp_min(1)
 
     def cut_kl(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, gate: torch.Tensor, free: torch.Tensor,

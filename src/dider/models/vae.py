@@ -208,7 +208,7 @@ class RelationalVAE(nn.Module):
     # ------------------------------------------------------------------ online edges and roll-out
     def advance_edges(
         self, h_t: torch.Tensor, t: int, end: int, etype: torch.Tensor, left: torch.Tensor, sample: bool,
-        entered: torch.Tensor | None = None, start: torch.Tensor | None = None,
+        entered: torch.Tensor | None = None, start: torch.Tensor | None = None, draw: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Online segment state machine, vectorised over [B, E]: when an edge's segment has no steps left (the
         burn-in's end, or a duration run out), a new type comes from the prior and a new duration from the duration
@@ -217,23 +217,26 @@ class RelationalVAE(nn.Module):
         age, and a boundary of its brings the prior's most likely other type. entered: [B, E] bool, the edges
         present at t and not at t - 1 (None: none entered); there the type is read afresh and the segment's
         duration runs on, as training splits a slot at an entry (``Segmentation.split_at``). start: [B, E] long,
-        the step each edge's segment started (None: 0). -> the types held at t, the steps left, the starts."""
+        the step each edge's segment started (None: 0). draw: a sampled future: the boundaries drawn with the
+        hazard's probability and the type head's flip read from a drawn type, not the most likely one. -> the types
+        held at t, the steps left, the starts."""
         caps = self.capabilities
         start = torch.zeros_like(etype) if start is None else start
         ran_out = left <= 0
         fired = torch.zeros_like(ran_out)
+        extra = {"draw": True} if draw else {}
         if caps.boundary:
-            fired = self.duration.boundary(h_t, t, end, etype, t - start) if caps.held_type else \
-                self.duration.boundary(h_t, t, end)
+            fired = self.duration.boundary(h_t, t, end, etype, t - start, **extra) if caps.held_type else \
+                self.duration.boundary(h_t, t, end, **extra)
         logits = self.prior(h_t)
-        if caps.online_retype and t > caps.observed:
-            fired = fired | (logits.argmax(-1) != etype)  # the past shows another type than the one held
+        new = pick_types(logits, sample or draw)
+        if caps.online_retype and t > caps.observed:  # the past shows another type than the one held
+            fired = fired | ((new if draw else logits.argmax(-1)) != etype)
         need = ran_out | fired
         fresh = ran_out if entered is None else ran_out | entered  # read afresh: any type
-        new = pick_types(logits, sample)
         if caps.held_type and self.duration.excludes_held:  # a boundary of a run: another type than the held one
             other = pick_types(logits.masked_fill(etype.unsqueeze(-1) == torch.arange(
-                logits.shape[-1], device=logits.device), float("-inf")), sample)
+                logits.shape[-1], device=logits.device), float("-inf")), sample or draw)
             new = torch.where(fired & ~fresh, other, new)
         retype = need | fresh
         etype = torch.where(retype, new, etype)
@@ -273,9 +276,20 @@ class RelationalVAE(nn.Module):
         return pick_types(logits, self.rollout_edges == "sample").unsqueeze(-1).expand(-1, -1, end)
 
     @torch.no_grad()
+    def sample_futures(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int,
+                       mode: str = "global", samples: int = 6, draw: bool = True) -> torch.Tensor:
+        """``samples`` forecasts of every clip, [B, K, P, N, D]: one roll-out of the batch repeated K times, whose
+        online edges are drawn from the prior (the types, and where the duration has them the segments' ends),
+        under :meth:`rollout`'s protocol; ``draw=False``: the model's own roll-out, K times."""
+        b = x.shape[0]
+        pred, _ = self.rollout(x.repeat_interleave(samples, 0), mask.repeat_interleave(samples, 0), burn_in,
+                               num_pred, mode, draw=draw)
+        return pred.view(b, samples, *pred.shape[1:])
+
+    @torch.no_grad()
     def rollout(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global",
-        edges: torch.Tensor | None = None, decoder: nn.Module | None = None,
+        edges: torch.Tensor | None = None, decoder: nn.Module | None = None, draw: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Forecast: ground truth during the burn-in, then the model's own predictions.
 
@@ -293,7 +307,8 @@ class RelationalVAE(nn.Module):
         [B, >=burn_in+P, N] (agents present) -> predictions of x_burn_in..x_{burn_in+P-1} [B, P, N, D] (an
         agent's frame t is predicted from its input at t-1) and the edge types used at each transition
         [B, E, burn_in+P-1]. ``decoder``: another decoder to roll out under the same protocol and masks (the
-        constant-velocity forecast that test scores beside the model's), else the model's own.
+        constant-velocity forecast that test scores beside the model's), else the model's own. ``draw``: the online
+        edges drawn from the prior, types and segment ends (a sampled future, :meth:`sample_futures`).
         """
         decoder = self.decoder if decoder is None else decoder
         if burn_in < 1 or num_pred < 1:
@@ -328,7 +343,8 @@ class RelationalVAE(nn.Module):
                 if online:
                     h_t, enc_state = self.encoder.step(cur, enc_state, m_t)
             if online:
-                etype, left, start = self.advance_edges(h_t, t, end, etype, left, sample, entered[..., t], start)
+                etype, left, start = self.advance_edges(h_t, t, end, etype, left, sample, entered[..., t], start,
+                                                        draw)
             else:
                 etype = edges[:, :, t]
             types.append(etype)
@@ -345,12 +361,15 @@ class RelationalVAE(nn.Module):
 
     @torch.no_grad()
     def forecast_after(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, steps: int,
-                       decoder: nn.Module | None = None) -> torch.Tensor:
+                       decoder: nn.Module | None = None, samples: int = 0) -> torch.Tensor:
         """Forecast where nothing after the burn-in is known (new data, prediction): the agents present at the
-        burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D].
-        ``decoder``: another decoder under the same protocol (as in :meth:`rollout`), which reads no edges:
-        the model's encoder and prior are left alone (and draw nothing)."""
+        burn-in's last frame carry on. x [B, >=burn_in, N, D], mask [B, >=burn_in, N] -> [B, steps, N, D];
+        with ``samples`` K > 0, K futures of each clip whose online edges are drawn (:meth:`sample_futures`)
+        -> [B, K, steps, N, D]. ``decoder``: another decoder under the same protocol (as in :meth:`rollout`),
+        which reads no edges: the model's encoder and prior are left alone (and draw nothing)."""
         mask = torch.cat([mask[:, :burn_in], mask[:, burn_in - 1 : burn_in].expand(-1, steps, -1)], dim=1)
+        if samples:
+            return self.sample_futures(x[:, :burn_in], mask, burn_in, steps, samples=samples)
         n = x.shape[2]
         edges = None if decoder is None else x.new_zeros(x.shape[0], n * (n - 1), burn_in + steps - 1, dtype=torch.long)
         return self.rollout(x[:, :burn_in], mask, burn_in, steps, edges=edges, decoder=decoder)[0]

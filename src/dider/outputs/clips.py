@@ -30,7 +30,8 @@ from dider.io import atomic_write, atomic_write_bytes
 # Arrays over a clip's edges and transitions ([E, T-1, ...]): padded by re-indexing edges, not appending.
 EDGE_KEYS = ("segments", "probs", "per_step", "prior", "truth", "step_probs")
 # Arrays over a clip's agents ([T, N, ...] or [N]): padded by appending absent agents.
-AGENT_KEYS = {"states": 1, "positions": 1, "mask": 1, "forecast": 1, "agent": 0}  # key -> the agents' axis
+AGENT_KEYS = {"states": 1, "positions": 1, "mask": 1, "forecast": 1, "forecast_samples": 2,
+              "agent": 0}  # key -> the agents' axis
 # Fill values for what padding adds: absent edges and agents.
 FILL = {"segments": -1, "per_step": -1, "prior": -1, "truth": -1, "agent": -1}
 
@@ -180,7 +181,8 @@ def write_table(frame: pd.DataFrame, path: Path) -> list[Path]:
 
 # The dtypes clips.npz stores each key in (compact; types fit int8 for up to 127 edge types).
 NPZ_DTYPES = {"segments": np.int8, "per_step": np.int8, "prior": np.int8, "truth": np.int8, "probs": np.float16,
-              "step_probs": np.float16, "positions": np.float32, "forecast": np.float32, "mask": np.bool_}
+              "step_probs": np.float16, "positions": np.float32, "forecast": np.float32, "forecast_samples": np.float32,
+              "mask": np.bool_}
 
 
 def write_clips_npz(path: Path, arrays: Mapping[str, torch.Tensor], extra: Mapping[str, np.ndarray]) -> None:
@@ -202,9 +204,10 @@ def explore_arrays(arrays: Mapping[str, torch.Tensor], dm: Any) -> dict[str, tor
         norm = getattr(dm, "normalizer", None)
         states = norm.denormalize(arrays["states"]) if norm is not None else arrays["states"]
         out["positions"] = states[..., :2] * arrays["mask"][..., None]
-    if "forecast" in arrays:
-        norm = getattr(dm, "normalizer", None)
-        out["forecast"] = (norm.denormalize(arrays["forecast"]) if norm is not None else arrays["forecast"])[..., :2]
+    norm = getattr(dm, "normalizer", None)
+    for key in ("forecast", "forecast_samples"):
+        if key in arrays:
+            out[key] = (norm.denormalize(arrays[key]) if norm is not None else arrays[key])[..., :2]
     return out
 
 

@@ -52,12 +52,20 @@ log = logging.getLogger(__name__)
 
 def forecast_frame(arrays: Mapping[str, torch.Tensor], burn_in: int, frame_step: int = 1,
                    names: Mapping[str, Sequence[str]] | None = None) -> pd.DataFrame:
-    """The forecast as a long table: one row per (clip, agent, predicted step) of an agent that carries on.
+    """The forecast as a long table: one row per (clip, agent, predicted step) of an agent that carries on; with
+    ``forecast_samples`` [S, K, P, N, 2] also the sampled futures, a ``sample`` column telling them apart (0: the
+    forecast, 1..K: the samples).
 
     arrays: ``forecast`` [S, P, N, 2] in input units, ``mask`` [S, T, N], optional ``clip`` [S], ``scene``
     [S], ``agent`` [S, N], ``frame`` [S]; names: key -> names of string ids (as in ``segments.csv``). The
     first predicted step is the clip's frame ``burn_in``."""
     names = names or {}
+    if "forecast_samples" in arrays:  # sample 0: the forecast; 1..K: the sampled futures
+        futures = torch.cat([arrays["forecast"].unsqueeze(1), arrays["forecast_samples"]], 1)  # [S, 1+K, P, N, 2]
+        frames = [forecast_frame({**{k: v for k, v in arrays.items() if k != "forecast_samples"},
+                                  "forecast": futures[:, k]}, burn_in, frame_step, names).assign(sample=k)
+                  for k in range(futures.shape[1])]  # a few samples: one table each, then one sort
+        return pd.concat(frames).sort_values(["clip", "sample", "agent", "step"], kind="stable", ignore_index=True)
     pred = arrays["forecast"]
     s, p, n, _ = pred.shape
     alive = arrays["mask"][:, burn_in - 1]  # [S, N]

@@ -61,27 +61,63 @@ class FiniteGuard(L.Callback):
     batch and the loss term: for a gradient, the step is replayed (same batch, same random state) and each
     term differentiated on its own. Costs one device sync per step for the loss and one for the gradients.
 
+    ``every`` steps instead (None: on a GPU, the trainer's ``log_every_n_steps``; on a CPU, every step): the
+    checks then accumulate on the device and are read back once per ``every`` steps, so a GPU's step never waits
+    for them; the error names the first bad step, and the term is named by a rerun on a CPU.
+
     The module's ``training_step`` returns its loss terms (the objective's, ``loss`` and ``nelbo``) and offers
     ``loss_terms(batch)``, which recomputes them."""
 
-    def __init__(self) -> None:
+    def __init__(self, every: int | None = None) -> None:
+        self.every = every
         self._step: tuple[Any, int, dict[str, Any], str] | None = None  # batch, index, random state, where
         self._loss_finite = True
+        self._deferred: int | None = None  # the steps between read-backs, once training starts (None: each step)
+        self._first_bad: torch.Tensor | None = None  # [2] long on the device: the first bad loss / gradient step
+        self._count: torch.Tensor | None = None  # steps since the window's start, on the device
+        self._window_start = 0
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        on_gpu = pl_module.device.type == "cuda"
+        self._deferred = self.every if self.every is not None else (trainer.log_every_n_steps if on_gpu else None)
+        if self._deferred is not None:
+            self._reset(trainer, pl_module.device)
+
+    def _reset(self, trainer: L.Trainer, device: torch.device) -> None:
+        self._first_bad = torch.full((2,), -1, dtype=torch.long, device=device)
+        self._count = torch.zeros((), dtype=torch.long, device=device)
+        self._window_start = trainer.global_step
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, batch: Any,
                              batch_idx: int) -> None:
+        if self._deferred is not None:
+            return
         where = f"step {trainer.global_step}, batch {batch_idx} of epoch {trainer.current_epoch}"
         self._step = (batch, batch_idx, rng_state(full=False), where)
 
+    def _note(self, which: int, finite: torch.Tensor) -> None:
+        """Deferred: record the window's first step where ``finite`` (a device bool) is false (0 loss, 1 grads)."""
+        first = self._first_bad[which]
+        self._first_bad[which] = torch.where((first < 0) & ~finite, self._count, first)
+
     def on_before_backward(self, trainer: L.Trainer, pl_module: L.LightningModule, loss: torch.Tensor) -> None:
+        if self._deferred is not None:
+            self._note(0, torch.isfinite(loss.detach()).all())
+            return
         self._loss_finite = bool(torch.isfinite(loss.detach()).all())
 
     def on_after_backward(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         # A non-finite loss is reported with its terms at the end of the batch; fp16 mixed precision skips
         # steps with inf gradients on purpose.
-        if not self._loss_finite or getattr(trainer.precision_plugin, "scaler", None) is not None:
+        if getattr(trainer.precision_plugin, "scaler", None) is not None:
             return
         named = [(k, p.grad) for k, p in pl_module.named_parameters() if p.grad is not None]
+        if self._deferred is not None:
+            if named:
+                self._note(1, torch.stack([torch.isfinite(g).all() for _, g in named]).all())
+            return
+        if not self._loss_finite:
+            return
         if not named or bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
             return
         params = [k for k, g in named if not bool(torch.isfinite(g).all())]
@@ -92,6 +128,12 @@ class FiniteGuard(L.Callback):
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
+        if self._deferred is not None:
+            self._count += 1
+            if (trainer.global_step - self._window_start) % self._deferred == 0 or batch_idx + 1 >= \
+                    trainer.num_training_batches:
+                self._read_back(trainer, pl_module)
+            return
         if self._loss_finite or not isinstance(outputs, dict):
             return
         names = [*(k for k in outputs if k not in ("loss", "nelbo")), "loss"]  # the terms, then their weighted sum
@@ -102,6 +144,19 @@ class FiniteGuard(L.Callback):
                f"({', '.join(f'{k}={v}' for k, v in bad.items())}); stopping the run")
         log.error(msg)
         raise NonFiniteError(msg)
+
+    def _read_back(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """Deferred: read the window's record (one host synchronisation) and stop on a bad step."""
+        loss_at, grad_at = self._first_bad.tolist()
+        for what, at in (("loss", loss_at), ("gradient", grad_at)):
+            if at >= 0:
+                msg = (f"non-finite {what} at step {self._window_start + at} (found at step {trainer.global_step}: "
+                       f"the checks are read every {self._deferred} steps on a GPU); stopping the run. To name the "
+                       f"loss term, resume from the last checkpoint before it on a CPU (trainer=cpu), which checks "
+                       f"each step")
+                log.error(msg)
+                raise NonFiniteError(msg)
+        self._reset(trainer, pl_module.device)
 
     def _where(self) -> str:
         return self._step[3] if self._step is not None else "unknown step"

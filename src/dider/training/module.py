@@ -7,6 +7,7 @@ Shapes: B batch, T frames, N agents, D features, E edges, K edge types, P predic
 
 from __future__ import annotations
 
+import inspect
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -55,6 +56,8 @@ class RelationalVAEModule(L.LightningModule):
         eval_seed: int = 0,
         check_finite: bool = True,
         model: Mapping[str, Any] | None = None,
+        samples: int = 0,
+        miss_threshold: float | None = None,
     ) -> None:
         """net: the network's config (``_target_`` and plugins: the ``net`` node of ``conf/model``), built as
         ``self.model``; model: the same under its older name (checkpoints written before ``net``). optimizer,
@@ -62,12 +65,15 @@ class RelationalVAEModule(L.LightningModule):
         forecast protocol (``conf/model`` interpolates the ``protocol`` node; a None burn_in_mode, in
         hyper-parameters saved before it was, is ``global``: ``load_from_checkpoint(path,
         burn_in_mode="per_agent")`` sets another). eval_seed: validation and test draw from it, so their metrics
-        depend on the weights only. check_finite: stop on a NaN/inf loss term or gradient."""
+        depend on the weights only. check_finite: stop on a NaN/inf loss term or gradient. samples, miss_threshold:
+        the sampled futures each test pass scores (``protocol.samples``, ``protocol.miss_threshold``;
+        :mod:`dider.evaluation.sampled`)."""
         super().__init__()
         if net is None and model is None:
             raise TypeError("RelationalVAEModule: net, the network's config, is required")
         net = split_model_config(plain_config(net if net is not None else model))[0]  # today's form, saved as such
-        require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite})
+        require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite, "model.samples": samples,
+                 "model.miss_threshold": miss_threshold})
         # Configs only (plain containers): the checkpoint rebuilds the module and loads with weights_only.
         self.save_hyperparameters(ignore=["model"], logger=False)
         self.model = RelationalVAE.from_config(net)
@@ -76,11 +82,12 @@ class RelationalVAEModule(L.LightningModule):
         self.val_ade = torch.nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
         self.val_acc = EdgeAccuracy()
         self.val_cut = OwnCut(tolerance=2)
-        self.test_metrics = TestMetrics(horizons, self.model.num_types)
+        self.test_metrics = TestMetrics(horizons, self.model.num_types, samples, miss_threshold)
         self.constant_velocity = ConstantVelocity()  # no parameters: scored beside the model at test
         # Prediction's optional forecast: (burn_in, steps) from each clip's first frames, or None (set by
         # ``mode=predict``, not a hyper-parameter: it does not change the model).
         self.predict_forecast: tuple[int, int] | None = None
+        self.predict_samples = 0  # with predict_forecast: that many sampled futures of each clip too
         self.predict_scores: torch.nn.ModuleDict | None = None  # set at the start of each prediction
 
     @classmethod
@@ -114,15 +121,18 @@ class RelationalVAEModule(L.LightningModule):
         return self.model(x, mask, burn_in, num_pred, self.burn_in_mode)
 
     def on_fit_start(self) -> None:
-        """What is fitted to a training batch before the first optimiser step: a kinematic decoder's step
+        """On a GPU, the data module's in-memory clips move there (``to_device``). Then what is fitted to a training
+        batch before the first optimiser step: a kinematic decoder's step
         (:class:`~dider.models.decoders.KinematicStep`) and, with ``objective.nll.variance: fit``, the NLL's
         variance per feature. A resumed run keeps its trained values (the weights are restored before this hook,
         the step count after it: a checkpoint being loaded is the sign)."""
+        dm = getattr(self.trainer, "datamodule", None)
+        if self.device.type == "cuda" and hasattr(dm, "to_device"):  # batches made on the GPU, not copied there
+            dm.to_device(self.device)
         step = self.model.decoder.kinematic if self.model.fits_kinematics else None
         likelihood = self.model.likelihood
         if (step is None and not likelihood.to_fit) or self.trainer.ckpt_path is not None:
             return
-        dm = getattr(self.trainer, "datamodule", None)
         if dm is None:
             if likelihood.to_fit:
                 raise ValueError("model.net.objective.nll.variance=fit fits the variance to a training batch of the "
@@ -194,7 +204,8 @@ class RelationalVAEModule(L.LightningModule):
         terms = self.model.loss(out, progress)
         bs = batch["states"].shape[0]
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
-        self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
+        if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
+            self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
         self.log_dict({f"train/schedule/{k}": v for k, v in self.model.schedule(progress).items()},
                       on_step=False, on_epoch=True, batch_size=bs)  # the epoch's mean: logged however short
         self._log_segments("train", out, batch)
@@ -266,8 +277,15 @@ class RelationalVAEModule(L.LightningModule):
             by_edges["oracle"] = self._forecast(batch, batch["edges"].transpose(1, 2))
         prior_per_step = self.model.prior(out.h_fwd).argmax(-1)
         cv = self._forecast(batch, torch.zeros_like(posterior), self.constant_velocity)
+        futures = None
+        if self.hparams.samples:  # drawn aside: the other metrics' draws are those of a test pass without them
+            b = self.hparams.burn_in
+            with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
+                futures = self.model.sample_futures(batch["states"], batch["mask"], b, batch["states"].shape[1] - b,
+                                                    self.burn_in_mode, self.hparams.samples)
+        no_edges = self._forecast(batch, torch.zeros_like(posterior)) if self.model.decoder_edges else None
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
-                                 self.own_cut(out, batch), cv)
+                                 self.own_cut(out, batch), cv, futures, no_edges)
         absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
@@ -284,11 +302,15 @@ class RelationalVAEModule(L.LightningModule):
         """What the model says about clips without ground truth: :meth:`RelationalVAE.describe` (each
         [B, E, T-1], ``step_probs`` [B, E, T-1, K]), the batch's ``states``, ``mask`` and ``source``, and with
         ``predict_forecast = (burn_in, steps)`` the ``forecast`` [B, steps, N, D] from each clip's first
-        burn_in frames (agents present at the burn-in's last frame carry on)."""
+        burn_in frames (agents present at the burn-in's last frame carry on), and with ``predict_samples`` K the
+        ``forecast_samples`` [B, K, steps, N, D] (sampled futures)."""
         x, mask = batch["states"], batch["mask"]
         out: dict[str, Any] = {"states": x, "mask": mask, "source": batch.get("source", {})}
         if self.predict_forecast is not None:  # first: its sampled edges are the first draws from eval_seed
             out["forecast"] = self.model.forecast_after(x, mask, *self.predict_forecast)
+            if self.predict_samples:
+                out["forecast_samples"] = self.model.forecast_after(x, mask, *self.predict_forecast,
+                                                                    samples=self.predict_samples)
             self._score_forecast(x, mask, out["forecast"])
         out |= self.model.describe(self.model.infer(batch, hard=True), mask)
         self.predict_scores["types"].update(out["segments"], *pair_features(self._data_units()(x), mask))
@@ -344,8 +366,11 @@ class RelationalVAEModule(L.LightningModule):
             checkpoint["state_dict"] = {f"model.{k}": v for k, v in state.items()}
 
     def configure_optimizers(self) -> Any:
-        opt = instantiate(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True})(
-            params=self.parameters())
+        make = instantiate(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True})
+        # On a GPU the optimiser keeps its step count on the device (``capturable``): the update then reads nothing
+        # back to the host, and a CUDA graph can hold it. The arithmetic is the same.
+        capturable = self.device.type == "cuda" and "capturable" in inspect.signature(make.func).parameters
+        opt = make(params=self.parameters(), **({"capturable": True} if capturable else {}))
         if self.hparams.scheduler is None:
             return opt
         scheduler = instantiate(self.hparams.scheduler)(optimizer=opt)

@@ -19,6 +19,7 @@ from dider.models.legacy import stray_keys
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
 from dider.settings import NODES
+from dider.shipped import pretrained, resolve
 from dider.validation import RULES, ConfigError, node_problems, problem, settings_problems
 
 log = logging.getLogger(__name__)
@@ -102,8 +103,10 @@ def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
                         "one of its checkpoint files (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
     tested = mode in ("eval", "predict")  # a run folder is a checkpoint there, as for dider.load
     folder_ok = tested and ckpt and Path(str(ckpt)).expanduser().is_dir()
-    if ckpt and ckpt != "last" and not folder_ok and not Path(str(ckpt)).expanduser().is_file():
-        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if tested else ""))
+    shipped = ckpt and resolve(str(ckpt)) is not None  # a shipped model's name (dider.pretrained())
+    if ckpt and ckpt != "last" and not folder_ok and not shipped and not Path(str(ckpt)).expanduser().is_file():
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if tested else "")
+                        + f", nor a shipped model ({', '.join(pretrained()) or 'none'})")
     return problems
 
 
@@ -179,7 +182,8 @@ def _store_problem(uri: str) -> str | None:
 
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
 TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
-                  "optimized_metric", "predict", "protocol", "data", "model", "trainer", "logger", "callbacks", "hydra",
+                  "optimized_metric", "eval", "predict", "protocol", "data", "model", "trainer", "logger", "callbacks",
+                  "hydra",
                   "hparams_search", "edges_per_model"}
 
 

@@ -1,0 +1,79 @@
+"""Ship a trained run inside the package: a slim copy of its checkpoint and a catalog record of how it was trained
+and what it scores, so that ``dider.load(NAME)`` and ``ckpt_path=NAME`` find it.
+
+    python -m dider.analysis.ship RUN synth/dider --what "DIDER, synthetic protocol, seed 1" \\
+        --evaluate experiment=synth_protocol model=dider data.num_test=100
+
+The evaluation command (``mode=eval ckpt_path=NAME`` and the given overrides) runs here, in a fresh process, and
+its test metrics go into the record; the shipped test (tests/test_shipped.py) runs it again and compares.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from dider.io import atomic_torch_save, atomic_write_text
+from dider.shipped import HERE, catalog
+from dider.trained import find_checkpoint, read_checkpoint
+
+# What a checkpoint needs to be loaded for testing, prediction and the API; the optimiser and loop states stay behind.
+KEPT = ("state_dict", "hyper_parameters", "dider", "pytorch-lightning_version", "epoch", "global_step")
+
+
+def slim(source: Path) -> dict[str, Any]:
+    """The checkpoint at ``source`` without its optimiser, scheduler, callback and loop states."""
+    ckpt = read_checkpoint(source)
+    return {k: ckpt[k] for k in KEPT if k in ckpt}
+
+
+def evaluate(name: str, overrides: list[str]) -> dict[str, float]:
+    """The test metrics of ``python -m dider.run mode=eval ckpt_path=NAME OVERRIDES`` (a fresh process)."""
+    with tempfile.TemporaryDirectory() as folder:
+        cmd = [sys.executable, "-m", "dider.run", "mode=eval", f"ckpt_path={name}", *overrides, "logger=csv",
+               "hydra.mode=RUN", f"hydra.run.dir={folder}", "trainer.enable_progress_bar=false"]
+        done = subprocess.run(cmd, capture_output=True, text=True)
+        if done.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+        return json.loads((Path(folder) / "metrics.json").read_text())["metrics"]
+
+
+def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any]:
+    """Write the slim checkpoint and its catalog record (both atomically); -> the record."""
+    source = find_checkpoint(run)
+    record_of_run = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
+    file = name.replace("/", "_") + ".ckpt"
+    atomic_torch_save(slim(source), HERE / file)
+    entries = dict(catalog())
+    entries[name] = {"file": file, "what": what,
+                     "trained_with": "python -m dider.run " + " ".join(record_of_run.get("overrides", [])),
+                     "git_commit": record_of_run.get("provenance", {}).get("git_commit"),
+                     "evaluate": overrides, "metrics": {}}
+    catalog.cache_clear()
+    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
+    catalog.cache_clear()
+    entries[name]["metrics"] = evaluate(name, overrides)
+    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
+    catalog.cache_clear()
+    return entries[name]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a trained run folder (or a checkpoint file)")
+    parser.add_argument("name", help="the name to ship it under, e.g. synth/dider")
+    parser.add_argument("--what", required=True, help="one line on what it is")
+    parser.add_argument("--evaluate", nargs="*", default=[], help="the overrides of its scoring command")
+    args = parser.parse_args(argv)
+    record = ship(args.run, args.name, args.what, args.evaluate)
+    size = (HERE / record["file"]).stat().st_size
+    print(f"{args.name}: {HERE / record['file']} ({size / 1e6:.2f} MB), {len(record['metrics'])} test metrics")
+
+
+if __name__ == "__main__":
+    main()
