@@ -123,7 +123,7 @@ def test_forecast_names_and_units_embedded(tmp_path: Path) -> None:
     path = tmp_path / "clips.npz"
     data = write_clips(path, forecast=True)
     payload = page_payload(load_clips(path), path, [0, 1])
-    assert payload["units"] == "m" and payload["agent_names"][17] == "provider-id-00017"
+    assert payload["units"] == "m" and payload["agent_names"][17] == "provider-id-00017" and payload["frame_step"] == 10
     for s, clip in enumerate(payload["clips"]):
         fc = clip["fc"]
         assert fc["start"] == FORECAST_START
@@ -131,9 +131,16 @@ def test_forecast_names_and_units_embedded(tmp_path: Path) -> None:
         for agent in fc["agents"]:
             path_xy = np.array(decode_path(agent["xy"], clip["d"]))
             assert np.allclose(path_xy, data["forecast"][s, :, agent["k"]], atol=10 ** -clip["d"])
+        assert len(fc["samples"]) == 2 and [[a["k"] for a in paths] for paths in fc["samples"]] == [
+            [a["k"] for a in fc["agents"]]] * 2
+        for k, paths in enumerate(fc["samples"]):
+            for agent in paths:
+                path_xy = np.array(decode_path(agent["xy"], clip["d"]))
+                assert np.allclose(path_xy, data["forecast_samples"][s, k, :, agent["k"]], atol=10 ** -clip["d"])
     write_clips(tmp_path / "plain.npz")
     plain = page_payload(load_clips(tmp_path / "plain.npz"), tmp_path / "plain.npz", [0])
     assert plain["clips"][0]["fc"] is None and plain["units"] == "" and plain["agent_names"] == []
+    assert plain["frame_step"] == 1
 
 
 def test_optional_keys_absent(tmp_path: Path) -> None:
@@ -336,10 +343,10 @@ def test_browser_draws_types_of_each_frame(run: Path) -> None:
     assert final.arrows == clip1["arrows"]
 
 
-def test_browser_draws_forecast_scale_bar_and_short_names(tmp_path: Path) -> None:
+def test_browser_draws_forecast_scale_bar_full_names_and_source_frames(tmp_path: Path) -> None:
     """The page in headless Chromium draws one dashed forecast per agent that carries on, from its position
-    at the frame before the forecast, a scale bar of a round length in metres, and the long names shortened
-    with the full one on hover."""
+    at the frame before the forecast, a scale bar of a round length in metres, the long names in full (on the
+    scene and the timelines), and the source's frame numbers (ten input frames a step)."""
     binary = browser()
     data = write_clips(tmp_path / "run" / "clips.npz", forecast=True)
     page = write_explorer(tmp_path / "run")
@@ -348,12 +355,18 @@ def test_browser_draws_forecast_scale_bar_and_short_names(tmp_path: Path) -> Non
     paths = re.findall(r'<path class="fc" data-agent="(\d+)" d="([^"]+)"', forecast)
     assert [int(a) for a, _ in paths] == [17, 4, 23]  # clip 0's present agents, by slot
     assert all(len(re.findall("[ML]", d)) == 1 + T - FORECAST_START for _, d in paths)  # start point + forecast
+    drawn = re.findall(r'<path class="fcs" data-agent="(\d+)"', forecast)
+    assert [int(a) for a in drawn] == [17, 4, 23] * 2  # each sampled future, thin, under the forecast
     bar = re.search(r'<g id="scalebar" data-length="([\d.]+)">.*?<text[^>]*>([^<]+)</text>', dom, re.S)
     assert float(bar.group(1)) in {1, 2, 5, 10, 20, 50} and bar.group(2) == f"{float(bar.group(1)):g} m"
     labels = re.findall(r'<g class="agent" data-agent="(\d+)"><title>agent ([^<]+)</title>.*?<text[^>]*>([^<]+)</text>',
                         dom, re.S)
-    assert labels[0] == ("17", "provider-id-00017", "prov\u20260017")
+    assert labels[0] == ("17", "provider-id-00017", "provider-id-00017")
     assert {full for _, full, _ in labels} == {str(data["agent_names"][k]) for k in (17, 4, 23)}
+    pairs = re.findall(r'<text class="edgelabel"[^>]*>([^<]+)</text>', dom)
+    assert "provider-id-00017\u2192provider-id-00004" in pairs
+    frame = re.search(r'<[^>]*id="frameLabel"[^>]*>([^<]+)<', dom).group(1)
+    assert "input frame 120" in frame  # clip 0 starts at input frame 100; frame 2 is two steps of ten later
 
 
 @pytest.mark.slow

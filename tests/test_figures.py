@@ -100,3 +100,9 @@ def test_forecast_figure_draws_every_carried_agent():
     agent0 = np.stack(model)[0::2]  # segments come step by step, agents 0 and 1 in turn
     assert np.allclose(agent0[0, 0], positions[burn_in - 1, 0]) and np.allclose(agent0[:, 1], forecast[:, 0])
     plt.close(fig)
+    samples = torch.stack([forecast - 1, forecast + 2])  # two sampled futures, drawn thin under the forecast
+    fig = forecast_figure(positions, mask, forecast, positions[burn_in:], burn_in, samples=samples)
+    drawn = fig.axes[0].collections[2].get_segments()
+    assert len(drawn) == 2 * 2 * p and np.allclose(drawn[2 * p + 1][1], samples[1, 0, 1])  # the second, agent 1
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()][-1] == "sampled futures"
+    plt.close(fig)

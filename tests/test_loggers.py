@@ -55,3 +55,16 @@ def test_early_stopping_stops_a_run(make_cfg, tmp_path):
 
     last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["epoch"] < 5 and "test/mse/h01" in metrics  # stopped early (no improvement of 1e9), then tested
+
+
+def test_a_runs_tensorboard_name_carries_every_swept_setting(monkeypatch):
+    from omegaconf import OmegaConf
+
+    from dider.outputs import run_record
+
+    given = ["experiment=edge_ablation", "model=dider", "seed=2", "model.num_edges=6", "+data.options={limit:30}",
+             "hydra.sweep.dir=x", "logger=csv", "data.root=/d", "trainer.precision=32-true"]
+    monkeypatch.setattr(run_record, "overrides", lambda: given)
+    cfg = OmegaConf.create({"model": {"name": "dider"}, "seed": 2})
+    assert run_record.run_label(cfg) == \
+        "dider-seed2-model.num_edges=6-data.options={limit.30}-trainer.precision=32-true"

@@ -218,6 +218,9 @@ def test_horizon_bands_stop_a_decade_below_the_mean(tmp_path: Path, monkeypatch)
     (band,) = figures[0].axes[0].collections
     ys = band.get_paths()[0].vertices[:, 1]
     assert ys.min() == pytest.approx(5e-6) and np.isclose(ys, 1.5e-3).any()
+    fig = figures[0]  # the title lies inside the figure, not cut at its edges
+    box, title = fig.bbox, fig.axes[0].title.get_window_extent(fig.canvas.get_renderer())
+    assert box.x0 <= title.x0 and title.x1 <= box.x1 and title.y1 <= box.y1
 
 
 @pytest.mark.parametrize("means, exponent, decimals, cells", [
@@ -317,3 +320,27 @@ def test_broken_running_and_evaluated_jobs(tmp_path: Path, caplog):
     assert summary.failed[1].startswith(f"model=dnri,e=2,seed=3 (running (pid {os.getpid()} ")
     assert [len(g.jobs) for g in summary.groups] == [2]  # seed 1 and its twin; not the evaluation
     assert "ran the same settings: both are kept" in caplog.text and "twin" in caplog.text
+
+
+def test_the_reference_of_a_ratio_is_not_its_best_row_and_a_wide_table_is_split(tmp_path: Path):
+    """DNRI's own row of ADE over DNRI's is 1 on every seed: no rival. DIDER's ratios are 0.75 and 1.5 (mean
+    1.125): with DNRI's row left out no other row is there to beat, so nothing in that column is bold; nor where
+    the two rows tie (MSE). Ten value columns go into two tabulars of five."""
+    jobs = [(m, 2, seed) for m in ("dnri", "dider") for seed in (1, 2)]
+    sweep = fake_sweep(tmp_path, {"model": "dnri,dider", "seed": "1,2"}, jobs)
+    ade = {("dnri", 1): 4.0, ("dnri", 2): 2.0, ("dider", 1): 3.0, ("dider", 2): 3.0}
+    for f in sweep.glob("*/metrics.json"):
+        record = json.loads(f.read_text())
+        for h in (1, 5, 10, 20):
+            record["metrics"][f"test/ade/h{h:02d}"] = ade[record["model"], record["seed"]] * h
+        f.write_text(json.dumps(record))
+    report.main([str(sweep), "--out", str(tmp_path / "out")])
+    tex = (tmp_path / "out" / "report.tex").read_text()
+    assert tex.count(r"\begin{tabular}") == 2 and tex.count(r"\begin{table}") == 1  # 4 ratios, 4 ADEs, 2 MSEs
+    assert "mse/h01" in tex.split(r"\medskip")[1] and r"\textbf{3.50}" not in tex
+    ratios = [line for line in tex.splitlines() if "ade\\_vs\\_dnri/h01" in line]
+    assert ratios, tex
+    rows = tex.split(ratios[0], 1)[1].split(r"\bottomrule", 1)[0]
+    assert r"\textbf" not in rows and "1.00 $\\pm$ 0.00" in rows.replace("1.000", "1.00")
+    md = (tmp_path / "out" / "report.md").read_text()
+    assert "**1.00" not in md

@@ -11,6 +11,9 @@ from dider.evaluation.type_meaning import (
     TypeProfile,
     degenerate_types,
     pair_features,
+    pair_verdict,
+    profile_notes,
+    profile_array,
     profile_rows,
     profile_values,
 )
@@ -49,7 +52,7 @@ def test_type_profile_with_and_without_by_hand() -> None:
     metric = TypeProfile(3)
     metric.update(types[:, :2], features[:, :2], present[:, :2])  # two batches add up
     metric.update(types[:, 2:], features[:, 2:], present[:, 2:])
-    share, with_, without = metric.compute()
+    share, with_, without, _ = metric.compute()
     torch.testing.assert_close(share, torch.tensor([1 / 3, 2 / 3, 0.0]))
     torch.testing.assert_close(with_[:2, 0], torch.tensor([9.0, 3.0]))
     torch.testing.assert_close(without[:, 0], torch.tensor([3.0, 9.0, 5.0]))
@@ -59,6 +62,29 @@ def test_type_profile_with_and_without_by_hand() -> None:
     rows = profile_rows(values, "test")
     assert [r["type"] for r in rows] == [0, 1, 2] and rows[1]["share"] == pytest.approx(2 / 3)
     assert rows[0]["others_distance"] == pytest.approx(3.0)
+
+
+def test_a_type_is_about_the_pair_where_it_beats_the_same_type_on_shuffled_pairs() -> None:
+    """Two clips of two edges. Clip 0: distances 1, 5 with types 1, 0; clip 1: distances 6, 2 with types 0, 1;
+    closing speed 10 - distance. Type 1 holds on the near pairs: distance 1.5 against 5.5 (gap -4). Read beside
+    the other clip's pairs it holds at 6 and 5 (5.5 against 1.5: gap +4). The distances' standard deviation is
+    sqrt(16.5 - 3.5^2) = 2.0616, so type 1 is 8 / 2.0616 = 3.88 deviations nearer than on shuffled pairs and as
+    much faster closing in; type 0 the opposite."""
+    features = torch.zeros(2, 2, 1, len(PAIR_FEATURES))
+    features[..., 0, 0] = torch.tensor([[1.0, 5.0], [6.0, 2.0]])
+    features[..., 0, 1] = 10 - features[..., 0, 0]
+    types = torch.tensor([[1, 0], [0, 1]]).view(2, 2, 1)
+    metric = TypeProfile(2)
+    metric.update(types, features, torch.ones(2, 2, 1, dtype=torch.bool))
+    beyond = metric.compute()[3]
+    torch.testing.assert_close(beyond, torch.tensor([[8.0, -8.0], [-8.0, 8.0]]) / 17**0.5 * 2)
+    values = {k: float(v) for k, v in profile_values("test", metric).items()}
+    assert values["test/type1/beyond_shuffled/distance"] == pytest.approx(-8 / 4.25**0.5, rel=1e-5)
+    notes = profile_notes(profile_array(values, "test"))
+    assert notes[1].endswith("about the pair: nearer and closing in faster than the same type on shuffled pairs")
+    assert "not about the pair" in notes[0]
+    assert pair_verdict(-0.1, 0.1).startswith("not about") and pair_verdict(float("nan"), 0.0) == ""
+    assert pair_verdict(0.0, 0.3) == "about the pair: closing in faster than the same type on shuffled pairs"
 
 
 def test_degenerate_types_are_named_with_their_share() -> None:

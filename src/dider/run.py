@@ -32,6 +32,7 @@ from dider.outputs.run_record import (
     overridden_keys,
     overrides,
     provenance,
+    run_label,
     write_metrics,
 )
 from dider.outputs.summary import run_summary
@@ -306,8 +307,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         print(f"metrics: {out_dir / 'metrics.json'}", flush=True)
     if figures := draw_figures(trainer, model):  # after the results: a figure never costs them
         # logdir_spec names the run in TensorBoard's HParams table (with --logdir it is the folder "tb")
-        name = f"{cfg.model.get('name', 'model')}-seed{cfg.seed}"
-        print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir_spec {name}:{out_dir})")
+        print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir_spec {run_label(cfg)}:{out_dir})")
     if trainer.is_global_zero and (out_dir / "clips.npz").exists():
         print(f"explorer: python -m dider.analysis.explore {out_dir}  (writes {out_dir / 'explorer.html'})")
     if trainer.is_global_zero and metrics:

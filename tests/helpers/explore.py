@@ -66,7 +66,8 @@ AGENT_NAMES = np.array([f"provider-id-{i:05d}" for i in range(24)])  # long stri
 def write_clips(path: Path, truth: bool = True, background: bool = True, names: bool = True,
                 forecast: bool = False) -> dict[str, np.ndarray]:
     """The small fixture; returns what it wrote. ``forecast``: also a forecast from FORECAST_START (the true
-    positions shifted by 0.3 in x), AGENT_NAMES for the agent codes and units "m"."""
+    positions shifted by 0.3 in x) and two sampled futures (that forecast 0.5 down and up), AGENT_NAMES for the agent
+    codes, units "m" and ten input frames a step."""
     mask = _mask()
     frames = np.arange(T, dtype=np.float32)[None, :, None]
     slots = np.arange(N, dtype=np.float32)[None, None, :]
@@ -94,6 +95,9 @@ def write_clips(path: Path, truth: bool = True, background: bool = True, names: 
         data["forecast"] = (pos[:, FORECAST_START:] + np.array([0.3, 0.0], np.float32)).astype(np.float32)
         data["forecast_start"] = np.array(FORECAST_START)
         data["agent_names"], data["units"] = AGENT_NAMES, np.array("m")
+        data["frame_step"] = np.array(10)  # data.downsample=10: a step is ten input frames
+        data["forecast_samples"] = np.stack([data["forecast"] + np.array([0.0, dy], np.float32) for dy in (-0.5, 0.5)],
+                                            axis=1)  # [S, K, P, N, 2]
     if background:
         ramp = np.linspace(0, 255, 30, dtype=np.uint8)
         data["background_of"] = np.array([0, -1])

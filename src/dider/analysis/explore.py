@@ -6,8 +6,9 @@ training run's test split) and writes ``RUN_DIR/explorer.html``: the agents' pat
 with a scale bar in the data's units, the model's forecast after the burn-in (dashed; ``forecast`` and
 ``forecast_start`` in clips.npz), arrows sender -> receiver coloured by interaction type at a chosen frame,
 and per-edge timelines of every source (truth, per-step posterior, segments, prior). String agent ids
-(``agent_names``) are shown shortened, in full on hover. The page needs no network: data, images (base64 PNG),
-JavaScript and styles are inline.
+(``agent_names``) are shown in full; input frame numbers are the source's (``frame`` of each clip plus its
+steps times ``frame_step``, the frames per step under ``data.downsample``). The page needs no network: data,
+images (base64 PNG), JavaScript and styles are inline.
 
 Clips are addressed by their row in ``clips.npz`` everywhere (``--clips``, the page's selector, the URL hash
 ``#clip=ROW&frame=F&source=segments`` (also ``&zero=faint``) and ``window.explorer.setClip(ROW)``). Frame F
@@ -174,14 +175,20 @@ def agent_payload(xy: np.ndarray, present: np.ndarray, slot: int, ident: int, de
 def forecast_payload(data: dict[str, np.ndarray], s: int, decimals: int) -> dict[str, Any] | None:
     """The model's forecast of clip ``s`` (``forecast`` [S, P, N, 2] for frames ``forecast_start``..): the
     start frame and, per agent present at the frame before it, the predicted path delta-coded as in
-    :func:`agent_payload`; None without a forecast."""
+    :func:`agent_payload`; with ``forecast_samples`` [S, K, P, N, 2] also each sampled future's paths
+    (``samples``: K lists); None without a forecast."""
     if "forecast" not in data or "forecast_start" not in data:
         return None
     start, pred = int(data["forecast_start"]), data["forecast"][s]
     alive = data["mask"][s][start - 1].astype(bool) & np.isfinite(pred).all(axis=(0, 2))
-    every = np.ones(len(pred), bool)
-    agents = [agent_payload(pred[:, k], every, int(k), int(k), decimals) for k in np.flatnonzero(alive)]
-    return {"start": start, "agents": [{"k": a["k"], "xy": a["xy"]} for a in agents]}
+
+    def paths(future: np.ndarray) -> list[dict[str, Any]]:  # [P, N, 2]
+        every = np.ones(len(future), bool)
+        return [{"k": int(k), "xy": agent_payload(future[:, k], every, int(k), int(k), decimals)["xy"]}
+                for k in np.flatnonzero(alive & np.isfinite(future).all(axis=(0, 2)))]
+
+    drawn = data["forecast_samples"][s] if "forecast_samples" in data else []
+    return {"start": start, "agents": paths(pred), "samples": [paths(future) for future in drawn]}
 
 
 def sources_of(data: dict[str, np.ndarray]) -> list[str]:
@@ -277,6 +284,7 @@ def page_payload(data: dict[str, np.ndarray], path: Path, rows: list[int], note:
             "note": note, "num_types": num_types, "type_names": type_names(data), "colors": type_colors(num_types),
             "type_notes": profile_notes(data["type_profile"]) if "type_profile" in data else [],
             "units": str(data["units"]) if "units" in data else "",
+            "frame_step": int(data["frame_step"]) if "frame_step" in data else 1,
             "agent_names": [str(n) for n in data["agent_names"]] if "agent_names" in data else [],
             "sources": sources_of(data), "edge_fields": edge_fields(data),
             "backgrounds": {str(k): background_payload(data[f"background_{k}"], data[f"background_{k}_extent"])

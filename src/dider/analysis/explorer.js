@@ -35,7 +35,6 @@ function decodeAgent(a, d) {
   return {slot: a.k, id: a.id, name: name, f0: a.f0, pts: pts};
 }
 // Long ids (e.g. provider player ids) shortened on the scene and the timelines; the full id shows on hover.
-function shortName(name) { return name.length > 10 ? name.slice(0, 4) + "\u2026" + name.slice(-4) : name; }
 function posAt(agent, f) {
   const i = f - agent.f0;
   return agent && i >= 0 && i < agent.pts.length ? agent.pts[i] : null;
@@ -54,7 +53,8 @@ function decodeClip(c) {
   for (const a of c.agents) agents.set(a.k, decodeAgent(a, c.d));
   const bg = c.bg === null ? null : DATA.backgrounds[c.bg];
   let fc = null;
-  if (c.fc) fc = {start: c.fc.start, paths: c.fc.agents.map((a) => decodeAgent({k: a.k, id: a.k, f0: c.fc.start, xy: a.xy}, c.d))};
+  const decodeFc = (list) => list.map((a) => decodeAgent({k: a.k, id: a.k, f0: c.fc.start, xy: a.xy}, c.d));
+  if (c.fc) fc = {start: c.fc.start, paths: decodeFc(c.fc.agents), samples: (c.fc.samples || []).map(decodeFc)};
   return {raw: c, T: c.T, agents: agents, edges: c.edges.map(decodeEdge), bg: bg, fc: fc};
 }
 
@@ -76,10 +76,12 @@ function projection(clip, W, H) {
 function typeName(v) { return v < 0 ? "absent" : v + " " + (DATA.type_names[v] || ""); }
 function agentId(slot) { const a = cur.agents.get(slot); return a ? a.id : slot; }
 function agentName(slot) { const a = cur.agents.get(slot); return a ? a.name : String(slot); }
+// The source's frame number of step f: data.downsample keeps every frame_step-th frame of the input.
+function inputFrame(f) { return cur.raw.frame + f * (DATA.frame_step || 1); }
 function transitionAt(f) { return Math.max(0, Math.min(f, cur.T - 2)); }
 function stepText(t) {
   let s = "step " + t + " (frames " + t + "\u2192" + (t + 1) + ")";
-  if (cur.raw.frame !== null) s += ", input frames " + (cur.raw.frame + t) + "\u2192" + (cur.raw.frame + t + 1);
+  if (cur.raw.frame !== null) s += ", input frames " + inputFrame(t) + "\u2192" + inputFrame(t + 1);
   return s;
 }
 function pairText(e) {
@@ -119,16 +121,22 @@ function drawScene() {
 }
 // The forecast from the last burn-in frame on, dashed, beside the true path it should follow.
 function drawForecast() {
-  const g = $("forecast"), P = cur.proj;
+  const g = $("forecast");
   g.textContent = "";
   if (!cur.fc) return;
-  for (const f of cur.fc.paths) {
+  // the sampled futures first, thin, under the forecast: the spread of what the model thinks may happen
+  cur.fc.samples.forEach((paths, k) => drawPaths(g, paths, "fcs", "sampled future " + (k + 1) + " of agent "));
+  drawPaths(g, cur.fc.paths, "fc", "forecast of agent ");
+}
+function drawPaths(g, paths, cls, what) {
+  const P = cur.proj;
+  for (const f of paths) {
     const from = posAt(cur.agents.get(f.slot), cur.fc.start - 1);
     const pts = (from ? [from] : []).concat(f.pts.filter((p) => p));
     if (pts.length < 2) continue;
-    const path = el("path", {class: "fc", "data-agent": agentId(f.slot),
+    const path = el("path", {class: cls, "data-agent": agentId(f.slot),
       d: pts.map((p, i) => (i ? "L" : "M") + P.px(p[0]).toFixed(1) + " " + P.py(p[1]).toFixed(1)).join("")}, g);
-    el("title", {}, path).textContent = "forecast of agent " + agentName(f.slot) + " from frame " + cur.fc.start;
+    el("title", {}, path).textContent = what + agentName(f.slot) + " from frame " + cur.fc.start;
   }
 }
 // A scale bar of a round length (1, 2 or 5 x 10^n data units) near a fifth of the scene's width.
@@ -192,13 +200,13 @@ function drawFrame() {
     const g = el("g", {class: "agent", "data-agent": a.id}, agents);
     el("title", {}, g).textContent = "agent " + a.name;
     el("circle", {cx: P.px(p[0]), cy: P.py(p[1]), r: R}, g);
-    el("text", {x: P.px(p[0]) + R + 2, y: P.py(p[1]) - R - 1}, g).textContent = shortName(a.name);
+    el("text", {x: P.px(p[0]) + R + 2, y: P.py(p[1]) - R - 1}, g).textContent = a.name;
   }
   const cursor = $("cursor");
   if (cursor) cursor.setAttribute("x", TL.left + t * cur.cw);
   $("slider").value = f;
   let label = "frame " + f + " / " + (cur.T - 1) + " \u00b7 step " + t + "\u2192" + (t + 1);
-  if (cur.raw.frame !== null) label += " \u00b7 input frame " + (cur.raw.frame + f);
+  if (cur.raw.frame !== null) label += " \u00b7 input frame " + inputFrame(f);
   $("frameLabel").textContent = label + " \u00b7 " + active + " interacting";
   const ds = document.body.dataset;
   ds.clip = cur.raw.row; ds.frame = f; ds.transition = t; ds.source = state.source;
@@ -214,6 +222,10 @@ function drawTimelines() {
   const wrap = getComputedStyle($("tlwrap"));  // clientWidth includes the padding
   const inner = $("tlwrap").clientWidth - parseFloat(wrap.paddingLeft) - parseFloat(wrap.paddingRight);
   const W = Math.max(500, inner - 2), block = srcs.length * TL.row + TL.gap;
+  // the pair labels in full, however long the ids: the label column grows with the longest (about 6.5 px a
+  // character at the page's font size, beside the source names)
+  const longest = Math.max(0, ...edges.map((e) => agentName(e.s).length + agentName(e.r).length + 1));
+  TL.left = Math.max(128, Math.ceil(6 + 6.5 * longest + 44));
   cur.cw = (W - TL.left - 16) / n;  // room for the last tick's label
   cur.shown = edges;
   svg.setAttribute("width", W);
@@ -229,7 +241,7 @@ function drawTimelines() {
   edges.forEach((e, i) => {
     const y0 = TL.head + i * block;
     el("text", {class: "edgelabel", x: 6, y: y0 + srcs.length * TL.row / 2 + 4}, svg).textContent =
-      shortName(agentName(e.s)) + "\u2192" + shortName(agentName(e.r));
+      agentName(e.s) + "\u2192" + agentName(e.r);
     srcs.forEach((src, j) => {
       const y = y0 + j * TL.row;
       const label = el("text", {class: "srclabel", x: TL.left - 4, y: y + TL.row - 1.5, "text-anchor": "end"}, svg);
@@ -352,7 +364,7 @@ function arrowsNow() {
 function drawInfo() {
   const c = cur.raw, rows = [["row", c.row + " of " + DATA.total], ["clip", c.clip]];
   if (c.scene !== null) rows.push(["scene", c.scene]);
-  if (c.frame !== null) rows.push(["input frames", c.frame + "\u2013" + (c.frame + c.T - 1)]);
+  if (c.frame !== null) rows.push(["input frames", c.frame + "\u2013" + inputFrame(c.T - 1)]);
   rows.push(["agents", Array.from(cur.agents.values()).map((a) => a.name).join(", ")]);
   if (cur.fc) rows.push(["forecast", "dashed, from frame " + cur.fc.start + " (after the burn-in)"]);
   rows.push(["edges", cur.edges.length + " present, " + cur.edges.filter((e) => e.active).length + " interacting"]);

@@ -232,9 +232,12 @@ def horizons_figure(s: Summary, path: Path) -> bool:
         ax.plot(hs, mean, marker="o", label=f"{g.label} (n={int(n.max())})")
         # on the log axis a band reaching 0 would span decades: its lower edge stops at a tenth of the mean
         ax.fill_between(hs, np.maximum(mean - half, mean / 10), mean + half, alpha=0.2)
-    ax.set(xlabel="forecast horizon (steps after burn-in)", ylabel="MSE (normalised)", yscale="log",
-           title="Forecast error by horizon, 95% confidence bands (lower edge at most 10x below the mean)")
+    ax.set(xlabel="forecast horizon (steps after burn-in)", ylabel="MSE (normalised)", yscale="log")
+    # two lines, each narrower than the figure: a one-line title of this length is cut at both edges
+    ax.set_title("Forecast error by horizon\n95% confidence bands (lower edge at most 10x below the mean)",
+                 fontsize=9)
     ax.legend(fontsize=7)
+    fig.tight_layout()
     _save(fig, path)
     return True
 

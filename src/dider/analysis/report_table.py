@@ -130,9 +130,12 @@ def best_row(stats: pd.DataFrame, metric: str) -> int | None:
     """The group with the best mean of ``metric`` (None: no direction, or fewer than two groups with a value)."""
     sign = direction(metric)
     means = stats[(metric, "mean")].dropna()
+    if re.search(r"_vs_\w+/", metric):  # a ratio to a reference: the reference's own row (1, every seed) is no rival
+        means = means[~((means == 1) & (stats[(metric, "std")].fillna(0) == 0))]
     if sign == 0 or len(means) < 2:
         return None
-    return int(means.idxmax() if sign > 0 else means.idxmin())
+    best = means.idxmax() if sign > 0 else means.idxmin()
+    return None if int((means == means[best]).sum()) > 1 else int(best)  # a tie has no best row
 
 
 def paired_support(frame: pd.DataFrame, best: int, metric: str) -> tuple[bool, int, Any]:

@@ -45,12 +45,22 @@ def pair_features(states: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tenso
     return features, present
 
 
+# The features whose association with a type says the type is about the pair, and the smallest effect (in the
+# feature's standard deviation over all present edge-steps) beyond that on shuffled pairs that counts: a small
+# effect in Cohen's terms.
+PAIR_SPECIFIC = ("distance", "closing_speed")
+PAIR_EFFECT = 0.2
+
+
 class TypeProfile(Metric):
     """Per edge type: its share of the present edge-steps and the mean of each pair feature while it holds,
-    and over the other present edge-steps.
+    and over the other present edge-steps; and the same type on shuffled pairs (each clip's types read beside the
+    next clip's pair features, or the next edge's in a batch of one clip), whose with-minus-others gap in
+    distance and closing speed is what a type with no bearing on the pair shows.
 
     update(types [B, E, T-1] long, features [B, E, T-1, F], present [B, E, T-1] bool); compute() -> share [K],
-    mean_with [K, F], mean_without [K, F] (NaN where no edge-step is counted).
+    mean_with [K, F], mean_without [K, F] (NaN where no edge-step is counted), beyond_shuffled [K, 2]: the gap
+    (with - others) in :data:`PAIR_SPECIFIC` minus the shuffled pairs' gap, over the feature's standard deviation.
     """
 
     is_differentiable = False
@@ -59,35 +69,74 @@ class TypeProfile(Metric):
     def __init__(self, num_types: int, **kwargs) -> None:
         super().__init__(**kwargs)
         self.num_types = num_types
-        self.add_state("sums", torch.zeros(num_types, len(PAIR_FEATURES), dtype=torch.float64),
-                       dist_reduce_fx="sum")
-        self.add_state("counts", torch.zeros(num_types, dtype=torch.float64), dist_reduce_fx="sum")
+        f = len(PAIR_FEATURES)
+        for name, shape in (("sums", (num_types, f)), ("counts", (num_types,)), ("squares", (f,)),
+                            ("shuffled_sums", (num_types, f)), ("shuffled_counts", (num_types,)),
+                            ("shuffled_total", (f,)), ("shuffled_steps", ())):
+            self.add_state(name, torch.zeros(shape, dtype=torch.float64), dist_reduce_fx="sum")
+
+    def _weights(self, types: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        onehot = torch.nn.functional.one_hot(types.clamp(0, self.num_types - 1), self.num_types)
+        return (onehot * present.unsqueeze(-1)).double()  # [B, E, T-1, K]
 
     def update(self, types: torch.Tensor, features: torch.Tensor, present: torch.Tensor) -> None:
-        onehot = torch.nn.functional.one_hot(types.clamp(0, self.num_types - 1), self.num_types)
-        weight = (onehot * present.unsqueeze(-1)).double()  # [B, E, T-1, K]
-        self.sums += torch.einsum("betk,betf->kf", weight, features.double().nan_to_num())
+        values = features.double().nan_to_num()
+        weight = self._weights(types, present)
+        self.sums += torch.einsum("betk,betf->kf", weight, values)
         self.counts += weight.sum(dim=(0, 1, 2))
+        self.squares += (values.square() * present.unsqueeze(-1)).sum(dim=(0, 1, 2))
+        dim = 0 if types.shape[0] > 1 else 1  # another clip's pairs, or in a single clip another pair
+        if types.shape[dim] < 2:
+            return
+        other, there = values.roll(1, dim), present.roll(1, dim)
+        both = present & there
+        weight = self._weights(types, both)
+        self.shuffled_sums += torch.einsum("betk,betf->kf", weight, other)
+        self.shuffled_counts += weight.sum(dim=(0, 1, 2))
+        self.shuffled_total += (other * both.unsqueeze(-1)).sum(dim=(0, 1, 2))
+        self.shuffled_steps += both.sum()
 
-    def compute(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def compute(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         total, total_sums = self.counts.sum(), self.sums.sum(0)
         share = self.counts / total
         mean_with = self.sums / self.counts[:, None]
         mean_without = (total_sums - self.sums) / (total - self.counts)[:, None]
-        return share.float(), mean_with.float(), mean_without.float()
+        shuffled_with = self.shuffled_sums / self.shuffled_counts[:, None]
+        shuffled_without = (self.shuffled_total - self.shuffled_sums) / (self.shuffled_steps - self.shuffled_counts)[
+            :, None]
+        std = (self.squares / total - (total_sums / total).square()).clamp_min(0).sqrt()
+        gap = (mean_with - mean_without) - (shuffled_with - shuffled_without)
+        cols = [PAIR_FEATURES.index(name) for name in PAIR_SPECIFIC]
+        beyond = gap[:, cols] / std[cols]
+        return share.float(), mean_with.float(), mean_without.float(), beyond.float()
 
 
 def profile_values(prefix: str, metric: TypeProfile) -> dict[str, torch.Tensor]:
     """``prefix/typeK/share`` and, per feature, ``prefix/typeK/FEATURE`` (while K holds) and
-    ``prefix/typeK/others/FEATURE`` (the other present edge-steps)."""
-    share, mean_with, mean_without = metric.compute()
+    ``prefix/typeK/others/FEATURE`` (the other present edge-steps); ``prefix/typeK/beyond_shuffled/FEATURE`` for
+    :data:`PAIR_SPECIFIC` (:class:`TypeProfile`)."""
+    share, mean_with, mean_without, beyond = metric.compute()
     out: dict[str, torch.Tensor] = {}
     for k in range(metric.num_types):
         out[f"{prefix}/type{k}/share"] = share[k]
         for f, name in enumerate(PAIR_FEATURES):
             out[f"{prefix}/type{k}/{name}"] = mean_with[k, f]
             out[f"{prefix}/type{k}/others/{name}"] = mean_without[k, f]
+        for f, name in enumerate(PAIR_SPECIFIC):
+            out[f"{prefix}/type{k}/beyond_shuffled/{name}"] = beyond[k, f]
     return out
+
+
+def pair_verdict(beyond_distance: float, beyond_closing: float) -> str:
+    """A type's bearing on the pair, from its gaps beyond shuffled pairs (:class:`TypeProfile`)."""
+    if not (math.isfinite(beyond_distance) and math.isfinite(beyond_closing)):
+        return ""
+    found = [what for what, yes in (("nearer", beyond_distance <= -PAIR_EFFECT),
+                                    ("closing in faster", beyond_closing >= PAIR_EFFECT)) if yes]
+    if found:
+        return f"about the pair: {' and '.join(found)} than the same type on shuffled pairs"
+    return ("not about the pair: no nearer nor closing in faster than the same type on shuffled pairs (a state of "
+            "the agents' own motion?)")
 
 
 def profile_rows(values: dict[str, float], prefix: str) -> list[dict[str, float]]:
@@ -98,6 +147,8 @@ def profile_rows(values: dict[str, float], prefix: str) -> list[dict[str, float]
         for name in PAIR_FEATURES:
             row[name] = values[f"{prefix}/type{k}/{name}"]
             row[f"others_{name}"] = values[f"{prefix}/type{k}/others/{name}"]
+        for name in PAIR_SPECIFIC:
+            row[f"beyond_shuffled_{name}"] = values.get(f"{prefix}/type{k}/beyond_shuffled/{name}", math.nan)
         rows.append(row)
         k += 1
     return rows
@@ -119,12 +170,14 @@ def degenerate_types(values: dict[str, float], prefix: str) -> str | None:
 
 
 def profile_array(values: Mapping[str, float], prefix: str) -> np.ndarray | None:
-    """The profile as [K, 1 + 2F] float64 (share, the features while the type holds, over the others), as the
-    explorer's legend reads it from ``clips.npz`` (``type_profile``); None without a profile."""
+    """The profile as [K, 1 + 2F + 2] float64 (share, the features while the type holds, over the others, the
+    gaps beyond shuffled pairs), as the explorer's legend reads it from ``clips.npz`` (``type_profile``); None
+    without a profile."""
     rows = profile_rows(dict(values), prefix)
     if not rows:
         return None
-    keys = ["share", *PAIR_FEATURES, *(f"others_{f}" for f in PAIR_FEATURES)]
+    keys = ["share", *PAIR_FEATURES, *(f"others_{f}" for f in PAIR_FEATURES),
+            *(f"beyond_shuffled_{f}" for f in PAIR_SPECIFIC)]
     return np.array([[row[k] for k in keys] for row in rows], dtype=np.float64)
 
 
@@ -136,5 +189,7 @@ def profile_notes(profile: np.ndarray) -> list[str]:
     for row in profile:
         parts = [f"{100 * row[0]:.1f}% of edge-steps"]
         parts += [f"{label} {row[1 + i]:.3g} (others {row[1 + f + i]:.3g})" for i, label in enumerate(labels)]
+        if len(row) > 1 + 2 * f and (verdict := pair_verdict(row[1 + 2 * f], row[2 + 2 * f])):
+            parts.append(verdict)  # profiles written before the shuffled pairs have no such columns
         notes.append(" \u00b7 ".join(parts))
     return notes

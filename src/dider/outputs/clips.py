@@ -221,6 +221,7 @@ def explore_extras(pl_module: Any, dm: Any, split: str, arrays: Mapping[str, tor
     extra: dict[str, np.ndarray] = {"num_types": np.array(model.num_types), "model": np.array(str(model.name))}
     if (units := getattr(dm, "units", None)) is not None:
         extra["units"] = np.array(units)
+    extra["frame_step"] = np.array(int(getattr(dm, "frame_step", 1)))  # input frames per step (data.downsample)
     if names := getattr(dm, "source_names", {}).get("agent"):  # string ids: ``agent`` holds their codes
         extra["agent_names"] = np.array([str(n) for n in names])
     if (profile := profile_array(scores or {}, split)) is not None:

@@ -9,7 +9,7 @@ import re
 from collections.abc import Mapping
 
 from dider.evaluation.scoring import cv_verdict
-from dider.evaluation.type_meaning import PAIR_FEATURES, degenerate_types, profile_rows
+from dider.evaluation.type_meaning import PAIR_FEATURES, degenerate_types, pair_verdict, profile_rows
 
 
 def _num(value: float | None) -> str:
@@ -44,9 +44,10 @@ def results_markdown(metrics: Mapping[str, float], title: str = "") -> str:
         lines += ["**The model's own segments**", ""]
         lines += _table(["", "value"], [[k.replace("_", " "), _num(v)] for k, v in sorted(cut.items())]) + [""]
     if types := profile_rows(dict(metrics), "test"):
-        header = ["type", "share", *(f"{f} (others)" for f in PAIR_FEATURES)]
+        header = ["type", "share", *(f"{f} (others)" for f in PAIR_FEATURES), "against shuffled pairs"]
         rows = [[str(r["type"]), f"{100 * r['share']:.1f}%",
-                 *(f"{_num(r[f])} ({_num(r[f'others_{f}'])})" for f in PAIR_FEATURES)] for r in types]
+                 *(f"{_num(r[f])} ({_num(r[f'others_{f}'])})" for f in PAIR_FEATURES),
+                 pair_verdict(r["beyond_shuffled_distance"], r["beyond_shuffled_closing_speed"])] for r in types]
         lines += ["**What each type means** (mean over the edge-steps that hold it; in brackets, the others)", ""]
         lines += _table(header, rows)
         if warning := degenerate_types(dict(metrics), "test"):

@@ -81,6 +81,22 @@ def overridden_keys() -> set[str]:
     return {o.split("=", 1)[0].lstrip("+~") for o in overrides()}
 
 
+# Settings that name no run (where it writes, what it logs to, how it shows progress) or that the name holds anyway.
+UNNAMED = {"model", "seed", "experiment", "ckpt_path", "threads", "logger", "callbacks", "trainer.enable_progress_bar",
+           "data.cache_dir", "data.root", "data.path"}
+
+
+def run_label(cfg: DictConfig) -> str:
+    """A run's name for TensorBoard (``--logdir_spec NAME:FOLDER``): the model, the seed and every other setting
+    given on the command line, e.g. ``dider-seed1-model.num_edges=6``; no commas or colons, which logdir_spec
+    reads as separators."""
+    given = [o.lstrip("+~") for o in overrides()]
+    given = [o for o in given if (key := o.split("=", 1)[0]) not in UNNAMED
+             and not key.startswith(("hydra.", "logger.", "callbacks."))]
+    name = "-".join([f"{cfg.model.get('name', 'model')}-seed{cfg.seed}", *given])
+    return name.replace(",", ";").replace(":", ".")
+
+
 def hparams(cfg: DictConfig) -> dict[str, Any]:
     """The scalar settings worth comparing across runs, flattened with '/'."""
     keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}

@@ -127,11 +127,13 @@ def path_steps(pos: np.ndarray, present: np.ndarray) -> np.ndarray:
 
 
 def forecast_figure(positions: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor, cv: torch.Tensor,
-                    burn_in: int, title: str = "") -> plt.Figure:
+                    burn_in: int, title: str = "", samples: torch.Tensor | None = None) -> plt.Figure:
     """The true paths (observed part thin, future thick) against the model's forecast and constant velocity's
-    from the burn-in's last frame, in data units, for the agents present there; one collection per kind of line.
+    from the burn-in's last frame, in data units, for the agents present there; one collection per kind of line;
+    the sampled futures thin under them.
 
-    positions: [T, N, 2]; mask: [T, N] bool; forecast, cv: [P, N, 2] for frames burn_in .. burn_in + P - 1."""
+    positions: [T, N, 2]; mask: [T, N] bool; forecast, cv: [P, N, 2] for frames burn_in .. burn_in + P - 1;
+    samples: [K, P, N, 2] or None."""
     pos, present = positions.numpy(), mask.numpy()
     carry = present[burn_in - 1]  # [N]
     fig, ax = plt.subplots(figsize=(6, 6))
@@ -143,6 +145,10 @@ def forecast_figure(positions: torch.Tensor, mask: torch.Tensor, forecast: torch
                                      **styles["true"]))
     start = pos[burn_in - 1 : burn_in]  # [1, N, 2]: each forecast starts at the last observed position
     ahead = np.broadcast_to(carry, (len(forecast) + 1, len(carry)))
+    if samples is not None and len(samples):
+        styles["sampled futures"] = {"colors": "tab:red", "linestyles": "-"}
+        drawn = [step for future in samples.numpy() for step in path_steps(np.concatenate([start, future]), ahead)]
+        ax.add_collection(LineCollection(drawn, lw=0.6, alpha=0.35, **styles["sampled futures"]))
     for name, path in (("model", forecast), ("constant velocity", cv)):
         xy = np.concatenate([start, path.numpy()])
         ax.add_collection(LineCollection(path_steps(xy, ahead), lw=1.4, **styles[name]))
@@ -238,16 +244,19 @@ class TimelineFigures(L.Callback):
             written.append(_add(trainer, f"test/trajectories/{i:02d}", fig,
                                 self.output_dir / f"trajectories_{i:02d}.png"))
             if (forecast := self._forecast(pl_module, data["states"][i], data["mask"][i], norm)) is not None:
-                fig = forecast_figure(states[..., :2], data["mask"][i], *forecast, pl_module.hparams.burn_in,
-                                      title=f"test clip {index}: forecast from frame {pl_module.hparams.burn_in}")
+                pred, cv, futures = forecast
+                fig = forecast_figure(states[..., :2], data["mask"][i], pred, cv, pl_module.hparams.burn_in,
+                                      title=f"test clip {index}: forecast from frame {pl_module.hparams.burn_in}",
+                                      samples=futures)
                 written.append(_add(trainer, f"test/forecast/{i:02d}", fig, self.output_dir / f"forecast_{i:02d}.png"))
 
     @staticmethod
     @torch.no_grad()
     def _forecast(pl_module: L.LightningModule, states: torch.Tensor, mask: torch.Tensor,
-                  norm: Any) -> tuple[torch.Tensor, torch.Tensor] | None:
+                  norm: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None] | None:
         """The model's and constant velocity's forecast of one clip [T, N, 4] after the model's burn-in, in data
-        units: ([P, N, 2], [P, N, 2]), drawn from ``eval_seed`` as evaluation draws; None if nothing follows it."""
+        units: ([P, N, 2], [P, N, 2]), drawn from ``eval_seed`` as evaluation draws, and the test pass's sampled
+        futures (``protocol.samples`` K: [K, P, N, 2], else None); None if nothing follows it."""
         model, burn_in = pl_module.model, int(pl_module.hparams.burn_in)
         steps = states.shape[0] - burn_in
         if steps < 1 or not hasattr(pl_module, "constant_velocity"):
@@ -255,9 +264,16 @@ class TimelineFigures(L.Callback):
         pred = seeded_forecast(pl_module, states[None], mask[None], burn_in, steps)[0]
         x, m = states[None].to(pl_module.device), mask[None].to(pl_module.device)
         cv = model.forecast_after(x, m, burn_in, steps, pl_module.constant_velocity)[0].float().cpu()
+        futures = None
+        if int(pl_module.hparams.get("samples", 0) or 0) > 0 and model.decoder_edges:
+            with torch.random.fork_rng(devices=[x.device] if x.device.type == "cuda" else []):
+                torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)) + 1)
+                futures = model.forecast_after(x, m, burn_in, steps, samples=int(pl_module.hparams.samples))
+            futures = futures[0].float().cpu()
         if norm is not None:
             pred, cv = norm.denormalize(pred), norm.denormalize(cv)
-        return pred[..., :2], cv[..., :2]
+            futures = None if futures is None else norm.denormalize(futures)
+        return pred[..., :2], cv[..., :2], None if futures is None else futures[..., :2]
 
 
 def draw_figures(trainer: L.Trainer, pl_module: L.LightningModule) -> list[Path]:

@@ -1,0 +1,47 @@
+"""The plain summary a run prints at its end, read from its metrics and clips.npz."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dider.outputs import summary
+
+
+def _clips(folder):
+    segments = np.zeros((2, 6, 5), dtype=np.int64)
+    truth = np.zeros((2, 6, 5), dtype=np.int64)
+    truth[0, 0, 2] = 1  # two changes
+    truth[1, 2, 1:4] = 1  # two changes; edge 2 of 3 agents: agent 1 -> agent 0
+    segments[1, 2, 1:3] = 1
+    truth[0, 5] = -1  # absent
+    np.savez(folder / "clips.npz", segments=segments, truth=truth)
+
+
+def test_the_summary_reads_the_forecast_the_edges_and_example_timelines(tmp_path):
+    _clips(tmp_path)
+    metrics = {"test/ade/h01": 0.2, "test/cv/ade/h01": 0.1, "test/ade/h15": 0.5, "test/cv/ade/h15": 1.0,
+               "test/ade_vs_cv/h15": 0.5, "test/ade_vs_no_edges/h15": 0.8}
+    text = summary.plain_summary(metrics, [1, 15], tmp_path, "m", budget_note="train longer")
+    assert "1 step(s) ahead: off by 0.2 m on average, constant velocity by 0.1 m (no better than it, 2.00x)" in text
+    assert "15 step(s) ahead: off by 0.5 m on average, constant velocity by 1 m (better than it, 0.50x)" in text
+    assert "Its edges help: with every edge off its error is 1.25x" in text
+    assert "train longer" not in text  # it beats constant velocity at the longest horizon
+    lines = text.splitlines()
+    first = next(i for i, line in enumerate(lines) if "clip 0, agent 0 -> 1:" in line)
+    assert lines[first].endswith("model .....") and lines[first + 1].endswith("truth ..1..")
+    second = next(i for i, line in enumerate(lines) if "clip 1, agent 1 -> 0:" in line)
+    assert lines[second].endswith("model .11..") and lines[second + 1].endswith("truth .111.")
+    assert f"python -m dider.analysis.explore {tmp_path}" in text
+
+
+def test_a_run_that_loses_to_constant_velocity_is_told_what_a_longer_one_scores(tmp_path, monkeypatch):
+    record = {"what": "x", "trained_with": "python -m dider.run experiment=long", "evaluate": ["data.num_test=9"],
+              "metrics": {"test/ade/h15": 0.3, "test/ade_vs_cv/h15": 0.3}}
+    monkeypatch.setattr("dider.shipped.catalog", lambda: {"synth/dider": record})
+    metrics = {"test/ade/h15": 1.2, "test/cv/ade/h15": 1.0, "test/ade_vs_cv/h15": 1.2}
+    text = summary.run_summary(metrics, tmp_path, "dider", "synth", None)
+    assert "(no better than it, 1.20x); the shipped synth/dider" in text and "0.3, 0.30x" in text
+    assert "It does not beat constant velocity: this run is short; the shipped synth/dider was trained with " \
+           "`python -m dider.run experiment=long`" in text
+    assert "ckpt_path=synth/dider data.num_test=9" in text
+    assert summary.run_summary(metrics, tmp_path, "dider", "ind", None).count("shipped") == 0
