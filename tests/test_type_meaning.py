@@ -12,8 +12,8 @@ from dider.evaluation.type_meaning import (
     degenerate_types,
     pair_features,
     pair_verdict,
-    profile_notes,
     profile_array,
+    profile_notes,
     profile_rows,
     profile_values,
 )
