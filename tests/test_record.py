@@ -104,3 +104,11 @@ def test_two_jobs_of_one_model_and_seed_are_refused(tmp_path):
     fake_job(tmp_path / "b", "j1", "dider", 1, 3.0)
     with pytest.raises(ValueError, match=r"two jobs of model 'dider' with seed 1: .*a/j1 and .*b/j1"):
         main([str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "r.json")])
+
+
+def test_a_baseline_with_none_of_a_quantity_pairs_without_a_ratio():
+    """DNRI has no boundaries of its own: the differences pair as usual, the ratio of means is NaN, not an error."""
+    from dider.analysis.record import paired
+
+    diff = paired({1: 0.5, 2: 0.7}, {1: 0.0, 2: 0.0})
+    assert diff["mean"] == pytest.approx(0.6) and diff["below"] == 0 and math.isnan(diff["ratio_of_means"])

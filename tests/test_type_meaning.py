@@ -65,7 +65,7 @@ def test_type_profile_with_and_without_by_hand() -> None:
 
 
 def test_a_type_is_about_the_pair_where_it_beats_the_same_type_on_shuffled_pairs() -> None:
-    """Two clips of two edges. Clip 0: distances 1, 5 with types 1, 0; clip 1: distances 6, 2 with types 0, 1;
+    """Two clips of two agents (one pair each way: the shuffled pairs are the other clip's). Clip 0: distances 1, 5 with types 1, 0; clip 1: distances 6, 2 with types 0, 1;
     closing speed 10 - distance. Type 1 holds on the near pairs: distance 1.5 against 5.5 (gap -4). Read beside
     the other clip's pairs it holds at 6 and 5 (5.5 against 1.5: gap +4). The distances' standard deviation is
     sqrt(16.5 - 3.5^2) = 2.0616, so type 1 is 8 / 2.0616 = 3.88 deviations nearer than on shuffled pairs and as
@@ -82,9 +82,24 @@ def test_a_type_is_about_the_pair_where_it_beats_the_same_type_on_shuffled_pairs
     assert values["test/type1/beyond_shuffled/distance"] == pytest.approx(-8 / 4.25**0.5, rel=1e-5)
     notes = profile_notes(profile_array(values, "test"))
     assert notes[1].endswith("about the pair: nearer and closing in faster than the same type on shuffled pairs")
-    assert "not about the pair" in notes[0]
+    assert notes[0].endswith("about the pair: moving apart faster than the same type on shuffled pairs")
     assert pair_verdict(-0.1, 0.1).startswith("not about") and pair_verdict(float("nan"), 0.0) == ""
     assert pair_verdict(0.0, 0.3) == "about the pair: closing in faster than the same type on shuffled pairs"
+    assert pair_verdict(0.0, -0.3) == "about the pair: moving apart faster than the same type on shuffled pairs"
+
+
+def test_with_three_agents_the_shuffled_pairs_are_the_clips_other_pairs_at_the_same_step() -> None:
+    """One clip, three agents, one step; edges 0->1, 0->2, 1->0, 1->2, 2->0, 2->1 at distances 1, 5, 1, 6, 5, 6.
+    Type 1 holds on the near pair both ways: 1 against 5.5 (gap -4.5). Read beside the previous edge's pair
+    (never its reverse) it holds at 6 and 5 (5.5) against 1, 1, 6, 5 (3.25): gap +2.25. The distances' standard
+    deviation is sqrt(124 / 6 - 16) = 2.1602: -6.75 / 2.1602 = -3.125."""
+    features = torch.zeros(1, 6, 1, len(PAIR_FEATURES))
+    features[0, :, 0, 0] = torch.tensor([1.0, 5.0, 1.0, 6.0, 5.0, 6.0])
+    metric = TypeProfile(2)
+    metric.update(torch.tensor([1, 0, 1, 0, 0, 0]).view(1, 6, 1), features, torch.ones(1, 6, 1, dtype=torch.bool))
+    beyond = metric.compute()[3]
+    assert float(beyond[1, 0]) == pytest.approx(-6.75 / (124 / 6 - 16) ** 0.5, rel=1e-5)
+    assert beyond[:, 1].isnan().all()  # no closing speed at all: no verdict on it
 
 
 def test_degenerate_types_are_named_with_their_share() -> None:

@@ -130,9 +130,10 @@ def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, flo
         return None
     diffs = [model[s] - baseline[s] for s in seeds]
     stats = summary(diffs)
+    total = sum(baseline[s] for s in seeds)  # 0 where the baseline has none of it (DNRI's own boundaries)
     return {"n": stats["n"], "mean": stats["mean"], "se": stats["std"] / math.sqrt(stats["n"]),
-            "below": sum(d < 0 for d in diffs), "ratio_of_means": (sum(model[s] for s in seeds)
-                                                                   / sum(baseline[s] for s in seeds))}
+            "below": sum(d < 0 for d in diffs),
+            "ratio_of_means": sum(model[s] for s in seeds) / total if total else math.nan}
 
 
 def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,

@@ -22,6 +22,9 @@ from dider.io import atomic_torch_save, atomic_write_text
 from dider.shipped import HERE, catalog
 from dider.trained import find_checkpoint, read_checkpoint
 
+# Overrides that say where and how a run wrote, not what it trained: left out of the recorded command.
+WHERE = ("hydra.", "logger=", "trainer.enable_progress_bar=", "threads=", "ckpt_path=")
+
 # What a checkpoint needs to be loaded for testing, prediction and the API; the optimiser and loop states stay behind.
 KEPT = ("state_dict", "hyper_parameters", "dider", "pytorch-lightning_version", "epoch", "global_step")
 
@@ -51,7 +54,8 @@ def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any
     atomic_torch_save(slim(source), HERE / file)
     entries = dict(catalog())
     entries[name] = {"file": file, "what": what,
-                     "trained_with": "python -m dider.run " + " ".join(record_of_run.get("overrides", [])),
+                     "trained_with": "python -m dider.run " + " ".join(
+                         o for o in record_of_run.get("overrides", []) if not o.startswith(WHERE)),
                      "git_commit": record_of_run.get("provenance", {}).get("git_commit"),
                      "evaluate": overrides, "metrics": {}}
     catalog.cache_clear()

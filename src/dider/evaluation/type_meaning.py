@@ -54,9 +54,10 @@ PAIR_EFFECT = 0.2
 
 class TypeProfile(Metric):
     """Per edge type: its share of the present edge-steps and the mean of each pair feature while it holds,
-    and over the other present edge-steps; and the same type on shuffled pairs (each clip's types read beside the
-    next clip's pair features, or the next edge's in a batch of one clip), whose with-minus-others gap in
-    distance and closing speed is what a type with no bearing on the pair shows.
+    and over the other present edge-steps; and the same type on shuffled pairs (each edge's types read beside
+    another pair of the same clip at the same step: the previous edge, never the reverse pair; with two agents,
+    the previous clip's), whose with-minus-others gap in distance and closing speed is what a type shows that
+    follows the scene and the time rather than the pair.
 
     update(types [B, E, T-1] long, features [B, E, T-1, F], present [B, E, T-1] bool); compute() -> share [K],
     mean_with [K, F], mean_without [K, F] (NaN where no edge-step is counted), beyond_shuffled [K, 2]: the gap
@@ -85,8 +86,8 @@ class TypeProfile(Metric):
         self.sums += torch.einsum("betk,betf->kf", weight, values)
         self.counts += weight.sum(dim=(0, 1, 2))
         self.squares += (values.square() * present.unsqueeze(-1)).sum(dim=(0, 1, 2))
-        dim = 0 if types.shape[0] > 1 else 1  # another clip's pairs, or in a single clip another pair
-        if types.shape[dim] < 2:
+        dim = 1 if types.shape[1] > 2 else 0  # another pair of the same clip at the same step (of another clip
+        if types.shape[dim] < 2:  # with two agents, whose two edges are one pair)
             return
         other, there = values.roll(1, dim), present.roll(1, dim)
         both = present & there
@@ -132,11 +133,12 @@ def pair_verdict(beyond_distance: float, beyond_closing: float) -> str:
     if not (math.isfinite(beyond_distance) and math.isfinite(beyond_closing)):
         return ""
     found = [what for what, yes in (("nearer", beyond_distance <= -PAIR_EFFECT),
-                                    ("closing in faster", beyond_closing >= PAIR_EFFECT)) if yes]
+                                    ("closing in faster", beyond_closing >= PAIR_EFFECT),
+                                    ("moving apart faster", beyond_closing <= -PAIR_EFFECT)) if yes]
     if found:
         return f"about the pair: {' and '.join(found)} than the same type on shuffled pairs"
-    return ("not about the pair: no nearer nor closing in faster than the same type on shuffled pairs (a state of "
-            "the agents' own motion?)")
+    return ("not about the pair: no nearer, and closing in or moving apart no faster, than the same type on shuffled "
+            "pairs (a state of the agents' own motion?)")
 
 
 def profile_rows(values: dict[str, float], prefix: str) -> list[dict[str, float]]:

@@ -1,0 +1,39 @@
+"""The trained models shipped inside the package load by name and score what their records say."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+import dider
+from dider.analysis.ship import evaluate
+from dider.shipped import HERE, catalog
+
+
+def test_the_catalog_names_files_that_ship_and_say_how_they_were_made():
+    assert dider.pretrained() == {name: record["what"] for name, record in catalog().items()}
+    assert {"synth/dider", "synth/dnri"} <= set(catalog())
+    for name, record in catalog().items():
+        assert (HERE / record["file"]).is_file(), name
+        assert record["trained_with"].startswith("python -m dider.run ") and record["git_commit"], name
+        assert record["metrics"] and record["evaluate"], name
+
+
+@pytest.mark.parametrize("name", sorted(catalog()))
+def test_a_shipped_model_reproduces_its_recorded_test_metrics(name):
+    """The record's own command (``mode=eval ckpt_path=NAME``, test clips regenerated from the data seed), in a
+    fresh process, within float tolerance: another CPU's matrix products round differently."""
+    record = catalog()[name]
+    again = evaluate(name, record["evaluate"])
+    assert set(again) == set(record["metrics"])
+    off = {k: (v, again[k]) for k, v in record["metrics"].items()
+           if not (math.isnan(v) and math.isnan(again[k])) and again[k] != pytest.approx(v, rel=1e-2, abs=1e-3)}
+    assert not off, off
+
+
+def test_a_shipped_model_loads_by_name_for_the_api():
+    model = dider.load("synth/dider")
+    assert model.path == HERE / catalog()["synth/dider"]["file"] and model.config["name"] == "dider"
+    with pytest.raises(FileNotFoundError, match="nor a shipped model .*synth/dider"):
+        dider.load("synth/no_such_model")
