@@ -65,7 +65,8 @@ def test_type_profile_with_and_without_by_hand() -> None:
 
 
 def test_a_type_is_about_the_pair_where_it_beats_the_same_type_on_shuffled_pairs() -> None:
-    """Two clips of two agents (one pair each way: the shuffled pairs are the other clip's). Clip 0: distances 1, 5 with types 1, 0; clip 1: distances 6, 2 with types 0, 1;
+    """Two clips of two agents (one pair each way: the shuffled pairs are the other clip's). Clip 0: distances
+    1, 5 with types 1, 0; clip 1: distances 6, 2 with types 0, 1;
     closing speed 10 - distance. Type 1 holds on the near pairs: distance 1.5 against 5.5 (gap -4). Read beside
     the other clip's pairs it holds at 6 and 5 (5.5 against 1.5: gap +4). The distances' standard deviation is
     sqrt(16.5 - 3.5^2) = 2.0616, so type 1 is 8 / 2.0616 = 3.88 deviations nearer than on shuffled pairs and as
