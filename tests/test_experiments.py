@@ -13,8 +13,11 @@ from dider.run import train
 from helpers.fixtures import write_ind_root, write_zhan
 
 ROOT = Path(__file__).resolve().parents[1]
-# ind200_table runs inD's code path as ind50_table does, on larger windows: in the slow suite
-EXPERIMENTS = [pytest.param(name, marks=pytest.mark.slow) if name == "ind200_table" else name
+# In the slow suite, experiments whose code path another one runs in the default suite: ind200_table (inD as
+# ind50_table, larger windows), bball_table (basketball as tests/test_real_data_runs.py), synth_cpu_table and
+# synth_claims (the synthetic CPU tables as synth_protocol)
+SLOW = {"ind200_table", "bball_table", "synth_cpu_table", "synth_claims"}
+EXPERIMENTS = [pytest.param(name, marks=pytest.mark.slow) if name in SLOW else name
                for name in sorted(p.stem for p in (Path(dider.conf.__file__).parent / "experiment").glob("*.yaml"))]
 SMALL_SYNTH = ["data.num_train=32", "data.num_val=8", "data.num_test=8", "data.loader.batch_size=8"]
 
@@ -48,8 +51,8 @@ def test_experiment_runs(experiment, make_cfg, tmp_path):
 
 @pytest.mark.parametrize("model", ["dider", "dnri"])
 def test_synth_claims_is_the_recorded_table(make_cfg, model):
-    """`experiment=synth_claims` composes, job by job, to what the README's synthetic record ran (the CPU table with
-    its settings spelled out as overrides), so the short command reproduces the committed figures."""
+    """`experiment=synth_claims` composes, job by job, to what its record (claims_30epochs_fp32.json) ran (the CPU
+    table with its settings spelled out as overrides), so the short command reproduces the committed figures."""
     record = json.loads((ROOT / "docs" / "records" / "claims_30epochs_fp32.json").read_text())
     job = next(j for j in record["jobs"] if j["model"] == model)
     recorded = make_cfg([*job["overrides"], f"seed={job['seed']}"], tiny=False)
