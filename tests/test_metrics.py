@@ -640,3 +640,18 @@ def test_a_test_pass_compares_the_forecast_with_its_edges_off(make_cfg, tmp_path
         assert metrics[f"test/ade_vs_no_edges/h{h:02d}"] > 0
     static = train(make_cfg(["logger=none", "model=static_decoder"], out=tmp_path / "static"))
     assert not any("ade_vs_no_edges" in k for k in static)
+
+
+def test_edges_off_is_no_edge_even_where_type_0_sends_messages(make_cfg) -> None:
+    """With ``skip_first=false`` type 0 passes messages: the no-edges roll-out is the decoder with no edge at all
+    (as with ``decoder_edges`` off), not every edge held at type 0."""
+    from dider.models.vae import RelationalVAE
+
+    torch.manual_seed(0)
+    net = RelationalVAE.from_config(make_cfg(["model=dnri", "model.net.decoder.skip_first=false"]).model).eval()
+    x, mask = torch.rand(2, 12, 3, 4) * 2 - 1, torch.ones(2, 12, 3, dtype=torch.bool)
+    zeros = torch.zeros(2, 6, 11, dtype=torch.long)
+    off = net.rollout(x, mask, 5, 7, edges=zeros, edges_off=True)[0]
+    assert not torch.equal(off, net.rollout(x, mask, 5, 7, edges=zeros)[0])
+    net.decoder_edges = False
+    assert torch.equal(off, net.rollout(x, mask, 5, 7, edges=zeros)[0])

@@ -30,7 +30,7 @@ from dider.models.legacy import network_hparams
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
-from dider.shipped import pretrained, resolve
+from dider.shipped import resolve, unknown
 from dider.training.preflight import input_warnings, version_problem
 from dider.validation import above, check_arguments, integer, optional
 
@@ -47,8 +47,7 @@ def find_checkpoint(path: str | Path) -> Path:
     if not path.is_dir():
         if (shipped := resolve(path)) is not None:
             return shipped
-        raise FileNotFoundError(f"{path}: no such checkpoint file or run folder, nor a shipped model "
-                                f"({', '.join(pretrained()) or 'none'})")
+        raise FileNotFoundError(f"{path}: no such checkpoint file or run folder, {unknown()}")
     record = path / "metrics.json"
     if record.is_file():
         best = json.loads(record.read_text()).get("checkpoint")

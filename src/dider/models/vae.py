@@ -290,6 +290,7 @@ class RelationalVAE(nn.Module):
     def rollout(
         self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int, mode: str = "global",
         edges: torch.Tensor | None = None, decoder: nn.Module | None = None, draw: bool = False,
+        edges_off: bool = False,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Forecast: ground truth during the burn-in, then the model's own predictions.
 
@@ -309,6 +310,7 @@ class RelationalVAE(nn.Module):
         [B, E, burn_in+P-1]. ``decoder``: another decoder to roll out under the same protocol and masks (the
         constant-velocity forecast that test scores beside the model's), else the model's own. ``draw``: the online
         edges drawn from the prior, types and segment ends (a sampled future, :meth:`sample_futures`).
+        ``edges_off``: the decoder gets no edge at all, whatever type 0 means to it (its own dynamics alone).
         """
         decoder = self.decoder if decoder is None else decoder
         if burn_in < 1 or num_pred < 1:
@@ -352,7 +354,8 @@ class RelationalVAE(nn.Module):
             # first), so a stateless decoder has nothing to do there.
             if t < burn_in - 1 and decoder.stateless:
                 continue
-            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (present[:, t, :, None] & self.decoder_edges)
+            z_t = F.one_hot(etype, self.num_types).to(x.dtype) * (
+                present[:, t, :, None] & self.decoder_edges & (not edges_off))
             out, dec_state = decoder.step(cur, z_t, dec_state, m_t)
             if t >= burn_in - 1:
                 preds.append(out)

@@ -32,3 +32,8 @@ def resolve(name: str | Path) -> Path | None:
 def pretrained() -> dict[str, str]:
     """The shipped trained models: name -> one line on what each is."""
     return {name: record["what"] for name, record in catalog().items()}
+
+
+def unknown() -> str:
+    """The end of an error for a name that is no file, folder or shipped model: what is shipped."""
+    return f"nor a shipped model ({', '.join(catalog()) or 'none'})"

@@ -211,14 +211,15 @@ class RelationalVAEModule(L.LightningModule):
         self._log_segments("train", out, batch)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
-    def _forecast(self, batch: Batch, edges: torch.Tensor | None = None, decoder: torch.nn.Module | None = None
-                  ) -> Forecast:
+    def _forecast(self, batch: Batch, edges: torch.Tensor | None = None, decoder: torch.nn.Module | None = None,
+                  edges_off: bool = False) -> Forecast:
         """Roll out over the whole clip after the burn-in (each agent's own burn-in in ``per_agent`` mode,
         where each target carries its own horizon; frame p is horizon p + 1 in ``global`` mode), with the
-        model's own edges or given ones (edges [B, E, T-1]), with the model's decoder or another one."""
+        model's own edges or given ones (edges [B, E, T-1]) or none at all (``edges_off``), with the model's decoder or
+        another one."""
         x, mask, b = batch["states"], batch["mask"], self.hparams.burn_in
         mode = self.burn_in_mode
-        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges, decoder)
+        pred, types = self.model.rollout(x, mask, b, x.shape[1] - b, mode, edges, decoder, edges_off=edges_off)
         horizon = agent_horizons(mask, b)[:, b:] if mode == "per_agent" else None
         return Forecast(pred, x[:, b:], scored_targets(mask, b, mode), types, horizon)
 
@@ -283,7 +284,8 @@ class RelationalVAEModule(L.LightningModule):
             with torch.random.fork_rng(devices=[self.device] if self.device.type == "cuda" else []):
                 futures = self.model.sample_futures(batch["states"], batch["mask"], b, batch["states"].shape[1] - b,
                                                     self.burn_in_mode, self.hparams.samples)
-        no_edges = self._forecast(batch, torch.zeros_like(posterior)) if self.model.decoder_edges else None
+        no_edges = (self._forecast(batch, torch.zeros_like(posterior), edges_off=True) if self.model.decoder_edges
+                    else None)
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
                                  self.own_cut(out, batch), cv, futures, no_edges)
         absent = ~present

@@ -19,7 +19,7 @@ from dider.models.legacy import stray_keys
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
 from dider.settings import NODES
-from dider.shipped import pretrained, resolve
+from dider.shipped import resolve, unknown
 from dider.validation import RULES, ConfigError, node_problems, problem, settings_problems
 
 log = logging.getLogger(__name__)
@@ -103,10 +103,11 @@ def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
                         "one of its checkpoint files (RUN/checkpoints/last.ckpt or its best epoch_*.ckpt)")
     tested = mode in ("eval", "predict")  # a run folder is a checkpoint there, as for dider.load
     folder_ok = tested and ckpt and Path(str(ckpt)).expanduser().is_dir()
-    shipped = ckpt and resolve(str(ckpt)) is not None  # a shipped model's name (dider.pretrained())
+    # a shipped model's name (dider.pretrained()) there too; resuming a training needs a full checkpoint
+    shipped = tested and ckpt and resolve(str(ckpt)) is not None
     if ckpt and ckpt != "last" and not folder_ok and not shipped and not Path(str(ckpt)).expanduser().is_file():
-        problems.append(f"ckpt_path={ckpt}: no such checkpoint file" + (" or run folder" if tested else "")
-                        + f", nor a shipped model ({', '.join(pretrained()) or 'none'})")
+        problems.append(f"ckpt_path={ckpt}: no such checkpoint file"
+                        + (f" or run folder, {unknown()}" if tested else ""))
     return problems
 
 
@@ -183,8 +184,7 @@ def _store_problem(uri: str) -> str | None:
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
 TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "output_dir",
                   "optimized_metric", "eval", "predict", "protocol", "data", "model", "trainer", "logger", "callbacks",
-                  "hydra",
-                  "hparams_search", "edges_per_model"}
+                  "hydra", "hparams_search", "edges_per_model"}
 
 
 def config_warnings(cfg: DictConfig) -> list[str]:

@@ -23,7 +23,6 @@ from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
 from dider.models.legacy import network_hparams, split_model_config
-from dider.shipped import pretrained, resolve
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -64,10 +63,7 @@ def resolve_ckpt(ckpt_path: str | None, folder: Path, folder_given: bool) -> str
         return None
     if ckpt_path != "last":
         if not Path(ckpt_path).is_file():
-            if (shipped := resolve(ckpt_path)) is not None:
-                return str(shipped)
-            raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file, nor a shipped model "
-                                    f"({', '.join(pretrained()) or 'none'})")
+            raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
         return ckpt_path
     sweep_partial_writes(folder / "checkpoints")
     last = folder / "checkpoints" / "last.ckpt"
