@@ -29,6 +29,7 @@ from dider.evaluation.metrics import (
     SegmentStats,
 )
 from dider.evaluation.sampled import MinDisplacement, sampled_values
+from dider.evaluation.structure import StructureRecovery
 from dider.evaluation.type_meaning import TypeProfile, pair_features, profile_values
 from dider.graph import edge_mask
 
@@ -68,6 +69,8 @@ class TestMetrics(nn.Module):
         # The prior read at every step, as if it could re-decide each step (for DNRI it is ``prior``): beside
         # ``prior`` it shows what the online segments' holding costs and what the prior itself knows.
         self.acc_prior_per_step = EdgeAccuracy()
+        # The field's scores on NRI's systems: types matched to the true labels, and the AUROC of the edge probability.
+        self.structure = nn.ModuleDict({k: StructureRecovery(num_types) for k in ("posterior", "prior")})
         self.segments = SegmentStats()
         # Mean interaction run length and rate of the segments, the online prior and the truth: runs that go
         # on past the truth's end show here while they barely move the recalls.
@@ -81,14 +84,15 @@ class TestMetrics(nn.Module):
                normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
                prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None,
                cv: Forecast | None = None, futures: torch.Tensor | None = None,
-               no_edges: Forecast | None = None) -> None:
+               no_edges: Forecast | None = None, posterior_probs: torch.Tensor | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
         by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
         prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held).
         own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own).
         cv: the constant-velocity forecast of the same clips under the same protocol. futures: [B, K, P, N, D] the
         sampled forecasts (:meth:`~dider.models.vae.RelationalVAE.sample_futures`), scored in data units.
-        no_edges: the model's own roll-out with every edge off (its decoder's dynamics alone), on the same clips."""
+        no_edges: the model's own roll-out with every edge off (its decoder's dynamics alone), on the same clips.
+        posterior_probs: [B, E, T-1, K] the posterior's type probabilities (for the AUROC of the edges)."""
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
@@ -114,6 +118,9 @@ class TestMetrics(nn.Module):
             if prior_per_step is not None:
                 self.acc_prior_per_step.update(prior_per_step.transpose(1, 2), batch["edges"], present)
             self.boundary.update(posterior, batch["edges"].transpose(1, 2))
+            truth, keep = batch["edges"].transpose(1, 2), present.transpose(1, 2)
+            self.structure["posterior"].update(posterior, truth, keep, posterior_probs)
+            self.structure["prior"].update(prior, truth, keep)
             self.run_length["truth"].update(batch["edges"].transpose(1, 2), steps)
         if own_cut is not None:
             self.own_cut.update(**own_cut)
@@ -147,6 +154,12 @@ class TestMetrics(nn.Module):
                              "prior_per_step": self.acc_prior_per_step}.items():
             if metric.update_count:
                 out |= edge_acc_values(f"test/edge_acc/{name}", metric)
+        for name, metric in self.structure.items():
+            if metric.update_count:
+                values = metric.compute()
+                out |= {f"test/edge_acc/{name}/{k}": values[k] for k in ("matched", "as_labelled")}
+                if "auroc" in values:
+                    out[f"test/edge_auroc/{name}"] = values["auroc"]
         if self.pairs.update_count:
             out |= self._consistency()
         if self.types.update_count:

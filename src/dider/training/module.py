@@ -287,7 +287,7 @@ class RelationalVAEModule(L.LightningModule):
         no_edges = (self._forecast(batch, torch.zeros_like(posterior), edges_off=True) if self.model.decoder_edges
                     else None)
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
-                                 self.own_cut(out, batch), cv, futures, no_edges)
+                                 self.own_cut(out, batch), cv, futures, no_edges, out.probs)
         absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),

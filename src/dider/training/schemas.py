@@ -23,6 +23,7 @@ from omegaconf import MISSING
 from dider.data.basketball import BasketballDataModule
 from dider.data.dnri_files import DNRIFilesDataModule
 from dider.data.ind import InDDataModule
+from dider.data.nri import NRIDataModule
 from dider.data.soccer import SoccerDataModule
 from dider.data.synth import SynthDataModule
 from dider.data.table import TableDataModule
@@ -46,7 +47,7 @@ PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDura
            HoldGate, MarkovDecoder, RecurrentDecoder)
 TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, PriorFit, BoundaryFit)
 DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
-        SoccerDataModule, TrajectoryDataModule)
+        SoccerDataModule, TrajectoryDataModule, NRIDataModule)
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,

@@ -1,0 +1,137 @@
+"""LightningDataModule for NRI's particle systems: simulated (``data=springs``, ``data=charged``) or read from NRI's
+``.npy`` files (``data=nri_files``), with ground-truth edges per step.
+
+Both paths give the same batches: states [B, T, N, 4] (x, y, vx, vy) normalised as NRI does (positions and
+velocities each mapped to [-1, 1] by the training split's scalar min and max), mask [B, T, N] (all True), edges
+[B, T-1, E] long (the transitions t -> t+1; rows receive, as in the files) and source ``clip`` [B].
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
+import torch
+
+from dider.data.batch import Normalizer
+from dider.data.cache import cache_key, load_or_build
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, spread_indices
+from dider.data.loader import Loader
+from dider.data.nri_files import read_nri_split
+from dider.data.particles import SYSTEMS, simulate_particles
+from dider.graph import edge_index
+from dider.protocol import check_horizons
+from dider.validation import Rule, check_settings, integer, one_of, optional, within
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`); the
+    split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
+
+    system: str = "springs"  # springs or charged
+    num_balls: int = 5
+    num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
+    sample_every: int = 100  # integration steps per frame
+    switch_prob: float = 0.0  # chance per frame that a spring breaks or forms / a charge flips (0: NRI's static graph)
+    seed: int = 1  # the data seed; each split draws from its own stream
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2), "sample_every": integer(1),
+        "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
+
+    def __post_init__(self) -> None:
+        check_settings(self, asdict(self), key="data.simulate")
+
+
+class NRIDataModule(ClipDataModule):
+    """NRI's springs or charged particles (module docstring). With ``simulate`` the clips are generated (each split
+    from its own seed, cached under ``cache_dir`` by every setting that made them) and ``num_train`` / ``num_val``
+    / ``num_test`` are the split sizes; with ``root`` they are read from NRI's files and those cap each split."""
+
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
+        "simulate": Simulation, "root": optional(lambda v: None if isinstance(v, str) and v else "expected a path"),
+        "suffix": lambda v: None if isinstance(v, str) else "expected a string",
+    }
+    LOADER = Loader(batch_size=32, eval_batch_size=256)
+    SIMULATE = Simulation()
+
+    def __init__(
+        self,
+        simulate: Mapping[str, Any] | None = None,
+        root: str | None = None,
+        suffix: str = "_springs5",
+        num_train: int | None = None,
+        num_val: int | None = None,
+        num_test: int | None = None,
+        burn_in: int = 29,
+        horizons: Sequence[int] = (1, 10, 20),
+        burn_in_mode: str = "global",
+        loader: Mapping[str, Any] | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
+        """simulate: the simulation's settings (:class:`Simulation`), or null to read ``root``. root: a folder of
+        NRI's files (:mod:`dider.data.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
+        super().__init__()
+        sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
+        related = {"root": (root, lambda v: "give data.root or data.simulate, not both" if v and simulate else None)}
+        if simulate is not None:
+            related |= {f"{k}": (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()}
+        check_settings(self, locals(), related, key="data")
+        self.save_hyperparameters(logger=False)
+        self.simulation = None if simulate is None else Simulation(**dict(simulate))
+        self.init_shared(None if simulate is None else self.simulation.num_frames, length_key="data.simulate.num_frames",
+                         integer_horizons=True)
+
+    def _simulated(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
+        sim, h = self.simulation, self.hparams
+        params = {**asdict(sim), "split": split, "num_samples": getattr(h, f"num_{split}"), "version": 1}
+        path = self.cache_dir / f"{sim.system}_{split}_{cache_key(params)}.pt"
+
+        def build() -> dict[str, torch.Tensor]:
+            log.info("simulating %d %s clips of %s (%d balls) -> %s", params["num_samples"], split, sim.system,
+                     sim.num_balls, path)
+            loc, vel, edges = simulate_particles(sim.system, params["num_samples"], sim.num_frames, sim.num_balls,
+                                                 sim.sample_every, sim.switch_prob,
+                                                 seed=sim.seed * 1000 + SPLITS.index(split))
+            send, recv = edge_index(sim.num_balls)
+            states = torch.cat([loc, vel], dim=2).transpose(2, 3).float()  # [S, T, N, 4]
+            return {"states": states.contiguous(), "edges": edges[:, 1:, recv, send].contiguous()}
+
+        blob = load_or_build(path, build)
+        return blob["states"], blob["edges"]
+
+    def _read(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
+        if not self.hparams.root:
+            raise ValueError("data.root is not set: point it at a folder of NRI's .npy files (or set data.simulate)")
+        root = Path(self.hparams.root).expanduser()
+        if not root.is_dir():
+            raise FileNotFoundError(f"data.root={root}: no such folder")
+        states, edges = read_nri_split(root, split, self.hparams.suffix)
+        check_horizons(self.hparams.horizons, states.shape[1], self.hparams.burn_in,
+                       where=f" in {root} ({split}: {states.shape[1]} frames)")
+        return states, edges
+
+    def prepare_data(self) -> None:
+        if self.simulation is not None:
+            for split in SPLITS:
+                self._simulated(split)
+
+    def setup(self, stage: str | None = None) -> None:
+        if all(s in self.datasets for s in SPLITS):
+            return
+        raw = {split: self._simulated(split) if self.simulation else self._read(split) for split in SPLITS}
+        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"][0]))
+        caps = {"train": self.hparams.num_train, "val": self.hparams.num_val, "test": self.hparams.num_test}
+        for split, (states, edges) in raw.items():
+            idx = spread_indices(len(states), None if self.simulation else caps[split])
+            self.datasets[split] = ClipDataset(self.normalizer.normalize(states[idx]),
+                                               torch.ones(states[idx].shape[:3], dtype=torch.bool), edges[idx],
+                                               {"clip": idx})
+        log.info("%s: %s clips, %d balls, %d frames", self.simulation.system if self.simulation else self.hparams.root,
+                 {s: len(d) for s, d in self.datasets.items()}, raw["train"][0].shape[2], raw["train"][0].shape[1])
