@@ -23,6 +23,26 @@ def test_decoder_teacher_forced_equals_steps(cls):
         torch.testing.assert_close(out, full[:, t])
 
 
+@pytest.mark.parametrize("masked", [False, True])
+def test_multi_step_training_rolls_out_each_block_from_its_true_state(masked):
+    """prediction_steps=P: the prediction of step t comes from the true state at the start of its block of P steps
+    and the decoder's own predictions since, as a step-by-step roll-out of each block gives (the last block cut
+    short); P = 1 is teacher forcing."""
+    torch.manual_seed(0)
+    dec = MarkovDecoder(num_types=3, hidden=16, prediction_steps=3).eval()
+    x, z = torch.randn(2, 7, 4, 4), torch.softmax(torch.randn(2, 7, 12, 3), -1)
+    mask = torch.rand(2, 7, 4) > 0.2 if masked else None
+    out = dec(x, z, mask)
+    for start in range(0, 7, 3):
+        cur = x[:, start]
+        for t in range(start, min(start + 3, 7)):
+            cur, _ = dec.step(cur, z[:, t], None, None if mask is None else mask[:, t])
+            torch.testing.assert_close(out[:, t], cur)
+    dec.prediction_steps = 1
+    torch.testing.assert_close(dec(x, z, mask)[:, 0], out[:, 0])
+    assert not torch.allclose(dec(x, z, mask)[:, 1], out[:, 1])
+
+
 @pytest.mark.parametrize("cls", [MarkovDecoder, RecurrentDecoder])
 def test_kinematic_step_moves_positions_by_the_new_velocity(cls):
     """x_{t+1} = x_t + delta, then p += slope * v_{t+1} + offset; both start at 0 (the plain residual

@@ -12,6 +12,7 @@ problem is listed at once.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import numbers
@@ -169,7 +170,7 @@ def node_problems(cls: type, node: Any, where: str) -> list[str]:
     """A nested settings node (e.g. the data's ``loader``) built into ``cls``: unknown keys and its rules."""
     if node is None:
         return []
-    names = list(getattr(cls, "__dataclass_fields__", cls.SETTINGS))
+    names = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else list(cls.SETTINGS)
     if not isinstance(node, Mapping):
         return [f"{where}={node!r}: expected a mapping of {names}"]
     unknown = [f"{where}.{k}: no such setting (expected one of {names})" for k in node if k not in names]

@@ -79,7 +79,7 @@ class NRIDataModule(ClipDataModule):
         NRI's files (:mod:`dider.data.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
         super().__init__()
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
-        related = {"root": (root, lambda v: "give data.root or data.simulate, not both" if v and simulate else None)}
+        related = {"root": (root, lambda v: "give data.root or data.simulate, not both" if v and simulate is not None else None)}
         if simulate is not None:
             related |= {f"{k}": (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()}
         check_settings(self, locals(), related, key="data")

@@ -85,6 +85,7 @@ class KinematicStep(nn.Module):
 # What the two decoders take alike (checked by each, and by the preflight under model.net.decoder).
 DECODER_SETTINGS: dict[str, Rule] = {"input_dim": integer(1), "hidden": integer(1), "skip_first": boolean,
                                      "dropout": within(0.0, 1.0), "checkpoint": boolean, "kinematic": boolean}
+MARKOV_SETTINGS: dict[str, Rule] = DECODER_SETTINGS | {"prediction_steps": integer(1)}
 
 
 def _state_update(kinematic: bool, input_dim: int) -> KinematicStep | None:
@@ -100,7 +101,7 @@ class MarkovDecoder(nn.Module):
     """
 
     stateless = True
-    SETTINGS = DECODER_SETTINGS
+    SETTINGS = MARKOV_SETTINGS
 
     def __init__(
         self,
@@ -111,10 +112,15 @@ class MarkovDecoder(nn.Module):
         dropout: float = 0.0,
         checkpoint: bool = False,
         kinematic: bool = False,
+        prediction_steps: int = 1,
     ) -> None:
+        """prediction_steps: in training, each prediction starts from the true state at most this many steps back and
+        feeds the decoder its own predictions since (NRI's multi-step training: with 1, teacher forcing at every step,
+        a decoder can fit short-range dynamics without the edges, whose effect shows over several steps)."""
         super().__init__()
         check_settings(self, locals())
         self.checkpoint = checkpoint
+        self.prediction_steps = prediction_steps
         self.kinematic = _state_update(kinematic, input_dim)
         self.messages = _MessagePassing(num_types, input_dim, hidden, skip_first, nn.ReLU(), dropout)
         self.out = nn.Sequential(
@@ -131,7 +137,10 @@ class MarkovDecoder(nn.Module):
         return aggregate_to_receivers(msg, x.shape[-2])
 
     def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Teacher-forced prediction of every next state. x [B, T, N, D], z [B, T, E, K] -> [B, T, N, D]."""
+        """Prediction of every next state, x [B, T, N, D], z [B, T, E, K] -> [B, T, N, D]: teacher-forced, or with
+        ``prediction_steps`` > 1 from the true state at the start of each block of that many steps."""
+        if self.prediction_steps > 1:
+            return self._blocks(x, z, mask)
         if self.checkpoint and torch.is_grad_enabled():
             # One checkpoint per step, so that the backward pass re-creates one step's edge activations at a
             # time, not the whole clip's at once. unbind, not [:, s]: see RecurrentDecoder.forward. With dropout
@@ -145,6 +154,23 @@ class MarkovDecoder(nn.Module):
 
     def _next(self, x: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         return x + delta if self.kinematic is None else self.kinematic(x, delta)
+
+    def _blocks(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+        """Every block of P = prediction_steps steps rolled out from its first true state, all blocks at once (P
+        batched steps): x [B, T, N, D], z [B, T, E, K], mask [B, T, N] or None -> [B, T, N, D]."""
+        p, t = self.prediction_steps, x.shape[1]
+        pad = -t % p  # the last block is cut short: pad it with its last step and drop those predictions
+
+        def blocks(a: torch.Tensor) -> torch.Tensor:  # [B, T, ...] -> [B, T / P, P, ...]
+            a = torch.cat([a, a[:, -1:].expand(-1, pad, *a.shape[2:])], 1) if pad else a
+            return a.unflatten(1, (-1, p))
+
+        zb, mb = blocks(z), None if mask is None else blocks(mask)
+        cur, preds = blocks(x)[:, :, 0], []
+        for k in range(p):
+            cur, _ = self.step(cur, zb[:, :, k], None, None if mb is None else mb[:, :, k])
+            preds.append(cur)
+        return torch.stack(preds, 2).flatten(1, 2)[:, :t]
 
     def init_state(self, batch: int, num_agents: int, ref: torch.Tensor) -> None:
         return None
