@@ -145,7 +145,8 @@ def test_the_data_module_names_bad_settings(tmp_path, make_cfg):
         NRIDataModule(simulate={})
     with pytest.raises(ValueError, match="data.simulate.system='gravity'"):
         NRIDataModule(simulate={"system": "gravity"}, num_train=2, num_val=2, num_test=2)
-    with pytest.raises(Exception, match=r"data.simulate.frames: no such setting \(expected one of \['system', 'num_balls', 'num_frames', 'sample_every', 'switch_prob', 'seed'\]\)"):
+    names = r"\['system', 'num_balls', 'num_frames', 'sample_every', 'switch_prob', 'seed'\]"
+    with pytest.raises(Exception, match=rf"data.simulate.frames: no such setting \(expected one of {names}\)"):
         instantiate(make_cfg(["data=springs", "+data.simulate.frames=3"]).data)
     with pytest.raises(ValueError, match="data.root is not set"):
         NRIDataModule(**SMALL).setup()

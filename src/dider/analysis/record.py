@@ -42,7 +42,8 @@ DEFAULT_METRICS = (
     "test/edge_acc/prior_per_step/interaction", "test/segments_per_edge", "test/boundary_f1",
     "test/segments/segments_per_edge", "test/segments/steps_per_segment", "test/segments/on_switch",
     "test/segments/boundary_f1", "test/run_length/posterior", "test/run_length/prior", "test/run_length/truth",
-    "train/segments/steps_per_segment",
+    "train/segments/steps_per_segment", "test/edge_acc/posterior/matched", "test/edge_acc/posterior/as_labelled",
+    "test/edge_auroc/posterior", "test/edge_acc/prior/matched",
 )
 
 

@@ -79,14 +79,15 @@ class NRIDataModule(ClipDataModule):
         NRI's files (:mod:`dider.data.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
         super().__init__()
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
-        related = {"root": (root, lambda v: "give data.root or data.simulate, not both" if v and simulate is not None else None)}
+        both = lambda v: "give data.root or data.simulate, not both" if v and simulate is not None else None  # noqa: E731
+        related = {"root": (root, both)}
         if simulate is not None:
             related |= {f"{k}": (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()}
         check_settings(self, locals(), related, key="data")
         self.save_hyperparameters(logger=False)
         self.simulation = None if simulate is None else Simulation(**dict(simulate))
-        self.init_shared(None if simulate is None else self.simulation.num_frames, length_key="data.simulate.num_frames",
-                         integer_horizons=True)
+        frames = None if simulate is None else self.simulation.num_frames  # files: checked in setup
+        self.init_shared(frames, length_key="data.simulate.num_frames", integer_horizons=True)
 
     def _simulated(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
         sim, h = self.simulation, self.hparams
