@@ -24,10 +24,12 @@ def events(folder: Path) -> EventAccumulator:
 
 
 def all_finite(metrics: dict[str, float]) -> bool:
-    """Every metric finite, but a type's statistics (NaN, by design, for a type that holds nowhere or
-    everywhere: ``test/typeK/distance``, ``test/typeK/others/...``)."""
-    kept = [v for k, v in metrics.items() if not re.match(r"test/type\d+/(others/)?(distance|closing_speed|"
-                                                          r"relative_heading_deg|receiver_accel)$", k)]
+    """Every metric finite, but those NaN by design: a type's statistics for a type that holds nowhere or everywhere
+    (``test/typeK/distance``, ``test/typeK/others/...``, ``test/typeK/beyond_shuffled/...``) and the interaction run
+    length of a source with no interaction step (``test/run_length/prior``), each with a warning."""
+    kept = [v for k, v in metrics.items() if not re.match(r"test/type\d+/(others/|beyond_shuffled/)?(distance|"
+                                                          r"closing_speed|relative_heading_deg|receiver_accel)$", k)
+            and not re.match(r"test/run_length/\w+$", k)]
     return bool(torch.isfinite(torch.tensor(kept)).all())
 
 
