@@ -8,6 +8,8 @@ process out, and is taken over when its writer is gone.
 
 from __future__ import annotations
 
+import importlib
+import inspect
 import json
 import logging
 import os
@@ -143,6 +145,21 @@ def shape_settings(model: Mapping[str, Any]) -> dict[str, Any]:
             or (isinstance(v, int) and not isinstance(v, bool))}
 
 
+def signature_default(flat: Mapping[str, Any], key: str) -> Any:
+    """The default that the plugin owning ``key`` (``decoder.prediction_steps``) gives it in its constructor, the
+    plugin's class read from ``flat``'s ``<plugin>._target_``; None where there is none."""
+    plugin, _, name = key.rpartition(".")
+    target = flat.get(f"{plugin}._target_")
+    if not isinstance(target, str) or "." not in target:
+        return None
+    module, _, cls = target.rpartition(".")
+    try:
+        param = inspect.signature(getattr(importlib.import_module(module), cls).__init__).parameters.get(name)
+    except (ImportError, AttributeError, TypeError, ValueError):
+        return None
+    return None if param is None or param.default is inspect.Parameter.empty else param.default
+
+
 def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     """Fail before any work when ``path`` is not a training checkpoint, or one of another model than the
     config's: the error names each differing setting with both values. Warns when another minor or major
@@ -156,6 +173,8 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
         raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
                           f"hyper-parameters)")
     mine, theirs = shape_settings(split_model_config(model)[0]), shape_settings(saved)
+    # a setting added to a plugin after the checkpoint was written is, there, its constructor's default
+    theirs |= {k: signature_default(theirs, k) for k in set(mine) - set(theirs)}
     key = lambda k: f"model.{k}" if k in ("name", "num_edges") else f"model.net.{k}"  # noqa: E731 (as users set it)
     differ = [f"{key(k)}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}"
               for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
