@@ -131,8 +131,8 @@ class NRIDataModule(ClipDataModule):
         caps = {"train": self.hparams.num_train, "val": self.hparams.num_val, "test": self.hparams.num_test}
         for split, (states, edges) in raw.items():
             idx = spread_indices(len(states), None if self.simulation else caps[split])
-            self.datasets[split] = ClipDataset(self.normalizer.normalize(states[idx]),
-                                               torch.ones(states[idx].shape[:3], dtype=torch.bool), edges[idx],
-                                               {"clip": idx})
+            clips = states[idx]
+            self.datasets[split] = ClipDataset(self.normalizer.normalize(clips),
+                                               torch.ones(clips.shape[:3], dtype=torch.bool), edges[idx], {"clip": idx})
         log.info("%s: %s clips, %d balls, %d frames", self.simulation.system if self.simulation else self.hparams.root,
                  {s: len(d) for s, d in self.datasets.items()}, raw["train"][0].shape[2], raw["train"][0].shape[1])
