@@ -261,6 +261,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     if trained is not None:  # an evaluation reads its clips as the checkpoint was trained to, never refitting
         datamodule.use_normalizer(trained.normalizer)
     model = RelationalVAEModule.from_config(cfg.model)
+    model.cuda_graph = cfg.get("cuda_graph", False)
     if cfg.get("compile"):
         compile_modules(model.model)
     loggers: list[Logger] = _build_list(cfg.get("logger"))

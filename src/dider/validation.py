@@ -116,6 +116,7 @@ FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 # (SETTINGS), and so do the protocol, eval and predict nodes (dider.settings).
 RULES: dict[str, Rule] = {
     "compile": boolean,
+    "cuda_graph": one_of("auto", True, False),
     "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
     "threads": optional(integer(1, " (null: torch's default)")),

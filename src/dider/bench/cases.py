@@ -58,10 +58,11 @@ def cases() -> list[Case]:
         out.append(Case(f"train/{model}/recurrent", [f"model={model}", *recurrent], 128, 5, 40, iters=3))
     out.append(Case("train/dnri/recurrent/bf16", ["model=dnri", *recurrent], 128, 5, 40, iters=3,
                     settings={"autocast": "bf16"}))
-    for model in ("dnri", "dider"):  # a real job's step, the Lightning loop included: the paper's batch and 128
-        for batch in (16, 128):
-            out.append(Case(f"job/{model}/synth/b{batch:03d}", [f"model={model}"], batch, 3, 50, iters=20, warmup=5,
-                            kind="job"))
+    for model in ("dnri", "dider", "dider_skid"):  # a real job's step, the Lightning loop included: the paper's
+        for batch in (16, 128):                     # batch and 128; on a GPU as one CUDA graph and eagerly
+            for graph, suffix in (("auto", ""), ("false", "/eager")):
+                out.append(Case(f"job/{model}/synth/b{batch:03d}{suffix}", [f"model={model}", f"cuda_graph={graph}"],
+                                batch, 3, 50, iters=20, warmup=5, kind="job"))
     for model in ("dnri", "dider"):
         out.append(Case(f"train/{model}/synth/bf16", [f"model={model}"], 128, 3, 50, settings={"autocast": "bf16"}))
         out.append(Case(f"train/{model}/synth/compile", [f"model={model}"], 128, 3, 50, warmup=3,

@@ -70,6 +70,7 @@ def loop_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
         torch.manual_seed(0)
         datamodule = instantiate(cfg.data, _convert_="all")
         module = RelationalVAEModule.from_config(cfg.model)
+        module.cuda_graph = cfg.cuda_graph
         clock = StepClock(case.warmup, case.iters, counted)
         trainer = L.Trainer(max_epochs=1, accelerator="gpu" if device == "cuda" else "cpu", devices=1,
                             limit_val_batches=0, num_sanity_val_steps=0, enable_progress_bar=False,
@@ -77,5 +78,8 @@ def loop_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
                             logger=CSVLogger(tmp, name="csv"), callbacks=[clock],
                             precision=cfg.trainer.precision if device == "cuda" else "32-true")
         trainer.fit(module, datamodule=datamodule)
+    graphed = module._graphed.graph if module._graphed is not None else None
     return clock.seconds / case.iters, {"host_syncs_per_step": clock.syncs.total / counted,
-                                        "sync_sites": dict(clock.syncs.where.most_common(8))}
+                                        "sync_sites": dict(clock.syncs.where.most_common(8)),
+                                        "cuda_graph": cfg.cuda_graph,
+                                        "graph_replays": graphed.replays if graphed is not None else 0}

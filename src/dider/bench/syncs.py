@@ -12,9 +12,11 @@ from typing import Any
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-# ops that make the host wait: a value read back, or an output shape only the values decide
-WAITS = frozenset({"_local_scalar_dense", "nonzero", "masked_select", "_unique2", "unique_dim", "unique_consecutive",
-                   "repeat_interleave", "masked_scatter"})
+# ops that make the host wait: a value read back, an output shape only the values decide, or a tensor made from
+# Python data (``torch.tensor(...)``, ``t[i] = 1``: on a GPU a copy from pageable host memory, which a CUDA graph
+# cannot hold)
+WAITS = frozenset({"_local_scalar_dense", "lift_fresh", "nonzero", "masked_select", "_unique2", "unique_dim",
+                   "unique_consecutive", "repeat_interleave", "masked_scatter"})
 
 
 class HostSyncs(TorchDispatchMode):

@@ -149,10 +149,11 @@ class LearnedDuration(nn.Module):
             self.head[-1].bias[0] = math.atanh(max(min(prior_mu, 0.99), -0.99))
             self.head[-1].bias[1] = math.log((sigma_init - sigma_min) / (1 - sigma_init))
 
-    def tau(self, progress: Progress) -> float:
-        """The soft-step temperature: annealed linearly over the first ``tau_anneal`` of training."""
+    def tau(self, progress: Progress) -> float | torch.Tensor:
+        """The soft-step temperature: annealed linearly over the first ``tau_anneal`` of training (a tensor where
+        ``progress.values`` gives it)."""
         frac = min(1.0, progress.fraction / self.tau_anneal) if self.tau_anneal > 0 else 1.0
-        return self.tau_start + (self.tau_end - self.tau_start) * frac
+        return progress.value("tau", self.tau_start + (self.tau_end - self.tau_start) * frac)
 
     def gaussian(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """h [..., R] -> mu, sigma [...] of the duration latent."""

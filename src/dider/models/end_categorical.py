@@ -17,12 +17,13 @@ IMPOSSIBLE = -1e4
 
 
 # Offsets (in steps) around which a candidate end's offset from its segment's start is encoded (reads=remaining).
-OFFSET_SCALES = (1, 2, 4, 8, 16, 32, 64)
+OFFSET_SCALES = tuple(2**k for k in range(7))  # 1 .. 64
 
 
 def offset_features(offset: torch.Tensor) -> torch.Tensor:
     """[...] steps >= 0 -> [..., len(OFFSET_SCALES)]: Gaussian bumps on log(1 + offset) at each scale."""
-    centres = torch.tensor(OFFSET_SCALES, device=offset.device, dtype=torch.float32).log1p()
+    # made on the device (powers of two): a tensor built from host data would be a host-to-device copy in every step
+    centres = torch.arange(len(OFFSET_SCALES), device=offset.device, dtype=torch.float32).exp2().log1p()
     return torch.exp(-2.0 * (offset.float().log1p().unsqueeze(-1) - centres) ** 2)
 
 
@@ -74,7 +75,7 @@ def chain_from_zero(end: torch.Tensor) -> torch.Tensor:
     size = end.shape[-1]
     jump = torch.cat([end, torch.full_like(end[..., :1], size)], -1)  # [..., S+1]; the clip's end absorbs
     reached = torch.zeros_like(jump, dtype=torch.long)
-    reached[..., 0] = 1
+    reached[..., 0].fill_(1)
     for _ in range(max(1, math.ceil(math.log2(size + 1)))):
         reached = reached | torch.zeros_like(reached).scatter_add(-1, jump, reached).clamp(max=1)
         jump = jump.gather(-1, jump)

@@ -76,7 +76,7 @@ class HoldGate(HazardPrior):
         gate = (soft > 0.5).float() + soft - soft.detach()
         fixed, value = self.forced(t, h_fwd.device, present)
         gate = torch.where(fixed, value.float(), gate)
-        kl = (1 - self.rate_mix) * bernoulli_kl(q, p) + self.rate_mix * bernoulli_kl(q, q.new_tensor(self.rate_logit))
+        kl = (1 - self.rate_mix) * bernoulli_kl(q, p) + self.rate_mix * bernoulli_kl(q, q.new_full((), self.rate_logit))
         steps = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
         kl = (kl * ~fixed).flatten(1).sum(1) / steps
         start = torch.arange(t, device=h_fwd.device).expand(b, e, t)

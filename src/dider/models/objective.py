@@ -161,13 +161,14 @@ class Objective(nn.Module):
         """Every term's value per clip: name -> [B]."""
         return {name: term(out, batch) for name, term in self.terms.items()}
 
-    def schedule(self, progress: Progress = Progress()) -> dict[str, float]:
+    def schedule(self, progress: Progress = Progress()) -> dict[str, float | torch.Tensor]:
         """The annealed weights at ``progress``: the KL warm-up's ``kl_weight`` and each ``capacity/<term>``
-        that has one."""
+        that has one (tensors where ``progress.values`` gives them)."""
         ramp = progress.ramp_steps(self.capacity_ramp)
         out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))}
-        return out | {f"capacity/{k}": capacity(progress.step, t.capacity, ramp) for k, t in self.terms.items()
-                      if t.capacity > 0}
+        out |= {f"capacity/{k}": capacity(progress.step, t.capacity, ramp) for k, t in self.terms.items()
+                if t.capacity > 0}
+        return {k: progress.value(k, v) for k, v in out.items()}
 
     def forward(self, values: Mapping[str, torch.Tensor], progress: Progress = Progress()) -> dict[str, torch.Tensor]:
         """values: :meth:`values` -> ``loss``, each term's batch mean and ``nelbo``: the objective free of
@@ -180,7 +181,8 @@ class Objective(nn.Module):
             if name == "nll":
                 continue
             c = sched.get(f"capacity/{name}", 0.0)
-            loss = loss + term.weight * (sched["kl_weight"] if term.warms_up else 1.0) * (means[name] - c).abs()
+            # tensor first: a schedule given as a device scalar (a graphed step) then rounds as a Python float does
+            loss = loss + (means[name] - c).abs() * (sched["kl_weight"] if term.warms_up else 1.0) * term.weight
             if term.in_nelbo:
                 nelbo = nelbo + term.weight * means[name].detach()
         return {"loss": loss, **means, "nelbo": nelbo}

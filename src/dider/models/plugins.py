@@ -5,6 +5,7 @@ Shapes: B batch, T frames, N agents, D features, E = N(N-1) edges, K edge types,
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -24,6 +25,13 @@ class Progress:
 
     step: int = 0  # optimiser steps taken
     total: int | None = None  # optimiser steps in the whole run
+    # The schedules' values given as tensors ({"kl_weight": ..., "tau": ...}; None: computed from step and total).
+    # A step captured as a CUDA graph reads them from the device, where each replay finds the step's values.
+    values: Mapping[str, torch.Tensor] | None = None
+
+    def value(self, name: str, computed: float) -> float | torch.Tensor:
+        """The schedule ``name`` at this progress: the given tensor where ``values`` holds it, else ``computed``."""
+        return self.values[name] if self.values is not None and name in self.values else computed
 
     @property
     def fraction(self) -> float:
@@ -107,7 +115,7 @@ class ScoresCuts(Protocol):
 class Annealed(Protocol):
     """A duration plugin with a soft-step temperature annealed over training (logged as ``schedule/tau``)."""
 
-    def tau(self, progress: Progress) -> float: ...
+    def tau(self, progress: Progress) -> float | torch.Tensor: ...
 
 
 class HeldTypeSegments(Protocol):

@@ -39,6 +39,7 @@ from dider.models.plugins import Progress
 from dider.models.vae import Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons, scored_targets
 from dider.training.callbacks import EvalRandomState, FiniteGuard, ResumeMidEpoch, SaveOnTerminate
+from dider.training.graphed import GraphedSteps, wanted
 from dider.validation import require
 
 log = logging.getLogger(__name__)
@@ -89,6 +90,10 @@ class RelationalVAEModule(L.LightningModule):
         self.predict_forecast: tuple[int, int] | None = None
         self.predict_samples = 0  # with predict_forecast: that many sampled futures of each clip too
         self.predict_scores: torch.nn.ModuleDict | None = None  # set at the start of each prediction
+        # Training steps replayed from one CUDA graph (the run's top-level ``cuda_graph``: auto, true, false;
+        # dider.training.graphed); not a hyper-parameter: it changes how a step runs, not what it computes.
+        self.cuda_graph: bool | str = False
+        self._graphed: GraphedSteps | None = None
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -106,6 +111,11 @@ class RelationalVAEModule(L.LightningModule):
         """The schedules' clock: optimiser steps taken, out of the run's total (when the Trainer knows it)."""
         total = self._trainer.estimated_stepping_batches if self._trainer is not None else None
         return Progress(self.global_step, int(total) if total and total != float("inf") else None)
+
+    @property
+    def automatic_optimization(self) -> bool:
+        """Lightning's own optimisation loop, unless the steps are graphed (then the module takes the step)."""
+        return not wanted(self.cuda_graph, self._trainer)
 
     def _infer(self, batch: Batch, hard: bool) -> Inference:
         # Only the step count here: asking the Trainer for the run's length during a test sets up the
@@ -199,17 +209,29 @@ class RelationalVAEModule(L.LightningModule):
                 "truth": truth}
 
     def training_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
-        out = self._infer(batch, hard=False)
         progress = self.progress()
-        terms = self.model.loss(out, progress)
         bs = batch["states"].shape[0]
+        if not self.automatic_optimization:  # one CUDA graph's replay, then the optimiser step
+            self._graphed = self._graphed or GraphedSteps(self)
+            outputs = self._graphed.step(batch, self.model.schedule(progress))
+            terms = {k: v for k, v in outputs.items() if not k.startswith("segments/")}
+            segments = {f"train/{k}": v for k, v in outputs.items() if k.startswith("segments/")}
+        else:
+            out = self.model.infer(batch, False, progress)  # the annealed schedules (tau too) at this step
+            terms = self.model.loss(out, progress)
+            present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
+            segments = {f"train/segments/{k}": v for k, v in out.seg.stats(present).items()}
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
         if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
             self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
         self.log_dict({f"train/schedule/{k}": v for k, v in self.model.schedule(progress).items()},
                       on_step=False, on_epoch=True, batch_size=bs)  # the epoch's mean: logged however short
-        self._log_segments("train", out, batch)
+        self.log_dict(segments, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
+
+    def on_train_epoch_end(self) -> None:
+        if not self.automatic_optimization and (scheduler := self.lr_schedulers()) is not None:
+            scheduler.step()  # Lightning steps epoch schedulers itself only in its own loop
 
     def _forecast(self, batch: Batch, edges: torch.Tensor | None = None, decoder: torch.nn.Module | None = None,
                   edges_off: bool = False) -> Forecast:

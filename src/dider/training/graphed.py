@@ -1,0 +1,95 @@
+"""Training steps replayed from one CUDA graph (the top-level ``cuda_graph`` setting), for
+:class:`~dider.training.module.RelationalVAEModule`.
+
+With the setting on, the module optimises manually: each step's forward, loss and backward run as one
+:class:`~dider.training.step_graph.StepGraph` (captured on a GPU, a dry run on a CPU), the callbacks' backward
+hooks see the step's loss and gradients, and Lightning's optimiser wrapper takes the update (so the step count,
+checkpoints and resume are Lightning's own). The schedules enter the graph as device scalars, so an annealed weight
+moves at every replay.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Hashable, Mapping
+from typing import TYPE_CHECKING, Any
+
+import lightning as L
+import torch
+from lightning.pytorch.accelerators import CUDAAccelerator
+
+from dider.graph import edge_mask
+from dider.models.plugins import Progress
+from dider.training.step_graph import StepGraph
+
+if TYPE_CHECKING:
+    from dider.training.module import RelationalVAEModule
+
+log = logging.getLogger(__name__)
+
+SETTING_VALUES = ("auto", True, False)
+
+
+def unsupported(trainer: L.Trainer) -> list[str]:
+    """The trainer settings a graphed step cannot keep (each as ``trainer.key=value``)."""
+    out = []
+    if trainer.gradient_clip_val:
+        out.append(f"trainer.gradient_clip_val={trainer.gradient_clip_val}")
+    if trainer.accumulate_grad_batches != 1:
+        out.append(f"trainer.accumulate_grad_batches={trainer.accumulate_grad_batches}")
+    if getattr(trainer.precision_plugin, "scaler", None) is not None:
+        out.append(f"trainer.precision={trainer.precision}")
+    if trainer.world_size > 1:
+        out.append(f"trainer.devices={trainer.num_devices} (several processes)")
+    return out
+
+
+def wanted(setting: bool | str, trainer: L.Trainer | None) -> bool:
+    """Whether a fit graphs its steps: ``True`` always (a dry run on a CPU), ``"auto"`` where training runs on a CUDA
+    device and the trainer's settings allow it, ``False`` never."""
+    if setting not in SETTING_VALUES:
+        raise ValueError(f"cuda_graph={setting!r}: expected auto, true or false")
+    if setting is False or trainer is None:
+        return False
+    problems = unsupported(trainer)
+    if setting is True and problems:
+        raise ValueError(f"cuda_graph=true cannot keep {', '.join(problems)}: set cuda_graph=false or drop them")
+    return setting is True or (isinstance(trainer.accelerator, CUDAAccelerator) and not problems)
+
+
+class GraphedSteps:
+    """A module's graphed training steps: ``step(batch)`` trains on one batch and returns its outputs (the loss
+    terms, detached, and ``segments/<stat>``), having taken the optimiser step."""
+
+    def __init__(self, module: RelationalVAEModule, warmup: int = 3) -> None:
+        self.module = module
+        self.graph = StepGraph(self._forward_backward, warmup)
+
+    def _forward_backward(self, inputs: Mapping[str, torch.Tensor], everyone: Hashable) -> dict[str, torch.Tensor]:
+        """What the graph holds: the gradients' reset, the forward pass, the loss and the backward."""
+        model = self.module.model
+        grads = [p.grad for p in model.parameters() if p.grad is not None]
+        if grads:  # in place: the graph writes the gradients where the optimiser reads them
+            torch._foreach_zero_(grads)
+        batch: dict[str, Any] = {k: v for k, v in inputs.items() if not k.startswith("schedule/")}
+        if everyone is not None:
+            batch["everyone"] = everyone
+        progress = Progress(values={k.removeprefix("schedule/"): v for k, v in inputs.items()
+                                    if k.startswith("schedule/")})
+        out = model.infer(batch, hard=False, progress=progress)
+        terms = model.loss(out, progress)
+        terms["loss"].backward()
+        stats = out.seg.stats(edge_mask(batch["mask"][:, :-1]).any(1))
+        return {**{k: v.detach() for k, v in terms.items()}, **{f"segments/{k}": v.detach() for k, v in stats.items()}}
+
+    def step(self, batch: Mapping[str, Any], schedule: Mapping[str, float]) -> dict[str, torch.Tensor]:
+        """batch: a training batch; schedule: the schedules' values at this step (host floats)."""
+        module, trainer = self.module, self.module.trainer
+        tensors = {k: v for k, v in batch.items() if isinstance(v, torch.Tensor)}
+        out = self.graph(tensors, {f"schedule/{k}": float(v) for k, v in schedule.items()}, batch.get("everyone"))
+        for callback in trainer.callbacks:  # what manual_backward would have called around the backward
+            callback.on_before_backward(trainer, module, out["loss"])
+        for callback in trainer.callbacks:
+            callback.on_after_backward(trainer, module)
+        module.optimizers().step()  # Lightning's wrapper: counts the step, calls the optimiser hooks
+        return out

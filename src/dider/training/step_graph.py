@@ -1,0 +1,106 @@
+"""A training step captured as one CUDA graph and replayed for every batch of the captured shape.
+
+The captured function runs all of a step's device work but the optimiser's update (a handful of fused kernels,
+left to Lightning): the gradients' reset, the forward pass, the loss and the backward. Its inputs (the batch's
+tensors, the schedules' values) are copied into static buffers before each replay and its outputs read from static
+buffers after it; the parameters and their gradients keep their addresses between steps, so the graph reads and
+writes them in place. On a CPU there is no graph: the same function runs on the same kind of buffers at every step
+(a dry run, which the tests compare with the eager step), so what a GPU replays is what the CPU runs.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Hashable, Mapping
+
+import torch
+
+log = logging.getLogger(__name__)
+
+StepFn = Callable[[Mapping[str, torch.Tensor], Hashable], dict[str, torch.Tensor]]
+
+
+class StepGraph:
+    """``StepGraph(fn)(tensors, scalars, flags)`` -> ``fn(inputs, flags)``'s outputs, where inputs holds the tensors
+    and each scalar as a 0-d float32 tensor on their device; from a CUDA graph after ``warmup`` eager calls.
+
+    fn may not synchronise with the host nor make a tensor from host data (the conditions of a capture); flags (a
+    hashable, such as whether every agent is present) are fixed in a graph. The first inputs whose shapes and flags
+    repeat those of the call before, after the warm-up, are captured; a call of other shapes or flags (an epoch's
+    last, shorter batch) runs eagerly on the same parameters, so a run captures once. A replay's outputs live in the
+    graph's buffers until the next replay: read them before then.
+    """
+
+    def __init__(self, fn: StepFn, warmup: int = 3) -> None:
+        if warmup < 1:
+            raise ValueError(f"StepGraph: warmup={warmup}; a capture needs at least one eager step before it")
+        self.fn, self.warmup = fn, warmup
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.key: Hashable = None  # the captured call's shapes and flags
+        self.last_key: Hashable = None
+        self.static_in: dict[str, torch.Tensor] = {}
+        self.static_out: dict[str, torch.Tensor] = {}
+        self.eager_calls = 0  # eager steps (the warm-up, other shapes, a CPU's dry run)
+        self.replays = 0
+        self.failed = False  # a capture was tried and failed: every step runs eagerly
+
+    def __call__(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float] | None = None,
+                 flags: Hashable = None) -> dict[str, torch.Tensor]:
+        scalars = scalars or {}
+        device = next(iter(tensors.values())).device
+        key = (tuple((k, tuple(v.shape), v.dtype) for k, v in sorted(tensors.items())), tuple(sorted(scalars)), flags)
+        if (device.type == "cuda" and self.graph is None and not self.failed and self.eager_calls >= self.warmup
+                and key == self.last_key):
+            self._capture(tensors, scalars, flags, key)
+        self.last_key = key
+        if device.type != "cuda" or key != self.key:
+            return self._eager(tensors, scalars, flags, device)
+        self._fill(tensors, scalars)
+        self.graph.replay()
+        self.replays += 1
+        return self.static_out
+
+    def _fill(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float]) -> None:
+        for name, value in tensors.items():
+            self.static_in[name].copy_(value, non_blocking=True)
+        for name, value in scalars.items():
+            self.static_in[name].fill_(value)  # the value travels as a kernel argument: no copy from the host
+
+    def _buffers(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float],
+                 device: torch.device) -> dict[str, torch.Tensor]:
+        return {**{k: v.clone() for k, v in tensors.items()},
+                **{k: torch.full((), v, dtype=torch.float32, device=device) for k, v in scalars.items()}}
+
+    def _eager(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], flags: Hashable,
+               device: torch.device) -> dict[str, torch.Tensor]:
+        self.eager_calls += 1
+        inputs = self._buffers(tensors, scalars, device)
+        if device.type != "cuda" or self.graph is not None or self.failed:
+            return self.fn(inputs, flags)
+        # Before a capture, on a side stream, as capturing asks: the warm-up's allocations, cuBLAS workspaces and
+        # autograd's device threads are then the ones the capture finds.
+        side = torch.cuda.Stream(device)
+        side.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(side):
+            out = self.fn(inputs, flags)
+        torch.cuda.current_stream(device).wait_stream(side)
+        return out
+
+    def _capture(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], flags: Hashable,
+                 key: Hashable) -> None:
+        device = next(iter(tensors.values())).device
+        self.static_in = self._buffers(tensors, scalars, device)
+        graph = torch.cuda.CUDAGraph()
+        torch.cuda.synchronize(device)
+        try:
+            with torch.cuda.graph(graph):
+                self.static_out = self.fn(self.static_in, flags)
+        except RuntimeError as error:  # an op the capture cannot hold: the run goes on eagerly, as it would without
+            self.failed = True
+            torch.cuda.synchronize(device)
+            log.warning("the training step could not be captured as a CUDA graph; it runs eagerly (cuda_graph=false "
+                        "does so from the start): %s", str(error).splitlines()[0][:300])
+            return
+        self.graph, self.key = graph, key
+        log.info("training step captured as one CUDA graph after %d eager steps (%s)", self.eager_calls,
+                 ", ".join(f"{k} {list(v.shape)}" for k, v in tensors.items()))
