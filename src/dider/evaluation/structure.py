@@ -96,8 +96,8 @@ class StructureRecovery(Metric):
 
     def compute(self) -> dict[str, torch.Tensor]:
         total = self.confusion.sum()
-        label_of = match_types(self.confusion[:, : self.num_types])
-        rows = torch.arange(self.num_types)
+        label_of = match_types(self.confusion[:, : self.num_types]).to(self.confusion.device)
+        rows = torch.arange(self.num_types, device=self.confusion.device)
         hits = torch.where(label_of >= 0, self.confusion[rows, label_of.clamp_min(0)], 0.0)
         out = {"matched": hits.sum() / total, "as_labelled": self.confusion[rows, rows].sum() / total}
         if len(self.probs):
@@ -106,5 +106,5 @@ class StructureRecovery(Metric):
             score = (probs * edge_types).sum(-1)
             truth = (labels > 0).long()
             out["auroc"] = (binary_auroc(score, truth) if 0 < int(truth.sum()) < len(truth)
-                            else torch.tensor(float("nan")))
+                            else torch.tensor(float("nan"), device=score.device))
         return {k: v.float() for k, v in out.items()}
