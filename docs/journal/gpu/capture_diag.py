@@ -50,7 +50,8 @@ def forward() -> torch.Tensor:
     return net.loss(net.infer(batch, hard=False, progress=progress), progress)["loss"].detach()
 
 
-enc = net.encoder(batch["states"], None)
+with torch.no_grad():  # no autograd graph kept alive across the stages (its accumulators' stream would differ)
+    enc = net.encoder(batch["states"], None)
 h_fwd, h_rev = enc.h_fwd.detach().requires_grad_(), enc.h_rev.detach().requires_grad_()
 
 

@@ -54,13 +54,44 @@ def hold_assignment(gate: torch.Tensor, closed: bool | None = None) -> torch.Ten
     return torch.stack(rows, dim=2)
 
 
+class SyncFreeCumprod(torch.autograd.Function):
+    """``x.cumprod(dim)`` with a backward that never reads a value back. Torch's own backward asks the host whether
+    the input holds a zero (a synchronisation a CUDA graph cannot hold) and then takes data-dependent masks; here
+    both cases are one dense formula. For y = cumprod(x) and incoming gradient g, along dim:
+    before the slice's first zero z, dx_k = sum_{k <= j < z} g_j y_j / x_k; at z, dx_z = sum_{j >= z} g_j
+    prod_{i <= j, i != z} x_i (the cumulative product with x_z read as 1); after it, 0."""
+
+    @staticmethod
+    def forward(ctx: torch.autograd.function.FunctionCtx, x: torch.Tensor, dim: int) -> torch.Tensor:
+        y = x.cumprod(dim)
+        ctx.save_for_backward(x, y)
+        ctx.dim = dim
+        return y
+
+    @staticmethod
+    def backward(ctx: torch.autograd.function.FunctionCtx, g: torch.Tensor) -> tuple[torch.Tensor, None]:
+        x, y = ctx.saved_tensors
+        d = ctx.dim
+        zero = x == 0
+        zeros_so_far = zero.cumsum(d)
+        before, first = zeros_so_far == 0, zero & (zeros_so_far == 1)
+
+        def from_here(v: torch.Tensor) -> torch.Tensor:  # sum over j >= k
+            return v.flip(d).cumsum(d).flip(d)
+
+        dx = torch.where(before, from_here(torch.where(before, g * y, 0.0)) / torch.where(before, x, 1.0), 0.0)
+        at_first = from_here(g * torch.where(first, 1.0, x).cumprod(d))
+        return torch.where(first, at_first, dx), None
+
+
 def _held_closed(gate: torch.Tensor) -> torch.Tensor:
     """The recurrence of :func:`hold_assignment` unrolled: z_t[s] = b_s prod_{s < j <= t} (1 - b_j) for s <= t, else
     0. gate [B, E, T] -> [B, E, T, S=T]."""
     t = gate.shape[-1]
     upto = torch.ones(t, t, dtype=torch.bool, device=gate.device).tril()  # [t, s]: s <= t
     later = upto.tril(-1)  # s < t: the steps whose (1 - b_t) a segment started at s survives
-    held = torch.where(later, (1 - gate).unsqueeze(-1), 1.0).cumprod(-2)  # [B, E, T, S]: prod over s < j <= t
+    held = SyncFreeCumprod.apply(torch.where(later, (1 - gate).unsqueeze(-1), 1.0), -2)  # [B, E, T, S]: prod over
+    # s < j <= t
     return torch.where(upto, gate.unsqueeze(-2) * held, 0.0)
 
 

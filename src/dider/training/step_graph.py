@@ -42,15 +42,14 @@ class StepGraph:
         self.static_out: dict[str, torch.Tensor] = {}
         self.eager_calls = 0  # eager steps (the warm-up, other shapes, a CPU's dry run)
         self.replays = 0
-        self.failed = False  # a capture was tried and failed: every step runs eagerly
+        self.stream: torch.cuda.Stream | None = None  # the warm-up's and the capture's
 
     def __call__(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float] | None = None,
                  flags: Hashable = None) -> dict[str, torch.Tensor]:
         scalars = scalars or {}
         device = next(iter(tensors.values())).device
         key = (tuple((k, tuple(v.shape), v.dtype) for k, v in sorted(tensors.items())), tuple(sorted(scalars)), flags)
-        if (device.type == "cuda" and self.graph is None and not self.failed and self.eager_calls >= self.warmup
-                and key == self.last_key):
+        if device.type == "cuda" and self.graph is None and self.eager_calls >= self.warmup and key == self.last_key:
             self._capture(tensors, scalars, flags, key)
         self.last_key = key
         if device.type != "cuda" or key != self.key:
@@ -75,15 +74,15 @@ class StepGraph:
                device: torch.device) -> dict[str, torch.Tensor]:
         self.eager_calls += 1
         inputs = self._buffers(tensors, scalars, device)
-        if device.type != "cuda" or self.graph is not None or self.failed:
+        if device.type != "cuda" or self.graph is not None:
             return self.fn(inputs, flags)
-        # Before a capture, on a side stream, as capturing asks: the warm-up's allocations, cuBLAS workspaces and
-        # autograd's device threads are then the ones the capture finds.
-        side = torch.cuda.Stream(device)
-        side.wait_stream(torch.cuda.current_stream(device))
-        with torch.cuda.stream(side):
+        # Before a capture, on the stream the capture will use, as capturing asks: the warm-up's allocations, cuBLAS
+        # workspaces and autograd's gradient accumulators are then the ones the capture finds.
+        self.stream = self.stream or torch.cuda.Stream(device)
+        self.stream.wait_stream(torch.cuda.current_stream(device))
+        with torch.cuda.stream(self.stream):
             out = self.fn(inputs, flags)
-        torch.cuda.current_stream(device).wait_stream(side)
+        torch.cuda.current_stream(device).wait_stream(self.stream)
         return out
 
     def _capture(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], flags: Hashable,
@@ -93,14 +92,13 @@ class StepGraph:
         graph = torch.cuda.CUDAGraph()
         torch.cuda.synchronize(device)
         try:
-            with torch.cuda.graph(graph):
+            with torch.cuda.graph(graph, stream=self.stream):
                 self.static_out = self.fn(self.static_in, flags)
-        except RuntimeError as error:  # an op the capture cannot hold: the run goes on eagerly, as it would without
-            self.failed = True
-            torch.cuda.synchronize(device)
-            log.warning("the training step could not be captured as a CUDA graph; it runs eagerly (cuda_graph=false "
-                        "does so from the start): %s", str(error).splitlines()[0][:300])
-            return
+        except RuntimeError as error:
+            # An op the capture cannot hold (a read-back, a host copy). The failed capture leaves the CUDA random
+            # generator unusable for this process, so the run cannot go on eagerly: it stops, naming the way out.
+            raise RuntimeError("the training step could not be captured as one CUDA graph; cuda_graph=false trains "
+                               f"without it ({str(error).splitlines()[0][:300]})") from error
         self.graph, self.key = graph, key
         log.info("training step captured as one CUDA graph after %d eager steps (%s)", self.eager_calls,
                  ", ".join(f"{k} {list(v.shape)}" for k, v in tensors.items()))
