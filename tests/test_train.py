@@ -227,7 +227,7 @@ def test_results_card_marks_what_is_missing():
 def test_kinematic_decoder_starts_from_its_fitted_step(make_cfg, tmp_path, caplog):
     """model.net.decoder.kinematic=true: the step is fitted on a training batch before the first optimiser step
     (positions move with the velocity on the synthetic set: a positive slope), then trained on."""
-    with caplog.at_level(logging.INFO, logger="dider.training.module"):
+    with caplog.at_level(logging.INFO, logger="dider.training.first_batch"):
         train(make_cfg(["model.net.decoder.kinematic=true", "logger=none"], out=tmp_path / "run"))
     fitted = re.search(r"kinematic step fitted on a training batch: slope (\S+), offset (\S+)", caplog.text)
     assert fitted and float(fitted.group(1)) > 0
@@ -239,7 +239,7 @@ def test_fitted_nll_variance_is_fitted_before_training_and_saved(make_cfg, tmp_p
     """model.net.objective.nll.variance=fit: per feature, the constant-velocity residual's variance on a training
     batch, logged, used and saved with the weights (the synthetic set's velocities change more than its positions'
     residual)."""
-    with caplog.at_level(logging.INFO, logger="dider.training.module"):
+    with caplog.at_level(logging.INFO, logger="dider.training.first_batch"):
         train(make_cfg(["model.net.objective.nll.variance=fit", "logger=none"], out=tmp_path / "run"))
     assert "NLL variance fitted on a training batch, per feature" in caplog.text
     state = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)

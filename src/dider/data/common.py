@@ -67,7 +67,9 @@ class ClipDataset(Dataset):
     def __getitems__(self, indices: Sequence[int]) -> Batch:
         """A batch in one gather per array (the DataLoader calls it with a batch's indices), with ``everyone``:
         whether every agent of the batch is present, known on the host (no look at the mask on the device)."""
-        idx = torch.as_tensor(indices, dtype=torch.long, device=self.states.device)
+        idx = torch.as_tensor(indices, dtype=torch.long)
+        if idx.device != self.states.device:  # from pinned memory, asynchronously: the host does not wait for it
+            idx = idx.pin_memory().to(self.states.device, non_blocking=True)
         batch: Batch = {"states": self.states[idx], "mask": self.mask[idx], "everyone": self.everyone}
         if self.edges is not None:
             batch["edges"] = self.edges[idx]

@@ -195,7 +195,7 @@ class InteractionRunLength(Metric):
         self.total += (types >= 0).sum()  # -1: an absent edge-step
 
     def compute(self) -> torch.Tensor:
-        length = self.steps / self.runs if self.runs > 0 else torch.tensor(float("nan"), dtype=torch.float64)
+        length = self.steps / self.runs if self.runs > 0 else torch.full_like(self.steps, float("nan"))
         return torch.stack([length, self.steps / self.total.clamp_min(1)]).float()
 
 
@@ -238,7 +238,7 @@ class BoundaryF1(Metric):
 
     def compute(self) -> torch.Tensor:
         if self.pred_all == 0 and self.true_all == 0:
-            return torch.tensor(1.0)
+            return torch.ones((), device=self.pred_all.device)
         precision = self.pred_hit / self.pred_all.clamp_min(1)
         recall = self.true_hit / self.true_all.clamp_min(1)
         return (2 * precision * recall / (precision + recall).clamp_min(1e-12)).float()
@@ -279,7 +279,7 @@ class OwnCut(BoundaryF1):
             self.constant_edges += constant.sum().double()
 
     def compute(self) -> torch.Tensor:
-        nan = torch.tensor(float("nan"), dtype=torch.float64)
+        nan = torch.full_like(self.own, float("nan"))  # on the metric's device, as the states
         share = self.own_on_switch / self.own if self.own > 0 else nan
         f1 = super().compute() if self.with_truth > 0 else nan
         constant = self.constant_own / self.constant_edges if self.constant_edges > 0 else nan

@@ -39,6 +39,7 @@ from dider.models.plugins import Progress
 from dider.models.vae import Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons, scored_targets
 from dider.training.callbacks import EvalRandomState, FiniteGuard, ResumeMidEpoch, SaveOnTerminate
+from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
 from dider.validation import require
 
@@ -94,6 +95,7 @@ class RelationalVAEModule(L.LightningModule):
         # dider.training.graphed); not a hyper-parameter: it changes how a step runs, not what it computes.
         self.cuda_graph: bool | str = False
         self._graphed: GraphedSteps | None = None
+        self._schedule_sums: dict[str, float] = {}  # the epoch's schedules, weighted by batch size ("": the weights)
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -131,43 +133,12 @@ class RelationalVAEModule(L.LightningModule):
         return self.model(x, mask, burn_in, num_pred, self.burn_in_mode)
 
     def on_fit_start(self) -> None:
-        """On a GPU, the data module's in-memory clips move there (``to_device``). Then what is fitted to a training
-        batch before the first optimiser step: a kinematic decoder's step
-        (:class:`~dider.models.decoders.KinematicStep`) and, with ``objective.nll.variance: fit``, the NLL's
-        variance per feature. A resumed run keeps its trained values (the weights are restored before this hook,
-        the step count after it: a checkpoint being loaded is the sign)."""
+        """On a GPU, the data module's in-memory clips move there (``to_device``); then what is fitted to a training
+        batch (:func:`~dider.training.first_batch.fit_to_a_training_batch`)."""
         dm = getattr(self.trainer, "datamodule", None)
         if self.device.type == "cuda" and hasattr(dm, "to_device"):  # batches made on the GPU, not copied there
             dm.to_device(self.device)
-        step = self.model.decoder.kinematic if self.model.fits_kinematics else None
-        likelihood = self.model.likelihood
-        if (step is None and not likelihood.to_fit) or self.trainer.ckpt_path is not None:
-            return
-        if dm is None:
-            if likelihood.to_fit:
-                raise ValueError("model.net.objective.nll.variance=fit fits the variance to a training batch of the "
-                                 "data module: train through trainer.fit(model, datamodule=...) or give a number")
-            return
-        with torch.random.fork_rng(devices=[]):  # the loader's shuffling must not move the run's random state
-            batch = next(iter(dm.train_dataloader()))
-        states, mask = batch["states"].to(self.device), batch["mask"].to(self.device)
-        # every rank fits its own batch; DDP needs one set of values: rank 0's (a broadcast tensor arrives on
-        # rank 0's device, hence the moves)
-        broadcast = self.trainer.strategy.broadcast
-        if step is not None:
-            step.fit(states, mask)
-            slope, offset = broadcast(torch.stack([step.slope.detach(), step.offset.detach()])).to(self.device)
-            with torch.no_grad():
-                step.slope.fill_(slope)
-                step.offset.fill_(offset)
-            if self.trainer.is_global_zero:
-                log.info("kinematic step fitted on a training batch: slope %.4g, offset %.3g", float(slope),
-                         float(offset))
-        if likelihood.to_fit:
-            likelihood.variance = broadcast(likelihood.fit(states, mask)).to(self.device)
-            if self.trainer.is_global_zero:
-                log.info("NLL variance fitted on a training batch, per feature: %s",
-                         ", ".join(f"{v:.3g}" for v in likelihood.variance.tolist()))
+        fit_to_a_training_batch(self.model, self.trainer, dm, self.device)
 
     def monitorable(self) -> set[str]:
         """Every metric a checkpoint or early-stopping callback may monitor: what validation logs (each loss term,
@@ -224,12 +195,17 @@ class RelationalVAEModule(L.LightningModule):
         self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
         if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
             self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
-        self.log_dict({f"train/schedule/{k}": v for k, v in self.model.schedule(progress).items()},
-                      on_step=False, on_epoch=True, batch_size=bs)  # the epoch's mean: logged however short
+        for k, v in self.model.schedule(progress).items():  # the epoch's mean, kept on the host: logging a float at
+            self._schedule_sums[k] = self._schedule_sums.get(k, 0.0) + float(v) * bs  # each step copies it
+        self._schedule_sums[""] = self._schedule_sums.get("", 0.0) + bs  # to the device
         self.log_dict(segments, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
     def on_train_epoch_end(self) -> None:
+        weight = self._schedule_sums.pop("", 0.0)
+        if weight:  # logged however short the epoch
+            self.log_dict({f"train/schedule/{k}": v / weight for k, v in self._schedule_sums.items()})
+        self._schedule_sums = {}
         if not self.automatic_optimization and (scheduler := self.lr_schedulers()) is not None:
             scheduler.step()  # Lightning steps epoch schedulers itself only in its own loop
 
