@@ -106,6 +106,7 @@ def test_debug_configs_compose(make_cfg, debug):
     assert cfg.logger is None and cfg.trainer.accelerator == "cpu"
 
 
+@pytest.mark.slow  # every debug option end to end, about 20 s: make test-all
 def test_a_debug_run_and_its_output(tmp_path):
     """`debug=fdr` runs the whole loop on one batch; with output redirected to a file, training prints one line
     per epoch and the final table once, without the libraries' tips and deprecation notes."""

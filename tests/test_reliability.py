@@ -83,6 +83,7 @@ def _run_args(out: Path, cache: Path, *extra: str) -> list[str]:
             f"data.cache_dir={cache}", f"hydra.run.dir={out}", *extra]
 
 
+@pytest.mark.slow  # two real processes, about 25 s: make test-all (the SIGTERM resume below runs by default)
 def test_killed_run_resumes_to_the_same_metrics(tmp_path, cache_dir):
     """SIGKILL a real training process during its third epoch (after epoch 1's last.ckpt), resume it with
     ckpt_path=last in the same folder: metrics.json equals the uninterrupted run's with the same seed."""
@@ -155,6 +156,7 @@ def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers
 # ------------------------------------------------------------------------------------------ determinism
 
 
+@pytest.mark.slow  # three runs, about 15 s: make test-all (same bits twice: tests/test_reproducibility.py)
 def test_same_seed_same_metrics_other_seed_differs(make_cfg, tmp_path):
     runs = {}
     for name, seed in (("a", 4), ("b", 4), ("c", 5)):

@@ -80,3 +80,24 @@ def test_the_dry_run_reads_its_inputs_and_scalars_each_step():
     assert seen == [(3.0, 0.5, True), (6.0, 0.25, True), (2.0, 1.0, False)] and graph.eager_calls == 3
     with pytest.raises(ValueError, match="warmup=0"):
         StepGraph(lambda inputs, flags: {}, warmup=0)
+
+
+def test_epoch_means_weigh_each_step_by_its_batch_and_read_nothing_back():
+    from dider.bench.syncs import HostSyncs
+    from dider.training.step_metrics import EpochMeans
+
+    means = EpochMeans()
+    steps = [({"loss": torch.tensor(2.0), "kl": torch.tensor(1.0), "tau": 0.5}, 16),
+             ({"loss": torch.tensor(5.0), "kl": torch.tensor(0.0), "tau": 0.25}, 8)]
+    with HostSyncs() as waits:
+        for values, weight in steps:
+            means.add(values, weight)
+    assert waits.where == {}
+    got = {k: float(v) for k, v in means.means().items()}
+    assert got == pytest.approx({"loss": (2 * 16 + 5 * 8) / 24, "kl": 16 / 24, "tau": (0.5 * 16 + 0.25 * 8) / 24})
+    assert {k: float(v) for k, v in means.last().items()} == {"loss": 5.0, "kl": 0.0}
+    means.reset()
+    assert means.means() == {} and means.weight == 0
+    with pytest.raises(ValueError, match="differ from the epoch's"):
+        means.add({"loss": torch.tensor(1.0)}, 4)
+        means.add({"nll": torch.tensor(1.0)}, 4)

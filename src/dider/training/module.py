@@ -41,6 +41,7 @@ from dider.protocol import agent_horizons, scored_targets
 from dider.training.callbacks import EvalRandomState, FiniteGuard, ResumeMidEpoch, SaveOnTerminate
 from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
+from dider.training.step_metrics import EpochMeans
 from dider.validation import require
 
 log = logging.getLogger(__name__)
@@ -95,7 +96,7 @@ class RelationalVAEModule(L.LightningModule):
         # dider.training.graphed); not a hyper-parameter: it changes how a step runs, not what it computes.
         self.cuda_graph: bool | str = False
         self._graphed: GraphedSteps | None = None
-        self._schedule_sums: dict[str, float] = {}  # the epoch's schedules, weighted by batch size ("": the weights)
+        self._epoch_means = EpochMeans()  # the training epoch's logged values, kept on the device
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -192,20 +193,34 @@ class RelationalVAEModule(L.LightningModule):
             terms = self.model.loss(out, progress)
             present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
             segments = {f"train/segments/{k}": v for k, v in out.seg.stats(present).items()}
-        self.log_dict({f"train/{k}": v for k, v in terms.items()}, on_step=True, on_epoch=True, batch_size=bs)
         if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
             self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
-        for k, v in self.model.schedule(progress).items():  # the epoch's mean, kept on the host: logging a float at
-            self._schedule_sums[k] = self._schedule_sums.get(k, 0.0) + float(v) * bs  # each step copies it
-        self._schedule_sums[""] = self._schedule_sums.get("", 0.0) + bs  # to the device
-        self.log_dict(segments, on_step=False, on_epoch=True, batch_size=bs, sync_dist=True)
+        self._epoch_means.add({**{f"train/{k}": v for k, v in terms.items()}, **segments,
+                               **{f"train/schedule/{k}": float(v) for k, v in self.model.schedule(progress).items()}},
+                              bs)
+        if self._writes_logs():  # the step's own values, on the steps the trainer writes (log_every_n_steps)
+            self.log_dict({f"train/{k}_step": v for k, v in terms.items()}, on_step=True, on_epoch=False,
+                          batch_size=bs)
         return {k: v if k == "loss" else v.detach() for k, v in terms.items()}
 
+    def _writes_logs(self) -> bool:
+        connector = getattr(self._trainer, "_logger_connector", None)
+        return bool(getattr(connector, "should_update_logs", True))
+
+    def _log_epoch_means(self) -> None:
+        """train/<term>_epoch, train/segments/*, train/schedule/*: the epoch's means (kept by :class:`EpochMeans`)."""
+        terms = {f"train/{k}" for k in (*self.model.objective.terms, "loss", "nelbo")}
+        means = {f"{k}_epoch" if k in terms else k: v for k, v in self._epoch_means.means().items()}
+        if means:
+            self.log_dict(means, on_step=False, on_epoch=True, sync_dist=True)
+        self._epoch_means.reset()
+
+    def on_train_batch_end(self, outputs: Any, batch: Batch, batch_idx: int) -> None:
+        if batch_idx + 1 >= self.trainer.num_training_batches:  # before validation and the epoch's callbacks read it
+            self._log_epoch_means()
+
     def on_train_epoch_end(self) -> None:
-        weight = self._schedule_sums.pop("", 0.0)
-        if weight:  # logged however short the epoch
-            self.log_dict({f"train/schedule/{k}": v / weight for k, v in self._schedule_sums.items()})
-        self._schedule_sums = {}
+        self._log_epoch_means()  # an epoch stopped before its last batch (nothing left after the last)
         if not self.automatic_optimization and (scheduler := self.lr_schedulers()) is not None:
             scheduler.step()  # Lightning steps epoch schedulers itself only in its own loop
 
