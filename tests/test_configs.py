@@ -153,8 +153,9 @@ def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
     expected = {"synth": (5, [1, 15, 25], "global"), "dnri_files": (5, [1, 15, 25], "global"),
                 "basketball": (40, [1, 5, 9], "global"), "ind": (5, [1, 20, 40], "per_agent"),
                 "ind200": (5, [1, 40, 120, 190], "per_agent"), "table": (5, [1, 5, 10], "per_agent"),
-                "springs": (29, [1, 10, 20], "global"), "charged": (29, [1, 10, 20], "global")}
-    assert set(options("protocol")) == {"synth", "basketball", "ind", "ind200", "tracking", "springs"}
+                "springs": (29, [1, 10, 20], "global"), "charged": (29, [1, 10, 20], "global"),
+                "eth_ucy": (8, [1, 6, 12], "per_agent")}
+    assert set(options("protocol")) == {"synth", "basketball", "ind", "ind200", "tracking", "springs", "pedestrians"}
     for data, (burn_in, horizons, mode) in expected.items():
         cfg = make_cfg([f"data={data}"])
         for node in (cfg.protocol, cfg.data, cfg.model):

@@ -43,11 +43,12 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
+from dider.data.readers import READERS
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.data.windowing import MAX_GRID_CELLS, cut_windows
 from dider.protocol import fill_absent
-from dider.validation import Rule, above, check_settings, finite, integer, optional
+from dider.validation import Rule, above, check_settings, finite, integer, one_of, optional
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +194,7 @@ class TableDataModule(ClipDataModule):
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
         "frame_rate": lambda value: above(0)(value) or finite(value), "downsample": integer(1),
         "seq_len": integer(2), "stride": optional(integer(1)), "min_agent_steps": integer(1),
-        "min_agents": integer(1), "max_speed": optional(above(0)),
+        "min_agents": integer(1), "max_speed": optional(above(0)), "reader": one_of("table", *READERS),
     }
 
     def __init__(
@@ -217,8 +218,11 @@ class TableDataModule(ClipDataModule):
         cache_dir: str | None = None,
         burn_in_mode: str = "per_agent",
         max_speed: float | None = None,
+        reader: str = "table",
     ) -> None:
-        """path: the .csv or .parquet file (required; parquet needs pyarrow).
+        """path: the .csv or .parquet file (required; parquet needs pyarrow), or what ``reader`` reads.
+        reader: ``table`` (the file's columns named in ``columns``) or a format's reader, which reads its own files
+        (:mod:`dider.data.readers`: ``eth_ucy``, a folder of ETH/UCY text files).
         columns: the table's column names (module docstring), key by key over ``COLUMNS``.
         frame_rate: frames per second of the frame column: differenced velocities are per second.
         seq_len: the window length in (downsampled) steps.
@@ -240,7 +244,7 @@ class TableDataModule(ClipDataModule):
 
     def _read(self) -> dict[str, Any]:
         """The rows (:func:`~dider.data.table_reading.read_table`'s dict); other sources override it."""
-        return read_table(self._path(), self.columns)
+        return read_table(self._path(), self.columns, self.hparams.reader)
 
     def _source(self) -> str:
         """What messages name as the data's origin."""

@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from dider.data.columns import csv_header
+from dider.data.readers import read_tracks
 
 log = logging.getLogger(__name__)
 
@@ -126,18 +127,23 @@ def _ids(path: Path, s: pd.Series, integers: bool = True) -> tuple[np.ndarray, l
     return codes.astype(np.int64), [str(n) for n in names]
 
 
-def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
-    """Read and validate the table; rows sorted by (scene id, agent, frame).
+def read_table(path: Path, columns: Mapping[str, str | None], reader: str = "table") -> dict[str, Any]:
+    """Read and validate the table; rows sorted by (scene id, agent, frame). reader: ``table`` (a .csv or .parquet
+    file whose columns ``columns`` names) or a format's reader (:mod:`dider.data.readers`; ``columns`` unused).
 
     Returns: scene [R] int64 (index into scene_ids), scene_ids [Z] int64 (each scene's source id, sorted), agent
     [R] int64 (ids or codes), frame [R] int64, xy [R, 2] float64, vel [R, 2] float64 or None,
     agent_class [R] int64 or None, line [R] int64 (each row's index in the file) and names (key -> names
     of string ids: scene, agent, agent_class), has_scene (whether a scene column was read).
     """
-    named = {k: v for k, v in columns.items() if v is not None}
-    # A column called "scene" is the scene id unless data.columns names one (or uses "scene" for another key).
-    auto_scene = "scene" not in named and "scene" not in named.values()
-    df = _read_frame(path, list(named.values()), optional=["scene"] if auto_scene else [])
+    if reader != "table":
+        df = read_tracks(reader, path)
+        named, auto_scene = {k: k for k in df.columns}, False
+    else:
+        named = {k: v for k, v in columns.items() if v is not None}
+        # A column called "scene" is the scene id unless data.columns names one (or uses "scene" for another key).
+        auto_scene = "scene" not in named and "scene" not in named.values()
+        df = _read_frame(path, list(named.values()), optional=["scene"] if auto_scene else [])
     if auto_scene and "scene" in df.columns:
         named["scene"] = "scene"
         log.info("%s: column 'scene' read as the scene id (data.columns.scene is null); to read the file as one "

@@ -212,7 +212,7 @@ class RelationalVAEModule(L.LightningModule):
         terms = {f"train/{k}" for k in (*self.model.objective.terms, "loss", "nelbo")}
         means = {f"{k}_epoch" if k in terms else k: v for k, v in self._epoch_means.means().items()}
         if means:
-            self.log_dict(means, on_step=False, on_epoch=True, sync_dist=True)
+            self.log_dict(means, on_step=False, on_epoch=True, sync_dist=True, batch_size=1)  # means already
         self._epoch_means.reset()
 
     def on_train_batch_end(self, outputs: Any, batch: Batch, batch_idx: int) -> None:

@@ -140,12 +140,15 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
 def _path_problems(get: Callable[[str], Any]) -> list[str]:
     """The data's input folder or file, where the config names one: it must exist."""
     problems = []
-    for key, kind in (("data.root", "folder"), ("data.path", "file")):
+    # a format's reader (data.reader) may read a folder of files
+    path_kind = "file" if get("data.reader") in (None, "table") else "file or folder"
+    for key, kind in (("data.root", "folder"), ("data.path", path_kind)):
         value = get(key)
         if value is None:
             continue
         path = Path(str(value)).expanduser()
-        if not (path.is_dir() if kind == "folder" else path.is_file()):
+        found = {"folder": path.is_dir(), "file": path.is_file(), "file or folder": path.exists()}[kind]
+        if not found:
             problems.append(f"{key}={value}: no such {kind}")
     return problems
 

@@ -1,0 +1,43 @@
+"""ETH/UCY pedestrians as the trajectory-forecasting literature ships them (Social GAN's copies): plain text, one row
+per pedestrian per frame, ``frame agent x y`` separated by tabs or spaces, no header, positions in metres, frames
+numbered in the original video (a step every 10 frames, or 6 in ETH's own file). A folder reads each ``.txt`` file
+in it as one scene named by the file; a file alone is one scene. Frames become steps: each file's frame numbers
+divided by their common step, so that every scene is at the data set's 2.5 steps a second."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+FIELDS = ("frame", "agent", "x", "y")
+
+
+def read(path: Path) -> pd.DataFrame:
+    files = sorted(path.glob("*.txt")) if path.is_dir() else [path]
+    if not files:
+        raise FileNotFoundError(f"data.path={path}: no .txt files in the folder")
+    return pd.concat([_scene(f) for f in files], ignore_index=True)
+
+
+def _scene(file: Path) -> pd.DataFrame:
+    rows = []
+    for n, line in enumerate(file.read_text().splitlines(), 1):
+        if not (fields := line.split()):
+            continue
+        try:
+            values = [float(v) for v in fields]
+        except ValueError:
+            values = []
+        if len(values) != len(FIELDS) or not all(map(math.isfinite, values)):
+            raise ValueError(f"{file}: line {n} is not four numbers (frame agent x y): {line.strip()!r}")
+        rows.append(values)
+    if not rows:
+        raise ValueError(f"{file}: no rows (expected lines of frame agent x y)")
+    table = np.array(rows)
+    frame = table[:, 0].astype(np.int64)
+    step = int(np.gcd.reduce(np.diff(np.unique(frame)))) or 1
+    return pd.DataFrame({"scene": file.stem, "agent": table[:, 1].astype(np.int64), "frame": frame // step,
+                         "x": table[:, 2], "y": table[:, 3]})
