@@ -83,3 +83,25 @@ def test_in_memory_clips_move_to_the_models_device(make_cfg):
     assert dm.loader.num_workers == 0 and not dm.loader.pin_memory
     batch = next(iter(dm.train_dataloader()))
     assert batch["states"].device.type == "cpu" and batch["everyone"] is True and "edges" in batch
+
+
+@pytest.mark.parametrize("dim", [0, 2, -1])
+def test_the_hold_assignments_cumulative_product_has_torchs_gradient_and_reads_nothing_back(dim):
+    """torch's cumprod gradient asks the host whether the input holds a zero (a wait on a GPU, which a CUDA graph cannot
+    hold); SyncFreeCumprod's is one dense formula: the same numbers, with zeros (several in a slice, at its ends) and
+    without."""
+    from dider.models.hazard import SyncFreeCumprod
+
+    g = torch.Generator().manual_seed(dim + 5)
+    for zeros in (0.0, 0.3):
+        x = torch.randn(3, 4, 7, 5, dtype=torch.float64, generator=g)
+        x = x.masked_fill(torch.rand(x.shape, generator=g) < zeros, 0.0).requires_grad_()
+        grad_out = torch.randn(x.shape, dtype=torch.float64, generator=g)
+        expected, = torch.autograd.grad(x.cumprod(dim), x, grad_out)
+        y = SyncFreeCumprod.apply(x, dim)
+        with HostSyncs() as waits:
+            got, = torch.autograd.grad(y, x, grad_out)
+        assert waits.where == {} and torch.equal(y, x.cumprod(dim))
+        assert torch.allclose(got, expected, rtol=1e-10, atol=1e-12)
+    with_zeros = torch.randn(3, 6, dtype=torch.float64, generator=g).index_fill(1, torch.tensor([1, 4]), 0.0)
+    assert torch.autograd.gradcheck(lambda t: SyncFreeCumprod.apply(t, 1), (with_zeros.requires_grad_(),))

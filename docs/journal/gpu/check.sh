@@ -4,13 +4,8 @@
 # batch 16 and 128 graphed and eager (cuda_graph=false: the loop as it was) in the same process, and the first 300
 # steps of paper-sized DNRI and DIDER jobs (python -m dider.run, deterministic) with their validation and test.
 # Writes under $OUT: tests.log, bench_gpu.json, job_<model>.json, *.log.
-set -u
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-[ -e src/dider/conf ] || ln -s ../../conf src/dider/conf
-export PYTHONPATH=/tmp/site:$PWD/src:$PWD/docs/journal/gpu:$PWD/tests PYTHONUNBUFFERED=1 HYDRA_FULL_ERROR=1
+source docs/journal/gpu/setup.sh
 nvidia-smi -L; python3 -c "import torch, lightning; print(torch.__version__, lightning.__version__, torch.cuda.get_device_name(0))"
-start=$(date +%s)
 timeout 150 python3 -m pytest -q -x -p no:cacheprovider tests/test_gpu.py tests/test_precision.py \
   -m gpu > "$OUT/tests.log" 2>&1; echo "tests rc $? in $(( $(date +%s) - start )) s"; tail -3 "$OUT/tests.log"
 timeout 200 python3 -m dider.bench --device cuda --only 'job/(dnri|dider)/synth/b(016|128)' \

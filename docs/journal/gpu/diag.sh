@@ -1,12 +1,7 @@
 #!/bin/bash
 # Capture diagnosis on a lent GPU (capture_diag.py: each stage in its own process, the first group at once, the
 # second one by one for its timings), then the CUDA tests and a real DNRI job.
-set -u
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-[ -e src/dider/conf ] || ln -s ../../conf src/dider/conf
-export PYTHONPATH=/tmp/site:$PWD/src:$PWD/docs/journal/gpu:$PWD/tests PYTHONUNBUFFERED=1 HYDRA_FULL_ERROR=1
-start=$(date +%s)
+source docs/journal/gpu/setup.sh
 mkdir -p /tmp/diag
 run() { timeout 60 python3 docs/journal/gpu/capture_diag.py "$@" > "/tmp/diag/$1_$2_${3:-}.log" 2>&1; grep RESULT "/tmp/diag/$1_$2_${3:-}.log" | tee -a "$OUT/diag.jsonl"; }
 run dider sync & run dider hold & run dider segment & run dider encoder & run dider forward & run dider recover & run dider_skid segment & run dider_paper segment & wait

@@ -1,12 +1,7 @@
 #!/bin/bash
 # After the sync-free cumulative product: the capture of the hold assignment, the DIDER job step graphed and eager,
 # and the CUDA tests.
-set -u
-OUT=${OUT:-/tmp/out}; mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-[ -e src/dider/conf ] || ln -s ../../conf src/dider/conf
-export PYTHONPATH=/tmp/site:$PWD/src:$PWD/docs/journal/gpu:$PWD/tests PYTHONUNBUFFERED=1 HYDRA_FULL_ERROR=1
-start=$(date +%s)
+source docs/journal/gpu/setup.sh
 timeout 40 python3 docs/journal/gpu/capture_diag.py dider hold 2>&1 | grep RESULT | tee "$OUT/diag.jsonl"
 timeout 40 python3 docs/journal/gpu/capture_diag.py dider full 2>&1 | grep RESULT | tee -a "$OUT/diag.jsonl"
 echo "diag at $(( $(date +%s) - start )) s"

@@ -134,7 +134,9 @@ class SoccerDataModule(TableDataModule):
     attributes as :class:`~dider.data.table.TableDataModule`'s; ``agent_class`` is each agent's team (or the
     ball); after reading, ``hparams.frame_rate`` is the provider's rate, which the features were computed at."""
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = TableDataModule.SETTINGS | {
+    # the table's settings but its reader (kloppy reads the provider's files)
+    SETTINGS: ClassVar[dict[str, Rule | type]] = {k: v for k, v in TableDataModule.SETTINGS.items()
+                                                   if k != "reader"} | {
         "provider": one_of(*sorted(PROVIDERS)),
         "frame_rate": lambda value: None if value is None or TableDataModule.SETTINGS["frame_rate"](value) is None
         else "must be null (the provider's) or a number > 0",
