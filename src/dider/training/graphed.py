@@ -10,7 +10,6 @@ moves at every replay.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Hashable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -18,14 +17,11 @@ import lightning as L
 import torch
 from lightning.pytorch.accelerators import CUDAAccelerator
 
-from dider.graph import edge_mask
 from dider.models.plugins import Progress
 from dider.training.step_graph import StepGraph
 
 if TYPE_CHECKING:
     from dider.training.module import RelationalVAEModule
-
-log = logging.getLogger(__name__)
 
 SETTING_VALUES = ("auto", True, False)
 
@@ -58,8 +54,8 @@ def wanted(setting: bool | str, trainer: L.Trainer | None) -> bool:
 
 
 class GraphedSteps:
-    """A module's graphed training steps: ``step(batch)`` trains on one batch and returns its outputs (the loss
-    terms, detached, and ``segments/<stat>``), having taken the optimiser step."""
+    """A module's graphed training steps: ``step(batch, schedule)`` trains on one batch and returns its
+    :meth:`~dider.training.module.RelationalVAEModule.train_values` (detached), having taken the optimiser step."""
 
     def __init__(self, module: RelationalVAEModule, warmup: int = 3) -> None:
         self.module = module
@@ -67,8 +63,7 @@ class GraphedSteps:
 
     def _forward_backward(self, inputs: Mapping[str, torch.Tensor], everyone: Hashable) -> dict[str, torch.Tensor]:
         """What the graph holds: the gradients' reset, the forward pass, the loss and the backward."""
-        model = self.module.model
-        grads = [p.grad for p in model.parameters() if p.grad is not None]
+        grads = [p.grad for p in self.module.model.parameters() if p.grad is not None]
         if grads:  # in place: the graph writes the gradients where the optimiser reads them
             torch._foreach_zero_(grads)
         batch: dict[str, Any] = {k: v for k, v in inputs.items() if not k.startswith("schedule/")}
@@ -76,11 +71,9 @@ class GraphedSteps:
             batch["everyone"] = everyone
         progress = Progress(values={k.removeprefix("schedule/"): v for k, v in inputs.items()
                                     if k.startswith("schedule/")})
-        out = model.infer(batch, hard=False, progress=progress)
-        terms = model.loss(out, progress)
-        terms["loss"].backward()
-        stats = out.seg.stats(edge_mask(batch["mask"][:, :-1]).any(1))
-        return {**{k: v.detach() for k, v in terms.items()}, **{f"segments/{k}": v.detach() for k, v in stats.items()}}
+        values = self.module.train_values(batch, progress)
+        values["loss"].backward()
+        return {k: v.detach() for k, v in values.items()}
 
     def step(self, batch: Mapping[str, Any], schedule: Mapping[str, float]) -> dict[str, torch.Tensor]:
         """batch: a training batch; schedule: the schedules' values at this step (host floats)."""

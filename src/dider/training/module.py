@@ -180,24 +180,27 @@ class RelationalVAEModule(L.LightningModule):
         return {"slot": out.seg.step_slot(), "held": out.posterior_types(), "free": out.seg.free(present),
                 "truth": truth}
 
+    def train_values(self, batch: Batch, progress: Progress) -> dict[str, torch.Tensor]:
+        """A training pass at ``progress`` (the annealed schedules, tau too): the loss terms and ``segments/<stat>``
+        (how the duration plugin cut the batch's edges)."""
+        out = self.model.infer(batch, False, progress)
+        present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
+        return self.model.loss(out, progress) | {f"segments/{k}": v for k, v in out.seg.stats(present).items()}
+
     def training_step(self, batch: Batch, batch_idx: int) -> dict[str, torch.Tensor]:
         progress = self.progress()
+        schedule = self.model.schedule(progress)
         bs = batch["states"].shape[0]
         if not self.automatic_optimization:  # one CUDA graph's replay, then the optimiser step
             self._graphed = self._graphed or GraphedSteps(self)
-            outputs = self._graphed.step(batch, self.model.schedule(progress))
-            terms = {k: v for k, v in outputs.items() if not k.startswith("segments/")}
-            segments = {f"train/{k}": v for k, v in outputs.items() if k.startswith("segments/")}
+            values = self._graphed.step(batch, schedule)
         else:
-            out = self.model.infer(batch, False, progress)  # the annealed schedules (tau too) at this step
-            terms = self.model.loss(out, progress)
-            present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
-            segments = {f"train/segments/{k}": v for k, v in out.seg.stats(present).items()}
+            values = self.train_values(batch, progress)
+        terms = {k: v for k, v in values.items() if not k.startswith("segments/")}
         if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
             self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
-        self._epoch_means.add({**{f"train/{k}": v for k, v in terms.items()}, **segments,
-                               **{f"train/schedule/{k}": float(v) for k, v in self.model.schedule(progress).items()}},
-                              bs)
+        self._epoch_means.add({**{f"train/{k}": v for k, v in values.items()},
+                               **{f"train/schedule/{k}": float(v) for k, v in schedule.items()}}, bs)
         if self._writes_logs():  # the step's own values, on the steps the trainer writes (log_every_n_steps)
             self.log_dict({f"train/{k}_step": v for k, v in terms.items()}, on_step=True, on_epoch=False,
                           batch_size=bs)

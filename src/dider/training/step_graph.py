@@ -4,8 +4,9 @@ The captured function runs all of a step's device work but the optimiser's updat
 left to Lightning): the gradients' reset, the forward pass, the loss and the backward. Its inputs (the batch's
 tensors, the schedules' values) are copied into static buffers before each replay and its outputs read from static
 buffers after it; the parameters and their gradients keep their addresses between steps, so the graph reads and
-writes them in place. On a CPU there is no graph: the same function runs on the same kind of buffers at every step
-(a dry run, which the tests compare with the eager step), so what a GPU replays is what the CPU runs.
+writes them in place. On a CPU there is no graph: the same function runs at every step on the step's inputs, the
+schedules as the same 0-d tensors (a dry run, which the tests compare with the eager step), so what a GPU replays
+is what the CPU runs.
 """
 
 from __future__ import annotations
@@ -65,15 +66,17 @@ class StepGraph:
         for name, value in scalars.items():
             self.static_in[name].fill_(value)  # the value travels as a kernel argument: no copy from the host
 
-    def _buffers(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float],
-                 device: torch.device) -> dict[str, torch.Tensor]:
-        return {**{k: v.clone() for k, v in tensors.items()},
+    @staticmethod
+    def _inputs(tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], device: torch.device,
+                own: bool = False) -> dict[str, torch.Tensor]:
+        """The tensors (copies, ``own``: a capture's static buffers) and each scalar as a 0-d float32 tensor."""
+        return {**{k: v.clone() if own else v for k, v in tensors.items()},
                 **{k: torch.full((), v, dtype=torch.float32, device=device) for k, v in scalars.items()}}
 
     def _eager(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], flags: Hashable,
                device: torch.device) -> dict[str, torch.Tensor]:
         self.eager_calls += 1
-        inputs = self._buffers(tensors, scalars, device)
+        inputs = self._inputs(tensors, scalars, device)
         if device.type != "cuda" or self.graph is not None:
             return self.fn(inputs, flags)
         # Before a capture, on the stream the capture will use, as capturing asks: the warm-up's allocations, cuBLAS
@@ -88,7 +91,7 @@ class StepGraph:
     def _capture(self, tensors: Mapping[str, torch.Tensor], scalars: Mapping[str, float], flags: Hashable,
                  key: Hashable) -> None:
         device = next(iter(tensors.values())).device
-        self.static_in = self._buffers(tensors, scalars, device)
+        self.static_in = self._inputs(tensors, scalars, device, own=True)
         graph = torch.cuda.CUDAGraph()
         torch.cuda.synchronize(device)
         try:
