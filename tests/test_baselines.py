@@ -20,7 +20,9 @@ def test_constant_velocity_carries_the_last_displacement():
                     "rnn_hidden": 8, "head_hidden": 8},
         "prior": {"_target_": "dider.models.prior.LearnedPrior", "num_types": 2, "rnn_hidden": 8, "hidden": 8},
         "duration": {"_target_": "dider.models.durations.PerStepDuration"},
-        "decoder": {"_target_": "dider.models.baselines.ConstantVelocity"}})
+        "decoder": {"_target_": "dider.models.baselines.ConstantVelocity"},
+        "objective": {"_target_": "dider.models.objective.Objective",
+                      "nll": {"_target_": "dider.models.likelihood.GaussianNLL"}}})
     pred = model.rollout(x, torch.ones(2, 6, 3, dtype=torch.bool), burn_in=3, num_pred=3)[0]
     step = x[:, 2, :, :2] - x[:, 1, :, :2]  # the last observed displacement
     for k in range(3):  # k + 1 displacements past the last observed frame; velocity features held

@@ -168,8 +168,9 @@ def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
 
 def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):
     """Each plugin option starts from its class's schema (dider.training.schemas): the settings its YAML leaves
-    out take the constructor's defaults, and a key the class does not take is refused at composition, also where
-    an experiment file sets it (without the schema such a file composed and the run failed later)."""
+    out take the constructor's defaults (composed under model=dnri, whose file sets no plugin setting), and a key
+    the class does not take is refused at composition, also where an experiment file sets it (without the schema
+    such a file composed and the run failed later)."""
     import inspect
 
     from hydra.errors import ConfigCompositionException
@@ -178,7 +179,7 @@ def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):
 
     for group in ("encoder", "prior", "duration", "decoder"):
         for option in options(f"model/net/{group}"):
-            node = make_cfg([f"model/net/{group}={option}"], tiny=False).model.net[group]
+            node = make_cfg(["model=dnri", f"model/net/{group}={option}"], tiny=False).model.net[group]
             cls = next(c for c in PLUGINS if f"{c.__module__}.{c.__qualname__}" == node._target_)
             folder = CONF / "model" / "net" / group
             text = (folder / f"{option}.yaml").read_text()

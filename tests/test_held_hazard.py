@@ -1,5 +1,5 @@
 """DIDER's segments as runs of one type: the end evaluation reads where it is decided, the prior hazard that reads
-the held type and the segment's age, its fit at every step, the online rule, and older checkpoints."""
+the held type and the segment's age, its fit at every step, the online rule."""
 
 from __future__ import annotations
 
@@ -10,8 +10,7 @@ import torch
 from dider.models.end_categorical import decided_end
 from dider.models.held_hazard import HeldHazard
 from dider.models.segment_end import SegmentEnd
-from dider.models.vae import RelationalVAE
-from helpers.models import build, clip
+from helpers.models import build
 
 
 def test_decided_end_by_hand():
@@ -85,24 +84,3 @@ def test_online_a_boundary_brings_another_type(make_cfg):
         net.duration.prior.past[-1].bias.fill_(-30.0)  # no hazard fires
         same, _, same_start = net.advance_edges(h_t, 11, 30, etype, left, sample=False, start=start)
     assert (same == 1).all() and (same_start == 5).all()
-
-
-def test_older_segment_end_checkpoints_load_as_they_were(make_cfg):
-    """A config from before the held type's prior (no online_prior, no end_readout) builds the prior of the past and
-    the median end, and its weights (the prior MLP as prior.0 / prior.2) load."""
-    cfg = make_cfg(["model=dider"]).model
-    from omegaconf import OmegaConf
-
-    net_cfg = OmegaConf.to_container(cfg.net, resolve=True)
-    for key in ("online_prior", "end_readout", "num_types"):
-        net_cfg["duration"].pop(key)
-    old = RelationalVAE.from_config(net_cfg)
-    assert old.duration.end_readout == "median" and not old.duration.prior.held and old.capabilities.online_retype
-    state = {k.replace("duration.prior.past.", "duration.prior."): v for k, v in old.state_dict().items()}
-    fresh = RelationalVAE.from_config(net_cfg)
-    fresh.load_state_dict(state)
-    batch = clip(b=2, t=20)
-    torch.manual_seed(0)
-    a = old.eval().describe(old.infer(batch, hard=True), batch["mask"])["segments"]
-    torch.manual_seed(0)
-    assert torch.equal(a, fresh.eval().describe(fresh.infer(batch, hard=True), batch["mask"])["segments"])

@@ -132,6 +132,22 @@ def test_prior_is_causal_in_training_pass(make_cfg):
     assert not torch.allclose(enc.posterior_logits[:, :, 10], enc2.posterior_logits[:, :, 10])
 
 
+def test_a_transition_posterior_reads_the_transition_and_its_past_only(make_cfg):
+    """``posterior_reads=transition``: the type of transition t -> t+1 depends on x_0..x_{t+1}: frames from t+2 on
+    change none of the types up to t, and frame t+1 changes the type at t."""
+    net = build(make_cfg, "model=dider", "model.net.encoder.posterior_reads=transition").eval()
+    batch = clip()
+    logits = net.encoder(batch["states"], batch["mask"]).posterior_logits
+    for first in (12, 11):  # frames from 12 on: transitions 0..10 read none of them; from 11 on: 10 reads it
+        later = batch["states"].clone()
+        later[:, first:] += 1.0
+        moved = net.encoder(later, batch["mask"]).posterior_logits
+        if first == 12:
+            torch.testing.assert_close(logits[:, :, :11], moved[:, :, :11])
+        else:
+            assert not torch.allclose(logits[:, :, 10], moved[:, :, 10])
+
+
 def test_losses_finite_and_gradients_reach_every_plugin(make_cfg):
     net = build(make_cfg, "model=dnri").train()
     terms = net.loss(net.infer(clip(), hard=False))

@@ -1,16 +1,13 @@
 """The objective's terms (dider.models.objective): hand values, the weighted sum and its schedules, the settings
-each term checks, and the loss settings of older checkpoints."""
+each term checks."""
 
 import math
 
 import pytest
 import torch
 
-from dider.models.inference import plain_config
-from dider.models.legacy import MODULE_KEYS, split_model_config, upgrade_model_config
 from dider.models.objective import EdgeKL, Objective, PriorFit, Sparsity
 from dider.models.plugins import Progress
-from dider.models.vae import RelationalVAE
 from dider.training.preflight import validate_config
 from dider.validation import ConfigError
 from helpers import NO_SPARSITY
@@ -139,67 +136,3 @@ def test_terms_check_their_settings_at_build_and_in_the_preflight(make_cfg, tmp_
                      "model.net.objective.nll.variance=0: must be > 0 or 'fit'",
                      "model.net.objective.sparsity.form='per_step'", "model.net.objective.kl_warmup=2"):
         assert expected in message
-
-
-OLD_DIDER = {"nll_variance": 5e-5, "beta_edge": 1.0, "beta_duration": 1.0, "capacity_edge": 0.0,
-             "capacity_duration": 0.0, "capacity_ramp": 0.5, "kl_warmup": 0.0, "sparsity_mix": 0.5,
-             "no_edge_prob": 0.75, "sparsity_form": "per_edge", "segment_kl": "per_segment", "prior_fit": 1.0,
-             "prior_fit_warmup": True}
-
-
-def test_old_loss_settings_build_the_same_objective(make_cfg):
-    """A model config from before the ``net`` and objective nodes (one flat node, its loss settings at the top)
-    builds the network of today's config (without the boundary fit, which came after), and weights that kept the
-    variance as ``likelihood.variance`` load."""
-    new = make_cfg(["model=dider", "model.net.objective.boundary_fit=null"]).model
-    node = plain_config(new)
-    net = {k: v for k, v in node["net"].items() if k != "objective"}
-    old = {k: node[k] for k in MODULE_KEYS} | net | OLD_DIDER
-    node["net"]["objective"] = {k: v for k, v in node["net"]["objective"].items() if v is not None}  # terms set
-    assert upgrade_model_config(old)["objective"] == node["net"]["objective"]
-    assert split_model_config(old) == (node["net"], {k: node[k] for k in MODULE_KEYS})
-    a, b = RelationalVAE.from_config(new), RelationalVAE.from_config(old)
-    state = {("likelihood.variance" if k.endswith("nll.variance") else k): v for k, v in a.state_dict().items()}
-    assert "likelihood.variance" in state
-    b.load_state_dict(state)
-    batch = clip()
-    torch.manual_seed(1)
-    la = a.loss(a.infer(batch, hard=True), Progress(10, 100))
-    torch.manual_seed(1)
-    lb = b.loss(b.infer(batch, hard=True), Progress(10, 100))
-    assert la.keys() == lb.keys() and all(torch.equal(la[k], lb[k]) for k in la)
-
-
-def test_the_module_keys_are_the_lightning_modules_arguments():
-    """An older flat config's split (legacy.MODULE_KEYS) takes every LightningModule argument but the network's."""
-    import inspect
-
-    from dider.training.module import RelationalVAEModule
-
-    params = set(inspect.signature(RelationalVAEModule.__init__).parameters) - {"self", "net", "model"}
-    assert set(MODULE_KEYS) == params
-
-
-def test_an_older_checkpoint_loads_through_the_lightning_module(make_cfg, tmp_path):
-    """A checkpoint file whose hyper-parameters name the network's config ``model`` and hold the old flat loss
-    keys, and whose weights keep the variance as ``model.likelihood.variance``, loads with ``load_from_checkpoint``,
-    with today's objective and weights."""
-    import lightning
-
-    from dider.training.module import RelationalVAEModule
-
-    new = RelationalVAEModule.from_config(make_cfg(["model=dider", "model.net.objective.boundary_fit=null"]).model)
-    hparams = dict(new.hparams)
-    hparams["model"] = {k: v for k, v in hparams.pop("net").items() if k != "objective"} | OLD_DIDER
-    state = {k.replace("objective.terms.nll.", "likelihood."): v for k, v in new.state_dict().items()}
-    path = tmp_path / "old.ckpt"
-    torch.save({"state_dict": state, "hyper_parameters": hparams,
-                "pytorch-lightning_version": lightning.__version__}, path)
-    old = RelationalVAEModule.load_from_checkpoint(path, map_location="cpu", weights_only=False)
-    assert list(old.model.objective.terms) == list(new.model.objective.terms)
-    terms = {k: v for k, v in new.hparams.net["objective"].items() if v is not None}  # the terms set
-    assert "model" not in old.hparams and old.hparams.net["objective"] == terms
-    loaded = old.state_dict()
-    assert loaded.keys() == new.state_dict().keys()
-    assert all(torch.equal(loaded[k], v) for k, v in new.state_dict().items())
-

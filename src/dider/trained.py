@@ -26,7 +26,7 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.trajectories import trajectory_states
-from dider.models.legacy import network_hparams
+from dider.models.checkpoint_format import upgrade
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
@@ -76,14 +76,14 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
                          f"that wrote it diverged; use a checkpoint from before (checkpoints/), or train again with "
                          f"a lower model.optimizer.lr")
     data = (ckpt.get("dider") or {}).get("data") or {}
-    missing = [what for what, ok in (("the package version", "dider" in ckpt),
+    missing = [what for what, ok in (("the package version", "version" in (ckpt.get("dider") or {})),
                                      ("the data normaliser", "normalizer" in data.get("state", {}))) if not ok]
     if missing:
         raise ValueError(f"{path}: this checkpoint lacks {' and '.join(missing)} (written by an older version, or "
                          f"by a model trained without a data module), so new data cannot be normalised the way "
                          f"its training data were; retrain with this version, or evaluate it on its own data set "
                          f"with `python -m dider.run mode=eval ckpt_path={path} data=...`")
-    return ckpt
+    return upgrade(ckpt, path)
 
 
 @dataclass
@@ -240,7 +240,7 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     ckpt = read_checkpoint(ckpt_path)
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
     try:  # a damaged or hand-edited checkpoint: named with the file and the part that does not fit
-        net = network_hparams(hparams)
+        net = hparams["net"]
         config = ({k: v for k, v in hparams.items() if k not in ("net", "model")}
                   | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
         network = RelationalVAE.from_config(net)

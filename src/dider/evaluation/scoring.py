@@ -32,6 +32,7 @@ from dider.evaluation.sampled import MinDisplacement, sampled_values
 from dider.evaluation.structure import StructureRecovery
 from dider.evaluation.type_meaning import TypeProfile, pair_features, profile_values
 from dider.graph import edge_mask
+from dider.models.inference import Inference
 
 log = logging.getLogger(__name__)
 
@@ -299,3 +300,14 @@ def cv_verdict(metrics: Mapping[str, float]) -> tuple[str, bool] | None:
                 f"constant velocity misses there", False)
     where = "at every horizon" if not worse else f"at {longest} but not at {', '.join(worse)}"
     return f"the forecast beats constant velocity {where} (position ADE over constant velocity's: {text})", True
+
+
+def own_cut_inputs(out: Inference, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor | None] | None:
+    """What :class:`~dider.evaluation.metrics.OwnCut` reads of a pass: each step's slot, the held types, the free
+    steps and (where known) the true types, each [B, E, T-1]; None for a plugin without a cut of its own (a slot
+    per step)."""
+    if out.seg.assign is None:
+        return None
+    present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)
+    truth = batch["edges"].transpose(1, 2) if "edges" in batch else None
+    return {"slot": out.seg.step_slot(), "held": out.posterior_types(), "free": out.seg.free(present), "truth": truth}

@@ -15,7 +15,7 @@ from torch import nn
 from dider.graph import aggregate_to_receivers, edge_mask
 from dider.models.layers import MLP, PairLinear, checkpointed, head
 from dider.models.rnn import bidirectional_lstm
-from dider.validation import Rule, boolean, check_settings, integer, within
+from dider.validation import Rule, boolean, check_settings, integer, one_of, within
 
 LSTMState = tuple[torch.Tensor, torch.Tensor]
 
@@ -65,7 +65,9 @@ class GNNLSTMEncoder(nn.Module):
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
         **{k: integer(1) for k in ("input_dim", "hidden", "rnn_hidden", "head_hidden", "head_layers")},
-        "dropout": within(0.0, 1.0), "batch_norm": boolean, "checkpoint": boolean}
+        "dropout": within(0.0, 1.0), "batch_norm": boolean, "checkpoint": boolean,
+        "posterior_reads": one_of("sequence", "transition")}
+    SHAPES: ClassVar[tuple[str, ...]] = ("posterior_reads",)  # non-integer settings that fix parameter shapes
 
     def __init__(
         self,
@@ -78,16 +80,22 @@ class GNNLSTMEncoder(nn.Module):
         dropout: float = 0.0,
         batch_norm: bool = True,
         checkpoint: bool = False,
+        posterior_reads: str = "sequence",
     ) -> None:
         """checkpoint: in training, recompute the GNN embedding's activations in the backward pass instead of
-        storing them (less memory for large scenes, one more embedding forward per step; same gradients)."""
+        storing them (less memory for large scenes, one more embedding forward per step; same gradients).
+        posterior_reads: what the posterior's edge type at transition t -> t+1 reads: the whole clip
+        (``sequence``: [h_rev, h_fwd], DNRI's) or the transition itself (``transition``: the past h_fwd and the
+        embedding of frame t+1, what the edge did at that step, not what it will do later)."""
         super().__init__()
         check_settings(self, locals())
         self.checkpoint = checkpoint
         self.embed = GNNEdgeEmbedding(input_dim, hidden, dropout, batch_norm)
         self.forward_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
         self.reverse_rnn = nn.LSTM(hidden, rnn_hidden, batch_first=True)
-        self.posterior_head = head(2 * rnn_hidden, head_hidden, num_types, head_layers)
+        self.posterior_reads = posterior_reads
+        head_in = 2 * rnn_hidden if posterior_reads == "sequence" else rnn_hidden + hidden
+        self.posterior_head = head(head_in, head_hidden, num_types, head_layers)
         self.rnn_hidden = rnn_hidden
 
     def _embed(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -115,9 +123,14 @@ class GNNLSTMEncoder(nn.Module):
         b = x.shape[0]
         # Both LSTMs over all T frames: the forward output at frame t has seen x_0..x_t, the reverse output
         # at frame t+1 has seen x_{t+1}..x_{T-1}.
-        h_fwd, h_rev = bidirectional_lstm(self._embed(x, mask), self.forward_rnn, self.reverse_rnn)
+        emb = self._embed(x, mask)
+        h_fwd, h_rev = bidirectional_lstm(emb, self.forward_rnn, self.reverse_rnn)
         h_fwd, h_rev = h_fwd[:, :-1].unflatten(0, (b, -1)), h_rev[:, 1:].unflatten(0, (b, -1))
-        logits = self.posterior_head(torch.cat([h_rev, h_fwd], dim=-1)).float()  # softmax, KL and Gumbel in fp32
+        if self.posterior_reads == "sequence":
+            reads = torch.cat([h_rev, h_fwd], dim=-1)
+        else:  # frame t+1's embedding, [T-1, B*E, H] time-major -> [B, E, T-1, H]
+            reads = torch.cat([h_fwd, emb[1:].transpose(0, 1).unflatten(0, (b, -1)).to(h_fwd.dtype)], dim=-1)
+        logits = self.posterior_head(reads).float()  # softmax, KL and Gumbel in fp32
         return EncoderOutput(h_fwd, h_rev, logits)
 
     def past(self, x: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[torch.Tensor, LSTMState]:

@@ -39,6 +39,8 @@ step s).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -76,6 +78,7 @@ class SegmentEnd(HazardPrior):
         "temperature": above(0), "reads": one_of("position", "remaining"), "end_readout": one_of("threshold", "median"),
         "online_prior": one_of("held_type", "past"), "num_types": integer(1),  # >= 2: the network's num_edges says
     }
+    SHAPES: ClassVar[tuple[str, ...]] = ("reads", "online_prior")  # non-integer settings that fix parameter shapes
 
     def __init__(
         self,
@@ -113,7 +116,6 @@ class SegmentEnd(HazardPrior):
         self.out = SumLinear(hidden, 1)
         with torch.no_grad():  # start at the prior's rate: segments of about 1 / rate steps
             self.out.bias.fill_(self.rate_logit)
-        self.register_load_state_dict_pre_hook(_past_prior_keys)
 
     def prior_logits(self, h_fwd: torch.Tensor) -> torch.Tensor:
         """The prior hazard's logits at every step, the held type unknown: [..., R] -> [...] (its mean over types)."""
@@ -294,9 +296,3 @@ class SegmentEnd(HazardPrior):
         per_step = (1 - self.rate_mix) * nll(logits) + self.rate_mix * nll(torch.full_like(logits, self.rate_logit))
         return (per_step * free).flatten(1).sum(1) / steps
 
-
-def _past_prior_keys(module: nn.Module, state: dict, prefix: str, *args: object) -> None:
-    """Checkpoints from before the prior hazard read the held type keep its MLP as ``prior.0`` / ``prior.2``:
-    today's ``prior.past.0`` / ``prior.past.2``."""
-    for old in [k for k in state if k.startswith((f"{prefix}prior.0.", f"{prefix}prior.2."))]:
-        state[f"{prefix}prior.past." + old.removeprefix(f"{prefix}prior.")] = state.pop(old)

@@ -23,9 +23,9 @@ from omegaconf import DictConfig
 from torch import nn
 
 from dider.graph import edge_mask
+from dider.models.checkpoint_format import network_config, read
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
-from dider.models.legacy import rename_likelihood, split_model_config
 from dider.models.likelihood import GaussianNLL
 from dider.models.objective import Objective
 from dider.models.plugins import (
@@ -94,7 +94,6 @@ class RelationalVAE(nn.Module):
         self.capabilities = DurationCapabilities.of(duration)  # the duration's optional members, read once
         # a decoder with a kinematic step to fit before training (not kept as a module here: one state-dict key)
         self.fits_kinematics = not missing_members(decoder, KinematicDecoder) and decoder.kinematic is not None
-        self.register_load_state_dict_pre_hook(rename_likelihood)
 
     @property
     def likelihood(self) -> GaussianNLL:
@@ -104,12 +103,12 @@ class RelationalVAE(nn.Module):
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
         """Build the network from a model config (``cfg.model`` of the Hydra app: its ``net`` node), or from a
-        network's config (a checkpoint's; older ones are read as today's, :mod:`dider.models.legacy`)."""
-        return instantiate(split_model_config(plain_config(cfg))[0], _convert_="all")
+        network's config (a checkpoint's ``hyper_parameters["net"]``)."""
+        return instantiate(network_config(plain_config(cfg)), _convert_="all")
 
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
-        """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run) into this model."""
-        state = torch.load(path, map_location="cpu", weights_only=True)["state_dict"]
+        """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run, any format) into this model."""
+        state = read(path)["state_dict"]
         self.load_state_dict({k.removeprefix("model."): v for k, v in state.items()})
         return self
 

@@ -8,6 +8,7 @@ Shapes: B batch, T frames, N agents, D features, E edges, K edge types, P predic
 from __future__ import annotations
 
 import inspect
+import io
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -29,12 +30,13 @@ from dider.evaluation.scoring import (
     displacement_values,
     edge_acc_values,
     horizon_values,
+    own_cut_inputs,
     own_cut_values,
 )
 from dider.evaluation.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
 from dider.graph import edge_mask
 from dider.models.baselines import ConstantVelocity
-from dider.models.legacy import split_model_config
+from dider.models.checkpoint_format import network_config, read, stamp, upgrade
 from dider.models.plugins import Progress
 from dider.models.vae import Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons, scored_targets
@@ -58,12 +60,11 @@ class RelationalVAEModule(L.LightningModule):
         burn_in_mode: str | None = None,
         eval_seed: int = 0,
         check_finite: bool = True,
-        model: Mapping[str, Any] | None = None,
         samples: int = 0,
         miss_threshold: float | None = None,
     ) -> None:
         """net: the network's config (``_target_`` and plugins: the ``net`` node of ``conf/model``), built as
-        ``self.model``; model: the same under its older name (checkpoints written before ``net``). optimizer,
+        ``self.model``. optimizer,
         scheduler: configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the
         forecast protocol (``conf/model`` interpolates the ``protocol`` node; a None burn_in_mode, in
         hyper-parameters saved before it was, is ``global``: ``load_from_checkpoint(path,
@@ -72,13 +73,13 @@ class RelationalVAEModule(L.LightningModule):
         the sampled futures each test pass scores (``protocol.samples``, ``protocol.miss_threshold``;
         :mod:`dider.evaluation.sampled`)."""
         super().__init__()
-        if net is None and model is None:
+        if net is None:
             raise TypeError("RelationalVAEModule: net, the network's config, is required")
-        net = split_model_config(plain_config(net if net is not None else model))[0]  # today's form, saved as such
+        net = plain_config(net)
         require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite, "model.samples": samples,
                  "model.miss_threshold": miss_threshold})
         # Configs only (plain containers): the checkpoint rebuilds the module and loads with weights_only.
-        self.save_hyperparameters(ignore=["model"], logger=False)
+        self.save_hyperparameters(logger=False)
         self.model = RelationalVAE.from_config(net)
         self.val_mse = HorizonMSE(horizons)
         # the forecast in data units beside constant velocity's, so that a recipe is chosen on validation
@@ -100,10 +101,21 @@ class RelationalVAEModule(L.LightningModule):
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
-        """From a model config (``cfg.model``: the module's settings and the network's ``net`` node; an older flat
-        one is read as today's, :func:`dider.models.legacy.split_model_config`)."""
-        net, settings = split_model_config(plain_config(cfg))
-        return cls(net=net, **settings)
+        """From a model config (``cfg.model``: the module's settings and the network's ``net`` node)."""
+        node = plain_config(cfg)  # the module's settings: its arguments (the preflight refuses any other key)
+        settings = {k: node[k] for k in inspect.signature(cls.__init__).parameters if k not in ("self", "net")
+                    and k in node}
+        return cls(net=network_config(node), **settings)
+
+    @classmethod
+    def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> RelationalVAEModule:
+        """Lightning's, with the checkpoint read in today's format first (:mod:`dider.models.checkpoint_format`):
+        its hyper-parameters build the module."""
+        buffer = io.BytesIO()
+        torch.save(read(checkpoint_path), buffer)
+        buffer.seek(0)
+        kwargs.setdefault("map_location", "cpu")
+        return super().load_from_checkpoint(buffer, *args, **kwargs)
 
     @property
     def burn_in_mode(self) -> str:
@@ -167,18 +179,6 @@ class RelationalVAEModule(L.LightningModule):
         present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
         stats = {f"{stage}/segments/{k}": v for k, v in out.seg.stats(present).items()}
         self.log_dict(stats, on_step=False, on_epoch=True, batch_size=batch["states"].shape[0], sync_dist=True)
-
-    @staticmethod
-    def own_cut(out: Inference, batch: Batch) -> dict[str, torch.Tensor] | None:
-        """What :class:`~dider.evaluation.metrics.OwnCut` reads of a pass: each step's slot, the held types, the
-        free steps and (where known) the true types, each [B, E, T-1]; None for a plugin without a cut of its own
-        (a slot per step)."""
-        if out.seg.assign is None:
-            return None
-        present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)
-        truth = batch["edges"].transpose(1, 2) if "edges" in batch else None
-        return {"slot": out.seg.step_slot(), "held": out.posterior_types(), "free": out.seg.free(present),
-                "truth": truth}
 
     def train_values(self, batch: Batch, progress: Progress) -> dict[str, torch.Tensor]:
         """A training pass at ``progress`` (the annealed schedules, tau too): the loss terms and ``segments/<stat>``
@@ -255,7 +255,7 @@ class RelationalVAEModule(L.LightningModule):
         for name, pred in {"model": f.pred, "cv": cv.pred}.items():
             self.val_ade[name].update(units(pred), units(f.target), f.mask, f.horizon)
         self._log_segments("val", out, batch)
-        if (cut := self.own_cut(out, batch)) is not None:
+        if (cut := own_cut_inputs(out, batch)) is not None:
             self.val_cut.update(**cut)
         if "edges" in batch:
             present = edge_mask(batch["mask"][:, :-1])  # [B, T-1, E]
@@ -303,7 +303,7 @@ class RelationalVAEModule(L.LightningModule):
         no_edges = (self._forecast(batch, torch.zeros_like(posterior), edges_off=True) if self.model.decoder_edges
                     else None)
         self.test_metrics.update(batch, forecast, posterior, prior, normalizer, by_edges, prior_per_step,
-                                 self.own_cut(out, batch), cv, futures, no_edges, out.probs)
+                                 own_cut_inputs(out, batch), cv, futures, no_edges, out.probs)
         absent = ~present
         return {"segments": posterior.masked_fill(absent, -1),
                 "probs": out.probs.gather(-1, posterior.unsqueeze(-1)).squeeze(-1),
@@ -375,13 +375,11 @@ class RelationalVAEModule(L.LightningModule):
         # What a checkpoint needs to be used on new data on its own (dider.load): the package version and
         # the data's description and normaliser; the model config is in the hyper-parameters.
         dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
-        checkpoint["dider"] = {"version": __version__, "data": data_description(dm)}
+        stamp(checkpoint, version=__version__, data=data_description(dm))
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        # Checkpoints from before the network moved into ``self.model`` keep their plugins at the top level.
-        state = checkpoint.get("state_dict", {})
-        if state and not any(k.startswith("model.") for k in state):
-            checkpoint["state_dict"] = {f"model.{k}": v for k, v in state.items()}
+        # A resumed or tested run reads the file through Lightning: its weights in today's format, before they load.
+        upgrade(checkpoint)
 
     def configure_optimizers(self) -> Any:
         make = instantiate(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True})
@@ -394,3 +392,4 @@ class RelationalVAEModule(L.LightningModule):
         scheduler = instantiate(self.hparams.scheduler)(optimizer=opt)
         # name: the tag LearningRateMonitor logs the rate under (callbacks.lr_monitor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "name": "train/lr"}}
+

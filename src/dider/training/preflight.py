@@ -3,9 +3,10 @@ config, and the settings that are valid but probably not meant (warnings)."""
 
 from __future__ import annotations
 
+import inspect
 import logging
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,6 @@ from omegaconf.errors import OmegaConfBaseException
 
 from dider import __version__
 from dider.data.batch import Normalizer
-from dider.models.legacy import stray_keys
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
 from dider.settings import NODES
@@ -253,3 +253,14 @@ def input_warnings(states: torch.Tensor, mask: torch.Tensor, normalizer: Normali
                          f"{scale:.0f}x the training data's [{lo:.4g}, {hi:.4g}]: other units (cm for m?), another "
                          f"frame rate or coordinate frame? The model's outputs there are extrapolations")
     return found
+
+
+def stray_keys(node: Mapping[str, Any]) -> list[str]:
+    """What is wrong with the top-level keys of a model config (``cfg.model``): a key that is neither the
+    LightningModule's (its constructor's arguments) nor ``name`` / ``num_edges`` (a network setting written at the
+    top, say, which would otherwise be ignored)."""
+    from dider.training.module import RelationalVAEModule  # the module imports the data and models: only here
+
+    known = {*inspect.signature(RelationalVAEModule.__init__).parameters, "name", "num_edges"} - {"self"}
+    return [f"model.{k}: not a setting of the model's top level ({sorted(known)}); the network's settings are "
+            f"under model.net (model.net.{k})" for k in node if k not in known and k != "_target_"]

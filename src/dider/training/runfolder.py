@@ -24,7 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
-from dider.models.legacy import network_hparams, split_model_config
+from dider.models.checkpoint_format import network_config, read
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -138,24 +138,39 @@ def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
 
 
 def shape_settings(model: Mapping[str, Any]) -> dict[str, Any]:
-    """The settings of a model config that fix its parameter shapes (name, num_edges, each plugin's target and
-    integer sizes), flattened with dots."""
+    """The settings of a model config that fix its parameter shapes (name, num_edges, each plugin's target, its
+    integer sizes and the other settings its class names in ``SHAPES``), flattened with dots."""
     flat = _flat({k: model.get(k) for k in ("name", "num_edges", *PLUGINS)})
-    return {k: v for k, v in flat.items() if k in ("name", "num_edges") or k.endswith("_target_")
-            or (isinstance(v, int) and not isinstance(v, bool))}
+    shaped = {f"{plugin}.{name}" for plugin in PLUGINS
+              for name in getattr(_plugin_class(flat, plugin), "SHAPES", ())}
+    out = {k: v for k, v in flat.items() if k in ("name", "num_edges") or k.endswith("_target_")
+           or (isinstance(v, int) and not isinstance(v, bool)) or k in shaped}
+    # a named setting the config leaves out is its constructor's default
+    return out | {k: signature_default(flat, k) for k in shaped - set(out)}
+
+
+def _plugin_class(flat: Mapping[str, Any], plugin: str) -> type | None:
+    """The class of ``plugin`` (``encoder``) named by ``flat``'s ``<plugin>._target_``; None where there is none."""
+    target = flat.get(f"{plugin}._target_")
+    if not isinstance(target, str) or "." not in target:
+        return None
+    module, _, cls = target.rpartition(".")
+    try:
+        return getattr(importlib.import_module(module), cls)
+    except (ImportError, AttributeError):
+        return None
 
 
 def signature_default(flat: Mapping[str, Any], key: str) -> Any:
     """The default that the plugin owning ``key`` (``decoder.prediction_steps``) gives it in its constructor, the
     plugin's class read from ``flat``'s ``<plugin>._target_``; None where there is none."""
     plugin, _, name = key.rpartition(".")
-    target = flat.get(f"{plugin}._target_")
-    if not isinstance(target, str) or "." not in target:
+    cls = _plugin_class(flat, plugin)
+    if cls is None:
         return None
-    module, _, cls = target.rpartition(".")
     try:
-        param = inspect.signature(getattr(importlib.import_module(module), cls).__init__).parameters.get(name)
-    except (ImportError, AttributeError, TypeError, ValueError):
+        param = inspect.signature(cls.__init__).parameters.get(name)
+    except (TypeError, ValueError):
         return None
     return None if param is None or param.default is inspect.Parameter.empty else param.default
 
@@ -165,14 +180,14 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     config's: the error names each differing setting with both values. Warns when another minor or major
     version wrote it. -> the package version it records ("" for none)."""
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception as e:  # torch raises many types for a foreign or damaged file
+        ckpt = read(path, mmap=True)
+    except Exception as e:  # torch raises many types for a foreign or damaged file; a newer format is named
         raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
-    saved = network_hparams(ckpt.get("hyper_parameters", {})) if isinstance(ckpt, dict) else None
+    saved = ckpt.get("hyper_parameters", {}).get("net") if isinstance(ckpt, dict) else None
     if not isinstance(saved, Mapping):
         raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
                           f"hyper-parameters)")
-    mine, theirs = shape_settings(split_model_config(model)[0]), shape_settings(saved)
+    mine, theirs = shape_settings(network_config(model)), shape_settings(saved)
     # a setting added to a plugin after the checkpoint was written is, there, its constructor's default
     theirs |= {k: signature_default(theirs, k) for k in set(mine) - set(theirs)}
     key = lambda k: f"model.{k}" if k in ("name", "num_edges") else f"model.net.{k}"  # noqa: E731 (as users set it)
