@@ -13,6 +13,8 @@ from dider.models.inference import plain_config
 from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
 from dider.training.module import RelationalVAEModule
+from dider.training.runfolder import check_checkpoint
+from dider.validation import ConfigError
 from helpers.models import clip
 
 # The loss settings of a format-1 DIDER config (at the top of the network's config), and what they mean today.
@@ -117,6 +119,8 @@ def test_checkpoints_are_written_in_todays_format_and_a_newer_one_is_refused(mak
     torch.save(newer, path := tmp_path / "newer.ckpt")
     with pytest.raises(ValueError, match=rf"newer.ckpt: written in checkpoint format {FORMAT + 1} by a newer dider"):
         read(path)
+    with pytest.raises(ConfigError, match=rf"^ckpt_path=\S*newer.ckpt: written in checkpoint format {FORMAT + 1} "):
+        check_checkpoint(str(path), {"net": {}})
 
 
 def test_a_fresh_build_passes_through_no_compatibility_code(make_cfg):
@@ -133,16 +137,16 @@ def test_a_string_setting_that_fixes_shapes_is_compared_with_the_checkpoints(mak
     from omegaconf import OmegaConf
 
     from dider.shipped import HERE, catalog
-    from dider.training.runfolder import check_checkpoint
-    from dider.validation import ConfigError
 
     path = str(HERE / catalog()["synth/dider"]["file"])
+
     def model(*overrides: str) -> dict:
         cfg = make_cfg(["model=dider", "experiment=synth_protocol", *overrides], tiny=False)
         return OmegaConf.to_container(cfg.model, resolve=True)
 
-    with pytest.raises(ConfigError, match=r"model\.net\.encoder\.posterior_reads: checkpoint 'sequence', "
-                                          r"config 'transition'"):
+    with pytest.raises(ConfigError, match=r"\(pass its settings: model\.net\.encoder\.posterior_reads=sequence\)"
+                                          r":\n  - model\.net\.encoder\.posterior_reads: checkpoint 'sequence', "
+                                          r"config 'transition'$"):
         check_checkpoint(path, model())
     check_checkpoint(path, model("model.net.encoder.posterior_reads=sequence"))
     with pytest.raises(ConfigError, match=r"model\.net\.duration\.online_prior: checkpoint 'held_type', config "

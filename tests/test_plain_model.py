@@ -19,16 +19,14 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 OVERRIDES = ["model=dider", "model.net.encoder.hidden=32", "model.net.encoder.rnn_hidden=16",
              "model.net.encoder.head_hidden=16", "model.net.decoder.hidden=32"]
 
-# What a notebook does: build the network from the config its checkpoint holds, load the weights, forecast a
+# What a notebook does: build the network its checkpoint holds (config and weights, any format), forecast a
 # tensor (composing the app's config would import Lightning: it describes the data and Lightning modules too).
 NOTEBOOK = """
 import json, sys
 import torch
 from dider.models.vae import RelationalVAE
 
-ckpt = sys.argv[1]
-net = torch.load(ckpt, map_location="cpu", weights_only=True)["hyper_parameters"]["net"]  # the network's config
-model = RelationalVAE.from_config(net).load_checkpoint(ckpt).eval()
+model = RelationalVAE.from_checkpoint(sys.argv[1]).eval()
 torch.manual_seed(0)
 x = torch.rand(2, 12, 3, 4) * 2 - 1
 pred = model(x, torch.ones(2, 30, 3, dtype=torch.bool), burn_in=10, num_pred=20)

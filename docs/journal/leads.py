@@ -19,9 +19,7 @@ import sys
 
 import torch
 import torch.nn.functional as F
-
-import dider
-from dider.data.synth import SynthDataModule
+from protocol_clips import protocol_clips
 
 
 def runs(mask: torch.Tensor) -> list[tuple[int, int]]:
@@ -79,14 +77,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=300)
     parser.add_argument("--cache", default="/tmp/leads_cache")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    model = dider.load(args.model)
-    net = model.network.eval()
-    dm = SynthDataModule(num_train=32, num_val=8, num_test=args.clips, seed=1, cache_dir=args.cache)
-    dm.use_normalizer(model.normalizer)
-    dm.setup()
-    test = dm.datasets["test"]
-    batch = test.__getitems__(list(range(len(test))))
+    model, net, batch = protocol_clips(args.model, args.clips, args.cache)
     truth = batch["edges"].transpose(1, 2) > 0  # [B, E, T-1]
     torch.manual_seed(0)
     with torch.no_grad():
@@ -123,7 +114,7 @@ def main() -> None:
     trimmed = objective(net, batch, trimmed_gate, {1: force_int, 0: force_none})
     weights = {k: t.weight for k, t in net.objective.terms.items()}
     record = {
-        "command": "python " + " ".join(sys.argv), "clips": len(test),
+        "command": "python " + " ".join(sys.argv), "clips": batch["states"].shape[0],
         "over_held_steps": {"lead": lead_steps, "tail": tail_steps, "spurious": spurious_steps},
         "held_runs": int(sum(starts)), "true_runs": int((truth & ~F.pad(truth[..., :-1], (1, 0))).sum()),
         "held_run_starts_by_step": starts.tolist(),

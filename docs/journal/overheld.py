@@ -15,9 +15,8 @@ import json
 import sys
 
 import torch
+from protocol_clips import protocol_clips
 
-import dider
-from dider.data.synth import SynthDataModule
 from dider.graph import edge_index
 
 BINS = (0.0, 0.8, 1.0, 1.1, 1.25, 1.5, float("inf"))
@@ -29,14 +28,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=500)
     parser.add_argument("--cache", default="/tmp/overheld_cache")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    model = dider.load("synth/dider")
-    net = model.network.eval()
-    dm = SynthDataModule(num_train=32, num_val=8, num_test=args.clips, seed=1, cache_dir=args.cache)
-    dm.use_normalizer(model.normalizer)
-    dm.setup()
-    test = dm.datasets["test"]
-    batch = test.__getitems__(list(range(len(test))))
+    model, net, batch = protocol_clips("synth/dider", args.clips, args.cache)
     torch.manual_seed(0)
     with torch.no_grad():
         out = net.infer(batch, hard=True)
@@ -60,13 +52,14 @@ def main() -> None:
                 nats.append(nll(zz)[:, :, recv[e]])
             gain[:, e] = nats[0] - nats[1]
     truth = batch["edges"].transpose(1, 2)  # [B, E, T-1]
-    pos = dm.normalizer.denormalize(x)[..., :2]
+    pos = model.normalizer.denormalize(x)[..., :2]
     dist = (pos[:, :-1, send] - pos[:, :-1, recv]).norm(dim=-1).transpose(1, 2)  # [B, E, T-1], before the step
     groups = {"over-held (posterior interaction, truth none)": (post > 0) & (truth == 0),
               "found (both interaction)": (post > 0) & (truth > 0),
               "missed (posterior none, truth interaction)": (post == 0) & (truth > 0),
               "none (both none)": (post == 0) & (truth == 0)}
-    record = {"command": "python " + " ".join(sys.argv), "clips": len(test), "groups": {}, "over_held_by_distance": {}}
+    record = {"command": "python " + " ".join(sys.argv), "clips": batch["states"].shape[0], "groups": {},
+              "over_held_by_distance": {}}
     for name, sel in groups.items():
         g = gain[sel]
         record["groups"][name] = {"edge_steps": int(sel.sum()), "mean_nats": float(g.mean()),

@@ -69,6 +69,7 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise ValueError(f"{path}: not a dider training checkpoint (no state_dict / hyper_parameters)")
+    ckpt = upgrade(ckpt, path)  # today's format first: what follows reads today's layout
     bad = [k for k, v in ckpt["state_dict"].items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:
@@ -83,7 +84,7 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
                          f"by a model trained without a data module), so new data cannot be normalised the way "
                          f"its training data were; retrain with this version, or evaluate it on its own data set "
                          f"with `python -m dider.run mode=eval ckpt_path={path} data=...`")
-    return upgrade(ckpt, path)
+    return ckpt
 
 
 @dataclass
@@ -241,7 +242,7 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
     try:  # a damaged or hand-edited checkpoint: named with the file and the part that does not fit
         net = hparams["net"]
-        config = ({k: v for k, v in hparams.items() if k not in ("net", "model")}
+        config = ({k: v for k, v in hparams.items() if k != "net"}
                   | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
         network = RelationalVAE.from_config(net)
     except Exception as e:  # noqa: BLE001 (hydra, a plugin's checks or a missing key: any of them)

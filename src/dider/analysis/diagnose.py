@@ -35,7 +35,6 @@ from dider.data.loader import loader_node
 from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
 from dider.io import atomic_write_text
-from dider.models.checkpoint_format import read
 from dider.models.vae import RelationalVAE
 from dider.outputs.run_record import command_line
 from dider.trained import find_checkpoint
@@ -106,7 +105,7 @@ def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequenc
     run = Path(run)
     cfg = run_config(run)
     ckpt = find_checkpoint(run)
-    net = RelationalVAE.from_config(read(ckpt)["hyper_parameters"]["net"]).load_checkpoint(ckpt).eval()
+    net = RelationalVAE.from_checkpoint(ckpt).eval()
     datamodule = instantiate(loader_node(OmegaConf.to_container(cfg.data, resolve=True)), _convert_="all")
     datamodule.setup("test")
     batches, seen = [], 0

@@ -118,7 +118,8 @@ class GNNLSTMEncoder(nn.Module):
 
         For transition t -> t+1 the prior reads h_fwd (x_0..x_t) and the posterior reads
         [h_rev, h_fwd] where h_rev has seen x_{t+1}..x_{T-1}: unlike DNRI's released code, the
-        posterior sees the state the transition produced.
+        posterior sees the state the transition produced (``posterior_reads=sequence``); with
+        ``posterior_reads=transition`` it reads [h_fwd, the GNN embedding of x_{t+1}]: the transition and its past.
         """
         b = x.shape[0]
         # Both LSTMs over all T frames: the forward output at frame t has seen x_0..x_t, the reverse output

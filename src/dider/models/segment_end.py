@@ -295,4 +295,3 @@ class SegmentEnd(HazardPrior):
 
         per_step = (1 - self.rate_mix) * nll(logits) + self.rate_mix * nll(torch.full_like(logits, self.rate_logit))
         return (per_step * free).flatten(1).sum(1) / steps
-

@@ -106,9 +106,18 @@ class RelationalVAE(nn.Module):
         network's config (a checkpoint's ``hyper_parameters["net"]``)."""
         return instantiate(network_config(plain_config(cfg)), _convert_="all")
 
+    @classmethod
+    def from_checkpoint(cls, path: str | Path) -> RelationalVAE:
+        """The network a training checkpoint (``checkpoints/*.ckpt`` of a run, any format) holds, with its weights,
+        read once."""
+        ckpt = read(path)
+        return cls.from_config(ckpt["hyper_parameters"]["net"])._load_state(ckpt["state_dict"])
+
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
         """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run, any format) into this model."""
-        state = read(path)["state_dict"]
+        return self._load_state(read(path)["state_dict"])
+
+    def _load_state(self, state: Mapping[str, torch.Tensor]) -> RelationalVAE:
         self.load_state_dict({k.removeprefix("model."): v for k, v in state.items()})
         return self
 

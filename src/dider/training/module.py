@@ -108,14 +108,17 @@ class RelationalVAEModule(L.LightningModule):
         return cls(net=network_config(node), **settings)
 
     @classmethod
-    def load_from_checkpoint(cls, checkpoint_path: Any, *args: Any, **kwargs: Any) -> RelationalVAEModule:
+    def load_from_checkpoint(cls, checkpoint_path: Any, map_location: Any = None, strict: bool | None = None,
+                             **kwargs: Any) -> RelationalVAEModule:
         """Lightning's, with the checkpoint read in today's format first (:mod:`dider.models.checkpoint_format`):
-        its hyper-parameters build the module."""
+        its hyper-parameters build the module (``hparams_file`` is not taken: they are the checkpoint's)."""
+        if kwargs.get("hparams_file") is not None:
+            raise TypeError("RelationalVAEModule.load_from_checkpoint: hparams_file is not taken (the module is "
+                            "built from the checkpoint's own hyper-parameters)")
         buffer = io.BytesIO()
         torch.save(read(checkpoint_path), buffer)
         buffer.seek(0)
-        kwargs.setdefault("map_location", "cpu")
-        return super().load_from_checkpoint(buffer, *args, **kwargs)
+        return super().load_from_checkpoint(buffer, map_location=map_location or "cpu", strict=strict, **kwargs)
 
     @property
     def burn_in_mode(self) -> str:
@@ -392,4 +395,3 @@ class RelationalVAEModule(L.LightningModule):
         scheduler = instantiate(self.hparams.scheduler)(optimizer=opt)
         # name: the tag LearningRateMonitor logs the rate under (callbacks.lr_monitor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "name": "train/lr"}}
-

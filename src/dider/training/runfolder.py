@@ -24,7 +24,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
-from dider.models.checkpoint_format import network_config, read
+from dider.models.checkpoint_format import network_config, upgrade
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -180,9 +180,13 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     config's: the error names each differing setting with both values. Warns when another minor or major
     version wrote it. -> the package version it records ("" for none)."""
     try:
-        ckpt = read(path, mmap=True)
-    except Exception as e:  # torch raises many types for a foreign or damaged file; a newer format is named
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
+    except Exception as e:  # torch raises many types for a foreign or damaged file
         raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
+    try:
+        ckpt = upgrade(ckpt, f"ckpt_path={path}") if isinstance(ckpt, dict) else ckpt
+    except ValueError as e:  # a newer format than this package reads
+        raise ConfigError(str(e)) from e
     saved = ckpt.get("hyper_parameters", {}).get("net") if isinstance(ckpt, dict) else None
     if not isinstance(saved, Mapping):
         raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
@@ -191,11 +195,13 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     # a setting added to a plugin after the checkpoint was written is, there, its constructor's default
     theirs |= {k: signature_default(theirs, k) for k in set(mine) - set(theirs)}
     key = lambda k: f"model.{k}" if k in ("name", "num_edges") else f"model.net.{k}"  # noqa: E731 (as users set it)
-    differ = [f"{key(k)}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}"
-              for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
-    if differ:
-        raise ConfigError(f"ckpt_path={path} holds another model than the config's (pass the model it was trained "
-                          f"with, e.g. model={theirs.get('name')}):\n  - " + "\n  - ".join(differ))
+    changed = [k for k in sorted(set(mine) | set(theirs)) if mine.get(k) != theirs.get(k)]
+    if changed:
+        fix = (f"pass the model it was trained with, e.g. model={theirs.get('name')}"
+               if mine.get("name") != theirs.get("name")
+               else "pass its settings: " + " ".join(f"{key(k)}={theirs.get(k)}" for k in changed))
+        raise ConfigError(f"ckpt_path={path} holds another model than the config's ({fix}):\n  - " + "\n  - ".join(
+            f"{key(k)}: checkpoint {theirs.get(k)!r}, config {mine.get(k)!r}" for k in changed))
     version = str((ckpt.get("dider") or {}).get("version", ""))
     if warning := version_problem(version):
         log.warning("ckpt_path=%s: %s", path, warning)
