@@ -12,6 +12,7 @@ from dider.run import train
 mlflow = pytest.importorskip("mlflow")
 
 
+@pytest.mark.slow  # about 12 s: make test-all
 def test_mlflow_store_gets_params_metrics_and_figures(make_cfg, tmp_path):
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     train(make_cfg(["logger=[csv,mlflow]", f"logger.mlflow.tracking_uri={store}",

@@ -41,6 +41,7 @@ def test_bad_space_is_named(space, key):
         check_space(space)
 
 
+@pytest.mark.slow  # about 20 s: make test-all
 def test_a_killed_search_goes_on_from_its_study(tmp_path, cache_dir):
     """A search stopped after one trial, with a second one cut off (still RUNNING in its study), started again
     with the same folder: the cut-off trial is marked failed, one new trial completes the two asked for, at a new

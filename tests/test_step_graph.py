@@ -25,13 +25,15 @@ SCHEDULES = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=72
              "model.net.objective.kl_warmup=0.6"]
 
 
-@pytest.mark.parametrize("model", ["dider", "dider_paper"])  # the segment end's and the Gaussian's paths
+# the segment end's and the Gaussian's paths; the Gaussian's about 30 s more: make test-all
+@pytest.mark.parametrize("model", ["dider", pytest.param("dider_paper", marks=pytest.mark.slow)])
 def test_the_graphed_step_trains_as_lightnings_loop(make_cfg, tmp_path, model):
     eager = train(make_cfg([f"model={model}", *SCHEDULES, "cuda_graph=false"], out=tmp_path / "eager"))
     graphed = train(make_cfg([f"model={model}", *SCHEDULES, "cuda_graph=true"], out=tmp_path / "graphed"))
     assert "test/nll" in eager and identical(eager, graphed)
 
 
+@pytest.mark.slow  # three runs, about 65 s: make test-all (the eager resume: tests/test_reliability.py)
 def test_a_graphed_run_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path):
     """SIGTERM after batch 3 of epoch 2 and ckpt_path=last, with the steps graphed: Lightning's own step count and
     checkpoints, so the resumed run equals the uninterrupted one."""

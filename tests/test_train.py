@@ -186,6 +186,7 @@ def test_compiled_run_matches_eager_loss(make_cfg, tmp_path):
     assert torch.allclose(a, b, rtol=1e-4, atol=1e-4), (a, b)
 
 
+@pytest.mark.slow  # about 50 s: make test-all
 def test_best_checkpoint_is_chosen_after_the_kl_warm_up(make_cfg, tmp_path):
     """4 batches x 4 epochs = 16 steps, KL weight 1 from step int(0.6 * 16) = 9: the validations after epochs
     0 and 1 (steps 4, 8) lie inside the warm-up and may not be picked, however low their NLL."""

@@ -10,10 +10,12 @@ Shapes: x [B, T, N, D], z [B, T, E, K] (one-hot or soft), mask [B, T, N] bool or
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
 
-from dider.graph import aggregate_to_receivers, edge_mask
+from dider.graph import aggregate_to_receivers, edge_index, edge_mask
 from dider.models.layers import PairLinear, TypedLinear, checkpointed
 from dider.models.losses import line_fit
 from dider.validation import Rule, boolean, check_settings, integer, within
@@ -35,9 +37,14 @@ class _MessagePassing(nn.Module):
         self.fc2 = TypedLinear(self.num_msg, hidden, hidden)
         self.act, self.drop, self.hidden = act, nn.Dropout(dropout), hidden
 
-    def forward(self, nodes: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    def typed(self, nodes: torch.Tensor) -> torch.Tensor:
+        """Every message type's message on every edge: nodes [..., N, F] -> [..., E, K', H] (K' = the types that
+        send one)."""
         pre = self.act(self.fc1(nodes))  # [..., E, K'*H]: every type's first layer in one matmul
-        msg = self.act(self.fc2(self.drop(pre.unflatten(-1, (self.num_msg, self.hidden)))))  # [..., E, K', H]
+        return self.act(self.fc2(self.drop(pre.unflatten(-1, (self.num_msg, self.hidden)))))
+
+    def forward(self, nodes: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        msg = self.typed(nodes)  # [..., E, K', H]
         z = z[..., self.first :].to(msg.dtype)  # under autocast, keep the edge tensors in bf16
         if self.num_msg == 1:  # one pass instead of a product and a sum over a size-1 axis
             return msg.squeeze(-2) * z
@@ -154,6 +161,38 @@ class MarkovDecoder(nn.Module):
 
     def _next(self, x: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         return x + delta if self.kinematic is None else self.kinematic(x, delta)
+
+    @torch.no_grad()
+    def edge_evidence(self, x: torch.Tensor, z: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                      nll: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        """What each edge's interaction tells its receiver's next state: the one-step NLL of the receiver with the
+        edge at "none" minus the least NLL over the interaction types, every other edge as ``z`` holds it.
+
+        x [B, T, N, D] (the states predicted from), z [B, T, E, K], target [B, T, N, D] (the next states), mask
+        [B, T, N] or None; nll(pred, target) [..., D] twice -> [...]: one agent-step's NLL. -> [B, T, E] (0 where
+        the edge is absent). About zero where the decoder predicts the receiver alike with and without the edge."""
+        if self.messages.first != 1:
+            raise ValueError("edge evidence needs type 0 to send no message (model.net.decoder.skip_first=true)")
+        with torch.autocast(x.device.type, enabled=False):  # in float32: NLLs of thousands of nats differ by one
+            return self._evidence(x.float(), z.float(), target.float(), mask, nll)
+
+    def _evidence(self, x: torch.Tensor, z: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                  nll: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        n = x.shape[-2]
+        send, recv = edge_index(n, x.device)
+        msg = self.messages.typed(x)  # [B, T, E, K', H]
+        present = None if mask is None else edge_mask(mask).unsqueeze(-1).to(msg.dtype)  # [B, T, E, 1]
+        held = (msg * z[..., 1:, None].to(msg.dtype)).sum(-2)  # [B, T, E, H]: each edge's message as z holds it
+        if present is not None:
+            held, msg = held * present, msg * present.unsqueeze(-1)
+        agg = aggregate_to_receivers(held, n)  # [B, T, N, H]
+        base = agg.index_select(-2, recv) - held  # the receiver's messages without the edge
+        options = torch.cat([base.unsqueeze(-2), base.unsqueeze(-2) + msg], -2)  # [B, T, E, K, H]: none, types
+        x_r = x.index_select(-2, recv).unsqueeze(-2).expand(*options.shape[:-1], x.shape[-1])
+        pred = self._next(x_r, self.out(torch.cat([x_r, options], -1)))
+        cost = nll(pred, target.index_select(-2, recv).unsqueeze(-2).expand_as(pred))  # [B, T, E, K]
+        evidence = cost[..., 0] - cost[..., 1:].amin(-1)
+        return evidence if present is None else evidence * present.squeeze(-1)
 
     def _blocks(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """Every block of P = prediction_steps steps rolled out from its first true state, all blocks at once (P

@@ -32,6 +32,8 @@ class Inference:
     terms: dict[str, torch.Tensor] = field(default_factory=dict)  # the objective's terms per clip, name -> [B]
     # [B] the duration plugin's fit of its online boundary model (plugins with runs of one type), else None
     boundary_fit: torch.Tensor | None = None
+    # [B, E, T-1] what each edge's interaction tells the decoder (nats), where an objective term reads it, else None
+    evidence: torch.Tensor | None = None
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""

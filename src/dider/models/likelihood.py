@@ -8,7 +8,7 @@ from typing import Any, ClassVar
 import torch
 
 from dider.models.inference import Inference
-from dider.models.losses import gaussian_nll, residual_variance
+from dider.models.losses import gaussian_nll, gaussian_nll_each, residual_variance
 from dider.models.objective import Batch, Term
 from dider.validation import Rule, above, check_settings, or_word
 
@@ -39,7 +39,14 @@ class GaussianNLL(Term):
 
     def nll(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         """pred, target [B, T, N, D], mask [B, T, N] -> the NLL per sample [B] (:func:`gaussian_nll`)."""
-        return gaussian_nll(pred, target, mask, self.variance if self.variance.dim() else self.value)
+        return gaussian_nll(pred, target, mask, self._variance())
+
+    def each(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """pred, target [..., D] -> each agent-step's NLL [...]."""
+        return gaussian_nll_each(pred, target, self._variance())
+
+    def _variance(self) -> float | torch.Tensor:
+        return self.variance if self.variance.dim() else self.value
 
     def fit(self, x: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
         """Sets the variance per feature from the states x [B, T, N, D] (mask [B, T, N]). -> the variances [D]."""

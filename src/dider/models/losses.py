@@ -11,6 +11,15 @@ import torch
 import torch.nn.functional as F
 
 
+def gaussian_nll_each(pred: torch.Tensor, target: torch.Tensor, variance: float | torch.Tensor) -> torch.Tensor:
+    """Each agent-step's fixed-variance Gaussian NLL, summed over features: pred, target [..., D] -> [...]."""
+    if isinstance(variance, torch.Tensor) and variance.dim() > 0:  # one per feature
+        var = variance.to(torch.promote_types(pred.dtype, torch.float32))
+        return ((pred - target).pow(2) / (2 * var)).sum(-1) + 0.5 * torch.log(2 * math.pi * var).sum()
+    v, d = float(variance), pred.shape[-1]
+    return (pred - target).pow(2).sum(-1) / (2 * v) + 0.5 * d * math.log(2 * math.pi * v)
+
+
 def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
                  variance: float | torch.Tensor) -> torch.Tensor:
     """Fixed-variance Gaussian NLL per sample: sum over features, mean over present (step, agent). -> [B].
@@ -19,12 +28,7 @@ def gaussian_nll(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
     The log-normaliser is counted once per feature (a proper Gaussian); DNRI counted it once per agent,
     which only shifts the reported value by a constant.
     """
-    if isinstance(variance, torch.Tensor) and variance.dim() > 0:  # one per feature
-        var = variance.to(torch.promote_types(pred.dtype, torch.float32))
-        per_agent = ((pred - target).pow(2) / (2 * var)).sum(-1) + 0.5 * torch.log(2 * math.pi * var).sum()
-    else:
-        v, d = float(variance), pred.shape[-1]
-        per_agent = (pred - target).pow(2).sum(-1) / (2 * v) + 0.5 * d * math.log(2 * math.pi * v)
+    per_agent = gaussian_nll_each(pred, target, variance)
     m = mask.to(per_agent.dtype)
     return (per_agent * m).flatten(1).sum(1) / m.flatten(1).sum(1).clamp_min(1.0)
 

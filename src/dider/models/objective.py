@@ -27,7 +27,7 @@ from dider.models.inference import Inference
 from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.plugins import Progress
 from dider.models.prior import fixed_log_probs
-from dider.validation import FRACTION_OF_TRAINING, Rule, at_least, check_settings, one_of, within_open
+from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, one_of, within_open
 
 Batch = Mapping[str, torch.Tensor]
 
@@ -114,6 +114,33 @@ class Sparsity(Term):
         return categorical_kl_probs(mean_q, self.log_probs).mean(-1)
 
 
+class Indifference(Term):
+    """A prior that prefers "none" where the likelihood cannot tell the types apart: every edge-step the posterior
+    holds an interaction at costs ``weight`` (times its probability) where the decoder's evidence for it is below
+    ``threshold`` nats (the receiver's one-step NLL with the edge at "none" minus at its best interaction type,
+    every other edge as drawn, the gradient stopped: :meth:`~dider.models.decoders.MarkovDecoder.edge_evidence`).
+    Where the evidence is there the term costs nothing, so it trims what the likelihood leaves to the KL terms (a
+    run held on before an interaction starts or after it ends) without taxing the interactions themselves, as a
+    heavier sparsity term would. Off for the first ``after`` of training: until the decoder has learned what an
+    interaction does, no step has evidence for one, and the term from the first step would hold every edge at
+    "none", where the decoder never learns it."""
+
+    needs_evidence: ClassVar[bool] = True
+    SETTINGS = {"weight": at_least(0), "threshold": above(0), "after": FRACTION_OF_TRAINING}
+
+    def __init__(self, weight: float = 1.0, threshold: float = 1.0, after: float = 0.25) -> None:
+        super().__init__(weight)
+        check_settings(self, locals())
+        self.threshold, self.after = float(threshold), float(after)
+
+    def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        if out.evidence is None:
+            raise RuntimeError("the indifference term needs the pass's edge evidence (Inference.evidence)")
+        indifferent = (out.evidence < self.threshold) & out.present  # [B, E, T-1]
+        marked = 1.0 - out.probs[..., 0]
+        return per_edge_step(marked * indifferent, out.present)
+
+
 class PriorFit(Term):
     """Outside the ELBO: fits the learned prior at every step to the posterior type held there, the posterior's
     gradient stopped. With segments the ELBO's KL trains the prior at segment starts only; forecasting reads it
@@ -156,18 +183,23 @@ class Objective(nn.Module):
             raise TypeError(f"model.net.objective: {wrong} are not dider.models.objective.Term objects")
         self.kl_warmup, self.capacity_ramp = kl_warmup, capacity_ramp
         self.terms = nn.ModuleDict({k: v for k, v in terms.items() if v is not None})
+        # a term that reads the decoder's evidence for each edge (the pass computes it only then)
+        self.needs_evidence = any(getattr(t, "needs_evidence", False) for t in self.terms.values())
 
     def values(self, out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
         """Every term's value per clip: name -> [B]."""
         return {name: term(out, batch) for name, term in self.terms.items()}
 
     def schedule(self, progress: Progress = Progress()) -> dict[str, float | torch.Tensor]:
-        """The annealed weights at ``progress``: the KL warm-up's ``kl_weight`` and each ``capacity/<term>``
-        that has one (tensors where ``progress.values`` gives them)."""
+        """The annealed weights at ``progress``: the KL warm-up's ``kl_weight``, each ``capacity/<term>`` that has
+        one and ``on/<term>`` (0 or 1) for a term off early in training (tensors where ``progress.values`` gives
+        them)."""
         ramp = progress.ramp_steps(self.capacity_ramp)
         out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))}
         out |= {f"capacity/{k}": capacity(progress.step, t.capacity, ramp) for k, t in self.terms.items()
                 if t.capacity > 0}
+        out |= {f"on/{k}": float(progress.step >= progress.ramp_steps(t.after)) for k, t in self.terms.items()
+                if getattr(t, "after", 0.0) > 0}  # a term off for the first ``after`` of training
         return {k: progress.value(k, v) for k, v in out.items()}
 
     def forward(self, values: Mapping[str, torch.Tensor], progress: Progress = Progress()) -> dict[str, torch.Tensor]:
@@ -182,7 +214,8 @@ class Objective(nn.Module):
                 continue
             c = sched.get(f"capacity/{name}", 0.0)
             # tensor first: a schedule given as a device scalar (a graphed step) then rounds as a Python float does
-            loss = loss + (means[name] - c).abs() * (sched["kl_weight"] if term.warms_up else 1.0) * term.weight
+            weight = term.weight * sched.get(f"on/{name}", 1.0)
+            loss = loss + (means[name] - c).abs() * (sched["kl_weight"] if term.warms_up else 1.0) * weight
             if term.in_nelbo:
                 nelbo = nelbo + term.weight * means[name].detach()
         return {"loss": loss, **means, "nelbo": nelbo}

@@ -22,7 +22,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import nn
 
-from dider.graph import edge_mask
+from dider.graph import edge_index, edge_mask
 from dider.models.checkpoint_format import network_config, read
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
@@ -87,6 +87,9 @@ class RelationalVAE(nn.Module):
         if not isinstance(objective, Objective):
             raise TypeError(f"model.net.objective: {type(objective).__name__} is not a "
                             f"dider.models.objective.Objective")
+        if objective.needs_evidence and not hasattr(decoder, "edge_evidence"):
+            raise ValueError(f"model.net.objective: a term reads each edge's evidence, which "
+                             f"{type(decoder).__name__} does not give (model.net.decoder=markov does)")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
@@ -153,6 +156,11 @@ class RelationalVAE(nn.Module):
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         probs = seg.spread(F.softmax(q_seg, dim=-1))
         out = Inference(pred, q_seg, seg.gather(p_step), probs, enc.posterior_logits, p_step, seg, enc.h_fwd, present)
+        if self.objective.needs_evidence:
+            _, recv = edge_index(x.shape[2], x.device)
+            evidence = self.decoder.edge_evidence(x[:, :-1], z.transpose(1, 2), x[:, 1:], None if plugin_mask is None
+                                                  else mask[:, :-1], self.likelihood.each)  # [B, T-1, E]
+            out.evidence = (evidence * mask[:, 1:].index_select(2, recv)).transpose(1, 2)
         if self.capabilities.held_type:  # the online boundary model, fitted at every step to the held type's changes
             out.boundary_fit = self.duration.boundary_fit(enc.h_fwd, out.posterior_types().detach(), present)
         out.terms = self.objective.values(out, batch)

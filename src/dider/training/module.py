@@ -103,9 +103,12 @@ class RelationalVAEModule(L.LightningModule):
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
         """From a model config (``cfg.model``: the module's settings and the network's ``net`` node)."""
         node = plain_config(cfg)  # the module's settings: its arguments (the preflight refuses any other key)
-        settings = {k: node[k] for k in inspect.signature(cls.__init__).parameters if k not in ("self", "net")
-                    and k in node}
-        return cls(net=network_config(node), **settings)
+        return cls(net=network_config(node), **{k: node[k] for k in cls.setting_names() if k != "net" and k in node})
+
+    @classmethod
+    def setting_names(cls) -> list[str]:
+        """The module's settings, the keys of a model config's top level: its constructor's arguments."""
+        return [k for k in inspect.signature(cls.__init__).parameters if k != "self"]
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, map_location: Any = None, strict: bool | None = None,

@@ -3,7 +3,6 @@ config, and the settings that are valid but probably not meant (warnings)."""
 
 from __future__ import annotations
 
-import inspect
 import logging
 import os
 from collections.abc import Callable, Mapping
@@ -261,6 +260,6 @@ def stray_keys(node: Mapping[str, Any]) -> list[str]:
     top, say, which would otherwise be ignored)."""
     from dider.training.module import RelationalVAEModule  # the module imports the data and models: only here
 
-    known = {*inspect.signature(RelationalVAEModule.__init__).parameters, "name", "num_edges"} - {"self"}
+    known = {*RelationalVAEModule.setting_names(), "name", "num_edges"}
     return [f"model.{k}: not a setting of the model's top level ({sorted(known)}); the network's settings are "
             f"under model.net (model.net.{k})" for k in node if k not in known and k != "_target_"]

@@ -33,7 +33,7 @@ from dider.models.durations import LearnedDuration, PerStepDuration, StaticDurat
 from dider.models.encoder import GNNLSTMEncoder
 from dider.models.gate import HoldGate
 from dider.models.likelihood import GaussianNLL
-from dider.models.objective import BoundaryFit, DurationKL, EdgeKL, PriorFit, Sparsity
+from dider.models.objective import BoundaryFit, DurationKL, EdgeKL, Indifference, PriorFit, Sparsity
 from dider.models.prior import FixedPrior, LearnedPrior
 from dider.models.segment_end import SegmentEnd
 from dider.models.vae import RelationalVAE
@@ -45,7 +45,7 @@ from dider.training.module import RelationalVAEModule
 # modules (conf/data). The LightningModule's is stored by register_schemas.
 PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDuration, LearnedDuration, SegmentEnd,
            HoldGate, MarkovDecoder, RecurrentDecoder)
-TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, PriorFit, BoundaryFit)
+TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, BoundaryFit)
 DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
         SoccerDataModule, TrajectoryDataModule, NRIDataModule)
 

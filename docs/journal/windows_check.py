@@ -1,0 +1,138 @@
+"""What every data config and experiment feeds the model, as hashes: each split's tensors (states, mask, edges,
+packing, source ids, agent ids and classes, consistency pairs), the normaliser, the step and the source names.
+
+The guard of a rewrite of the data layer: run it before and after on the same machine and compare the two files
+(``--compare``); equal hashes are byte-identical windows, splits and normalised tensors. Real formats read small
+inputs generated here (the tests' fixture writers); the synthetic sets are generated at each config's sizes.
+
+    python docs/journal/windows_check.py --out /tmp/windows_before.json
+    python docs/journal/windows_check.py --out /tmp/windows_after.json --compare /tmp/windows_before.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
+
+TESTS = Path(__file__).resolve().parents[2] / "tests"
+sys.path.insert(0, str(TESTS))
+
+from dider.data.example import example_tracks  # noqa: E402
+from dider.data.nri_files import write_nri_split  # noqa: E402
+from dider.data.particles import simulate_particles  # noqa: E402
+from helpers.fixtures import write_dnri_bball, write_ind_root, write_trajectories, write_zhan  # noqa: E402
+from test_dnri_files import write_dnri  # noqa: E402
+from test_readers import write_scenes  # noqa: E402
+
+
+def inputs(root: Path) -> dict[str, str]:
+    """Small inputs of every real format under ``root``: name -> path."""
+    write_ind_root(root / "ind", num_recordings=5, num_frames=2200)
+    write_zhan(root / "zhan")
+    write_dnri_bball(root / "dnri_bball")
+    write_trajectories(root / "traj.npz", num=40, steps=30, agents=3, mask=True, edges=True)
+    example_tracks(scenes=6).to_csv(root / "table.csv", index=False)
+    write_scenes(root / "eth")
+    write_dnri(root / "dnri_files", steps=50)
+    for i, split in enumerate(("train", "val", "test")):
+        loc, vel, edges = simulate_particles("springs", 6, 49, 5, 100, 0.0, seed=i)
+        write_nri_split(root / "nri", split, "_springs5", loc, vel, edges)
+    return {k: str(root / k) for k in ("ind", "zhan", "dnri_bball", "traj.npz", "table.csv", "eth", "dnri_files",
+                                       "nri")}
+
+
+def cases(p: dict[str, str]) -> dict[str, list[str]]:
+    """name -> overrides: every data config, then every experiment's data node on the same inputs."""
+    small = ["data.num_train=300", "data.num_val=50", "data.num_test=100"]  # the generated sets' defaults are 40k
+    levelx = [f"data.root={p['ind']}", "data.split=[3,1,1]"]
+    out = {
+        "synth": ["data=synth", *small], "synth_step": ["data=synth", "data.push=step", *small],
+        "springs": ["data=springs", *small], "charged": ["data=charged", *small],
+        "nri_files": ["data=nri_files", f"data.root={p['nri']}"],
+        "dnri_files": ["data=dnri_files", f"data.root={p['dnri_files']}"],
+        "basketball_zhan": ["data=basketball", f"data.root={p['zhan']}"],
+        "basketball_dnri": ["data=basketball", f"data.root={p['dnri_bball']}"],
+        "trajectories": ["data=trajectories", f"data.path={p['traj.npz']}"],
+        "table": ["data=table", f"data.path={p['table.csv']}", "data.frame_rate=10", "data.downsample=2"],
+        "eth_ucy": ["data=eth_ucy", f"data.path={p['eth']}"],
+        "soccer": ["experiment=soccer", "hydra.mode=RUN"],
+        "ind": ["data=ind", *levelx], "ind200": ["data=ind200", *levelx, "data.seq_len=60", "protocol.horizons=[1,20]"],
+        "round": ["data=round", *levelx], "unid": ["data=unid", *levelx],
+    }
+    for exp in ("demo", "smoke", "synth_cpu_table", "synth_claims", "synth_protocol", "synth_long", "synth_table",
+                "edge_ablation", "springs_nri", "springs_dynamic"):
+        out[f"experiment={exp}"] = [f"experiment={exp}", "hydra.mode=RUN"]
+    out["experiment=bball_table"] = ["experiment=bball_table", "hydra.mode=RUN", f"data.root={p['zhan']}"]
+    for exp in ("ind50_table", "ind200_table"):
+        out[f"experiment={exp}"] = [f"experiment={exp}", "hydra.mode=RUN", *levelx]
+    return out
+
+
+def digest(value: Any) -> Any:
+    """A tensor or array -> 'dtype shape sha256'; containers recursively; other values as they are."""
+    if isinstance(value, torch.Tensor):
+        value = value.detach().cpu().contiguous()
+        raw = value.view(torch.uint8) if value.dtype != torch.bool and value.numel() else value.to(torch.uint8)
+        return f"{value.dtype} {list(value.shape)} {hashlib.sha256(raw.numpy().tobytes()).hexdigest()[:16]}"
+    if isinstance(value, np.ndarray):
+        return digest(torch.from_numpy(np.ascontiguousarray(value)))
+    if isinstance(value, dict):
+        return {str(k): digest(v) for k, v in sorted(value.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(value, list | tuple):
+        return [digest(v) for v in value]
+    return value if isinstance(value, int | float | str | bool | type(None)) else repr(value)
+
+
+def fingerprint(overrides: list[str], cache: Path) -> dict[str, Any]:
+    GlobalHydra.instance().clear()
+    with initialize_config_module(version_base="1.3", config_module="dider.conf"):
+        cfg = compose(config_name="config", overrides=[*overrides, f"data.cache_dir={cache}"])
+    dm = instantiate(cfg.data, _convert_="all")
+    dm.prepare_data()
+    dm.setup("fit")
+    out: dict[str, Any] = {"normalizer": digest(dm.state_dict()), "frame_step": dm.frame_step,
+                           "dt": getattr(dm, "dt", None), "source_names": digest(dm.source_names)}
+    for split, ds in sorted(dm.datasets.items()):
+        out[split] = digest({k: v for k, v in vars(ds).items() if not k.startswith("_")})
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--compare", type=Path, help="an earlier output: list the cases that differ")
+    parser.add_argument("--only", nargs="*", help="these cases only")
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        todo = cases(inputs(tmp_path / "inputs"))
+        result = {}
+        for name, overrides in todo.items():
+            if args.only and name not in args.only:
+                continue
+            try:
+                result[name] = fingerprint(overrides, tmp_path / "cache")
+            except Exception as e:  # a config that cannot be built is a result too (it must stay so)
+                result[name] = {"error": f"{type(e).__name__}: {e}"[:300]}
+            print(name, "error" if "error" in result[name] else "ok", flush=True)
+    args.out.write_text(json.dumps(result, indent=1, sort_keys=True))
+    if args.compare:
+        before = json.loads(args.compare.read_text())
+        differ = [k for k in sorted(set(before) | set(result)) if before.get(k) != result.get(k)]
+        print("differ:", differ or "none")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""The edge evidence (MarkovDecoder.edge_evidence) against one decoder pass per edge and type, and the
+indifference term (dider.models.objective.Indifference) by hand."""
+
+import pytest
+import torch
+
+from dider.graph import edge_index
+from dider.models.decoders import MarkovDecoder, RecurrentDecoder
+from dider.models.losses import gaussian_nll_each
+from dider.models.plugins import Progress
+from helpers.models import build, clip
+
+
+def _nll(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    return gaussian_nll_each(pred, target, 1e-2)
+
+
+@pytest.mark.parametrize("num_types", [2, 3])
+def test_edge_evidence_is_the_receivers_nll_with_the_edge_at_none_minus_at_its_best_type(num_types):
+    torch.manual_seed(0)
+    b, t, n, d = 2, 3, 4, 4
+    dec = MarkovDecoder(num_types, input_dim=d, hidden=8).eval()
+    x, target = torch.randn(b, t, n, d), torch.randn(b, t, n, d)
+    z = torch.softmax(torch.randn(b, t, n * (n - 1), num_types), -1)
+    mask = torch.rand(b, t, n) > 0.2
+    got = dec.edge_evidence(x, z, target, mask, _nll)  # [B, T, E]
+    send, recv = edge_index(n)
+    expected = torch.zeros_like(got)
+    for e in range(n * (n - 1)):  # one full decoder pass per edge and type: the definition
+        costs = []
+        for k in range(num_types):
+            zk = z.clone()
+            zk[:, :, e] = torch.nn.functional.one_hot(torch.tensor(k), num_types).float()
+            pred = dec(x, zk, mask)
+            costs.append(_nll(pred[:, :, recv[e]], target[:, :, recv[e]]))
+        best = torch.stack(costs[1:], -1).amin(-1)
+        expected[:, :, e] = (costs[0] - best) * (mask[:, :, send[e]] & mask[:, :, recv[e]])
+    assert torch.allclose(got, expected, atol=1e-5)
+    assert (got != 0).any()
+
+
+def test_edge_evidence_needs_a_silent_type_0():
+    dec = MarkovDecoder(2, input_dim=4, hidden=8, skip_first=False)
+    with pytest.raises(ValueError, match="skip_first"):
+        dec.edge_evidence(torch.zeros(1, 1, 2, 4), torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 4), None, _nll)
+
+
+def test_indifference_charges_marked_edge_steps_where_the_evidence_is_below_the_threshold(make_cfg):
+    net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
+                "model.net.objective.indifference.threshold=0.5")
+    term = net.objective.terms["indifference"]
+    assert (term.weight, term.threshold, term.after) == (2.0, 0.5, 0.25)
+    out = net.infer(clip(), hard=True)
+    assert out.evidence is not None and out.evidence.shape == out.present.shape
+    indifferent = (out.evidence < 0.5) & out.present
+    marked = 1 - out.probs[..., 0]
+    by_hand = (marked * indifferent).flatten(1).sum(1) / out.present.flatten(1).sum(1)
+    assert torch.allclose(out.terms["indifference"], by_hand)
+    # the evidence is computed without a gradient; the term's gradient reaches the posterior through probs
+    out.terms["indifference"].sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.encoder.parameters())
+    assert "indifference" not in build(make_cfg, "model=dider").objective.terms
+
+
+def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
+    net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
+                "model.net.objective.indifference.weight=1.0", "model.net.objective.indifference.after=0.3")
+    out = net.infer(clip(), hard=True)
+    assert out.terms["indifference"].sum() > 0
+    early, late = net.loss(out, Progress(29, total=100)), net.loss(out, Progress(30, total=100))
+    assert net.schedule(Progress(29, total=100))["on/indifference"] == 0.0
+    # weight 1, KL warm: the loss differs by the term (to float32 rounding of a loss near 3e4)
+    assert torch.allclose(late["loss"] - early["loss"], out.terms["indifference"].mean(), atol=1e-2)
+
+
+def test_indifference_needs_a_decoder_that_gives_the_evidence(make_cfg):
+    with pytest.raises(Exception, match="evidence"):
+        build(make_cfg, "model=dider", "model/net/decoder=recurrent", "model/net/objective=dider_indifference")
+    assert not hasattr(RecurrentDecoder, "edge_evidence")
