@@ -73,7 +73,28 @@ def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
     assert torch.allclose(late["loss"] - early["loss"], out.terms["indifference"].mean(), atol=1e-2)
 
 
-def test_indifference_needs_a_decoder_that_gives_the_evidence(make_cfg):
-    with pytest.raises(Exception, match="evidence"):
-        build(make_cfg, "model=dider", "model/net/decoder=recurrent", "model/net/objective=dider_indifference")
+@pytest.mark.parametrize("override, why", [("model/net/decoder=recurrent", "does not give"),
+                                           ("model.net.decoder.skip_first=false", "skip_first=true"),
+                                           ("model.net.decoder.dropout=0.1", "dropout=0")])
+def test_indifference_needs_a_decoder_that_gives_the_evidence(make_cfg, override, why):
+    with pytest.raises(Exception, match=f"evidence.*{why}"):
+        build(make_cfg, "model=dider", override, "model/net/objective=dider_indifference")
     assert not hasattr(RecurrentDecoder, "edge_evidence")
+
+
+def test_the_evidence_is_computed_in_the_weights_dtype_at_least_float32():
+    torch.manual_seed(0)
+    dec = MarkovDecoder(2, input_dim=4, hidden=8).double()
+    x, z = torch.randn(1, 2, 3, 4, dtype=torch.float64), torch.rand(1, 2, 6, 2, dtype=torch.float64)
+    got = dec.edge_evidence(x, z, torch.randn(1, 2, 3, 4), None, _nll)  # weights in float64: no dtype clash
+    assert got.dtype == torch.float64 and got.shape == (1, 2, 6)
+
+
+def test_an_absent_receiver_is_never_indifferent(make_cfg):
+    net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference")
+    batch = clip()
+    batch["mask"] = batch["mask"].clone()
+    batch["mask"][:, 10:, 0] = False  # agent 0 leaves after step 9
+    out = net.infer(batch, hard=True)
+    _, recv = edge_index(3)
+    assert torch.isinf(out.evidence[:, recv == 0, 9:]).all() and torch.isfinite(out.evidence[:, recv != 0]).all()

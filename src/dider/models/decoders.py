@@ -173,8 +173,9 @@ class MarkovDecoder(nn.Module):
         the edge is absent). About zero where the decoder predicts the receiver alike with and without the edge."""
         if self.messages.first != 1:
             raise ValueError("edge evidence needs type 0 to send no message (model.net.decoder.skip_first=true)")
-        with torch.autocast(x.device.type, enabled=False):  # in float32: NLLs of thousands of nats differ by one
-            return self._evidence(x.float(), z.float(), target.float(), mask, nll)
+        dtype = torch.promote_types(self.out[0].weight.dtype, torch.float32)  # at least float32: NLLs of thousands
+        with torch.autocast(x.device.type, enabled=False):  # of nats differ by one
+            return self._evidence(x.to(dtype), z.to(dtype), target.to(dtype), mask, nll)
 
     def _evidence(self, x: torch.Tensor, z: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
                   nll: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
@@ -307,3 +308,15 @@ class RecurrentDecoder(nn.Module):
         return self._next(x_t, self.out(h)), h
 
     _next = MarkovDecoder._next
+
+
+def evidence_problem(decoder: nn.Module) -> str | None:
+    """Why ``decoder`` cannot score each edge's evidence (:meth:`MarkovDecoder.edge_evidence`), said as the end of a
+    sentence about the evidence; None when it can."""
+    if not hasattr(decoder, "edge_evidence"):
+        return f"{type(decoder).__name__} does not give (model.net.decoder=markov does)"
+    if decoder.messages.first != 1:
+        return "needs type 0 to send no message (model.net.decoder.skip_first=true)"
+    if decoder.messages.drop.p > 0:  # each option would draw its own dropout masks: the difference would be noise
+        return "is scored without dropout (model.net.decoder.dropout=0)"
+    return None

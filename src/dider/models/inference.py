@@ -32,7 +32,8 @@ class Inference:
     terms: dict[str, torch.Tensor] = field(default_factory=dict)  # the objective's terms per clip, name -> [B]
     # [B] the duration plugin's fit of its online boundary model (plugins with runs of one type), else None
     boundary_fit: torch.Tensor | None = None
-    # [B, E, T-1] what each edge's interaction tells the decoder (nats), where an objective term reads it, else None
+    # [B, E, T-1] what each edge's interaction tells the decoder (nats), where an objective term reads it, else None;
+    # inf where the receiver's next state is absent (nothing to score: never "indifferent")
     evidence: torch.Tensor | None = None
 
     def posterior_types(self) -> torch.Tensor:

@@ -24,6 +24,7 @@ from torch import nn
 
 from dider.graph import edge_index, edge_mask
 from dider.models.checkpoint_format import network_config, read
+from dider.models.decoders import evidence_problem
 from dider.models.hazard import hold_assignment
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
 from dider.models.likelihood import GaussianNLL
@@ -87,9 +88,8 @@ class RelationalVAE(nn.Module):
         if not isinstance(objective, Objective):
             raise TypeError(f"model.net.objective: {type(objective).__name__} is not a "
                             f"dider.models.objective.Objective")
-        if objective.needs_evidence and not hasattr(decoder, "edge_evidence"):
-            raise ValueError(f"model.net.objective: a term reads each edge's evidence, which "
-                             f"{type(decoder).__name__} does not give (model.net.decoder=markov does)")
+        if objective.needs_evidence and (why := evidence_problem(decoder)):
+            raise ValueError(f"model.net.objective: a term reads each edge's evidence, which {why}")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
@@ -160,7 +160,7 @@ class RelationalVAE(nn.Module):
             _, recv = edge_index(x.shape[2], x.device)
             evidence = self.decoder.edge_evidence(x[:, :-1], z.transpose(1, 2), x[:, 1:], None if plugin_mask is None
                                                   else mask[:, :-1], self.likelihood.each)  # [B, T-1, E]
-            out.evidence = (evidence * mask[:, 1:].index_select(2, recv)).transpose(1, 2)
+            out.evidence = evidence.masked_fill(~mask[:, 1:].index_select(2, recv), float("inf")).transpose(1, 2)
         if self.capabilities.held_type:  # the online boundary model, fitted at every step to the held type's changes
             out.boundary_fit = self.duration.boundary_fit(enc.h_fwd, out.posterior_types().detach(), present)
         out.terms = self.objective.values(out, batch)
