@@ -13,13 +13,12 @@ python docs/journal/leads.py --model synth/dider --out docs/records/leads_protoc
 python docs/journal/leads.py --model RUN/checkpoints/last.ckpt --out ...
 """
 
-import argparse
 import json
 import sys
 
 import torch
 import torch.nn.functional as F
-from protocol_clips import protocol_clips
+from protocol_clips import clips_from_command_line
 
 
 def runs(mask: torch.Tensor) -> list[tuple[int, int]]:
@@ -71,13 +70,7 @@ def objective(net, batch, cut, force, draws=4) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", default="synth/dider")
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--clips", type=int, default=300)
-    parser.add_argument("--cache", default="/tmp/leads_cache")
-    args = parser.parse_args()
-    model, net, batch = protocol_clips(args.model, args.clips, args.cache)
+    args, model, net, batch = clips_from_command_line(__doc__.splitlines()[0], "synth/dider")
     truth = batch["edges"].transpose(1, 2) > 0  # [B, E, T-1]
     torch.manual_seed(0)
     with torch.no_grad():

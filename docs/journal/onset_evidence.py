@@ -6,11 +6,10 @@ Read against a model trained with the prior, it says what a lower threshold woul
 python docs/journal/onset_evidence.py --model RUN --out docs/records/onset_evidence_indifference.json
 """
 
-import argparse
 import json
 
 import torch
-from protocol_clips import protocol_clips
+from protocol_clips import clips_from_command_line
 
 
 def shares(evidence: torch.Tensor, held: torch.Tensor | None = None) -> dict[str, float]:
@@ -20,13 +19,7 @@ def shares(evidence: torch.Tensor, held: torch.Tensor | None = None) -> dict[str
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--model", required=True)
-    parser.add_argument("--out", required=True)
-    parser.add_argument("--clips", type=int, default=300)
-    parser.add_argument("--cache", default="/tmp/leads_cache")
-    args = parser.parse_args()
-    _, net, batch = protocol_clips(args.model, args.clips, args.cache)
+    args, _, net, batch = clips_from_command_line(__doc__.splitlines()[0])
     truth = batch["edges"].transpose(1, 2) > 0  # [B, E, T-1]
     torch.manual_seed(0)
     with torch.no_grad():
