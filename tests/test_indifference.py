@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from dider.graph import edge_index
-from dider.models.decoders import MarkovDecoder, RecurrentDecoder
+from dider.models.decoders import MarkovDecoder, RecurrentDecoder, evidence_problem
 from dider.models.losses import gaussian_nll_each
 from dider.models.plugins import Progress
 from helpers.models import build, clip
@@ -15,26 +15,28 @@ def _nll(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return gaussian_nll_each(pred, target, 1e-2)
 
 
+@pytest.mark.parametrize("decoder", [MarkovDecoder, RecurrentDecoder])
 @pytest.mark.parametrize("num_types", [2, 3])
-def test_edge_evidence_is_the_receivers_nll_with_the_edge_at_none_minus_at_its_best_type(num_types):
+def test_edge_evidence_is_the_receivers_nll_with_the_edge_at_none_minus_at_its_best_type(decoder, num_types):
     torch.manual_seed(0)
     b, t, n, d = 2, 3, 4, 4
-    dec = MarkovDecoder(num_types, input_dim=d, hidden=8).eval()
+    dec = decoder(num_types, input_dim=d, hidden=8).eval()
     x, target = torch.randn(b, t, n, d), torch.randn(b, t, n, d)
     z = torch.softmax(torch.randn(b, t, n * (n - 1), num_types), -1)
     mask = torch.rand(b, t, n) > 0.2
     got = dec.edge_evidence(x, z, target, mask, _nll)  # [B, T, E]
     send, recv = edge_index(n)
     expected = torch.zeros_like(got)
-    for e in range(n * (n - 1)):  # one full decoder pass per edge and type: the definition
-        costs = []
-        for k in range(num_types):
-            zk = z.clone()
-            zk[:, :, e] = torch.nn.functional.one_hot(torch.tensor(k), num_types).float()
-            pred = dec(x, zk, mask)
-            costs.append(_nll(pred[:, :, recv[e]], target[:, :, recv[e]]))
-        best = torch.stack(costs[1:], -1).amin(-1)
-        expected[:, :, e] = (costs[0] - best) * (mask[:, :, send[e]] & mask[:, :, recv[e]])
+    for s in range(t):  # one full decoder pass per step, edge and type, the edge swapped at that step only
+        for e in range(n * (n - 1)):
+            costs = []
+            for k in range(num_types):
+                zk = z.clone()
+                zk[:, s, e] = torch.nn.functional.one_hot(torch.tensor(k), num_types).float()
+                pred = dec(x, zk, mask)
+                costs.append(_nll(pred[:, s, recv[e]], target[:, s, recv[e]]))
+            best = torch.stack(costs[1:], -1).amin(-1)
+            expected[:, s, e] = (costs[0] - best) * (mask[:, s, send[e]] & mask[:, s, recv[e]])
     assert torch.allclose(got, expected, atol=1e-5)
     assert (got != 0).any()
 
@@ -73,13 +75,14 @@ def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
     assert torch.allclose(late["loss"] - early["loss"], out.terms["indifference"].mean(), atol=1e-2)
 
 
-@pytest.mark.parametrize("override, why", [("model/net/decoder=recurrent", "does not give"),
-                                           ("model.net.decoder.skip_first=false", "skip_first=true"),
+@pytest.mark.parametrize("override, why", [("model.net.decoder.skip_first=false", "skip_first=true"),
                                            ("model.net.decoder.dropout=0.1", "dropout=0")])
-def test_indifference_needs_a_decoder_that_gives_the_evidence(make_cfg, override, why):
+@pytest.mark.parametrize("decoder", ["markov", "recurrent"])
+def test_indifference_needs_a_decoder_that_gives_the_evidence(make_cfg, decoder, override, why):
     with pytest.raises(Exception, match=f"evidence.*{why}"):
-        build(make_cfg, "model=dider", override, "model/net/objective=dider_indifference")
-    assert not hasattr(RecurrentDecoder, "edge_evidence")
+        build(make_cfg, "model=dider", f"model/net/decoder={decoder}", override,
+              "model/net/objective=dider_indifference")
+    assert evidence_problem(torch.nn.Linear(1, 1)).endswith("does not give (model.net.decoder=markov and recurrent do)")
 
 
 def test_the_evidence_is_computed_in_the_weights_dtype_at_least_float32():

@@ -25,12 +25,18 @@ SCHEDULES = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=72
              "model.net.objective.kl_warmup=0.6"]
 
 
-# the segment end's and the Gaussian's paths; the Gaussian's about 30 s more: make test-all
-@pytest.mark.parametrize("model", ["dider", pytest.param("dider_paper", marks=pytest.mark.slow)])
+# the segment end's path with a term switched on mid-run (the indifference prior's `on/` weight, a device scalar in
+# the graph; the evidence's pass); the plain segment end's and the Gaussian's, about 30 s more each: make test-all
+@pytest.mark.parametrize("model", [
+    ["model=dider", "model/net/objective=dider_indifference", "model.net.objective.indifference.after=0.5"],
+    pytest.param(["model=dider"], marks=pytest.mark.slow),
+    pytest.param(["model=dider_paper"], marks=pytest.mark.slow)], ids=["indifference", "dider", "dider_paper"])
 def test_the_graphed_step_trains_as_lightnings_loop(make_cfg, tmp_path, model):
-    eager = train(make_cfg([f"model={model}", *SCHEDULES, "cuda_graph=false"], out=tmp_path / "eager"))
-    graphed = train(make_cfg([f"model={model}", *SCHEDULES, "cuda_graph=true"], out=tmp_path / "graphed"))
+    eager = train(make_cfg([*model, *SCHEDULES, "cuda_graph=false"], out=tmp_path / "eager"))
+    graphed = train(make_cfg([*model, *SCHEDULES, "cuda_graph=true"], out=tmp_path / "graphed"))
     assert "test/nll" in eager and identical(eager, graphed)
+    if "indifference" in str(model):
+        assert eager["test/indifference"] > 0
 
 
 @pytest.mark.slow  # three runs, about 65 s: make test-all (the eager resume: tests/test_reliability.py)

@@ -15,7 +15,7 @@ from dider.graph import edge_index
 from dider.models.plugins import Progress
 
 
-def step_waits(overrides: list[str], masked: bool) -> dict[str, int]:
+def step_waits(overrides: list[str], masked: bool, progress: Progress = Progress(3, 100)) -> dict[str, int]:
     torch.manual_seed(0)
     model, _ = build_model(overrides)
     model.train()
@@ -28,8 +28,8 @@ def step_waits(overrides: list[str], masked: bool) -> dict[str, int]:
         mask[:, :4, 2], mask[:, 9:13, 3] = False, False
     batch = {"states": states * mask[..., None], "mask": mask, "everyone": not masked}
     with HostSyncs() as waits:
-        out = model.infer(batch, hard=False, progress=Progress(3, 100))
-        model.loss(out, Progress(3, 100))["loss"].backward()
+        out = model.infer(batch, hard=False, progress=progress)
+        model.loss(out, progress)["loss"].backward()
     return dict(waits.where)
 
 
@@ -41,6 +41,13 @@ def test_a_training_step_never_waits_for_the_host(model, masked):
 
 def test_the_recurrent_decoder_step_never_waits_for_the_host():
     assert step_waits(["model=dider", "model/net/decoder=recurrent"], masked=False) == {}
+
+
+@pytest.mark.parametrize("decoder", ["markov", "recurrent"])
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_indifference_priors_step_never_waits_for_the_host(decoder, masked):  # past `after`: the evidence scored
+    overrides = ["model=dider", f"model/net/decoder={decoder}", "model/net/objective=dider_indifference"]
+    assert step_waits(overrides, masked, Progress(60, 100)) == {}
 
 
 def test_the_check_sees_a_wait():

@@ -171,8 +171,8 @@ class MarkovDecoder(nn.Module):
         x [B, T, N, D] (the states predicted from), z [B, T, E, K], target [B, T, N, D] (the next states), mask
         [B, T, N] or None; nll(pred, target) [..., D] twice -> [...]: one agent-step's NLL. -> [B, T, E] (0 where
         the edge is absent). About zero where the decoder predicts the receiver alike with and without the edge."""
-        if self.messages.first != 1:
-            raise ValueError("edge evidence needs type 0 to send no message (model.net.decoder.skip_first=true)")
+        if why := evidence_problem(self):
+            raise ValueError(f"the edge evidence {why}")
         dtype = torch.promote_types(self.out[0].weight.dtype, torch.float32)  # at least float32: NLLs of thousands
         with torch.autocast(x.device.type, enabled=False):  # of nats differ by one
             return self._evidence(x.to(dtype), z.to(dtype), target.to(dtype), mask, nll)
@@ -180,7 +180,7 @@ class MarkovDecoder(nn.Module):
     def _evidence(self, x: torch.Tensor, z: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
                   nll: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
         n = x.shape[-2]
-        send, recv = edge_index(n, x.device)
+        recv = edge_index(n, x.device)[1]
         msg = self.messages.typed(x)  # [B, T, E, K', H]
         present = None if mask is None else edge_mask(mask).unsqueeze(-1).to(msg.dtype)  # [B, T, E, 1]
         held = (msg * z[..., 1:, None].to(msg.dtype)).sum(-2)  # [B, T, E, H]: each edge's message as z holds it
@@ -277,13 +277,17 @@ class RecurrentDecoder(nn.Module):
     ) -> torch.Tensor:
         """gates_x [B, N, 3H] (input projections), z_t [B, E, K], h [B, N, H] -> new h [B, N, H]."""
         agg = checkpointed(self._aggregate, h, z_t, mask_t) if checkpoint else self._aggregate(h, z_t, mask_t)
-        xr, xi, xn = gates_x.chunk(3, dim=-1)
-        mr, mi, mn = self.message_gates(agg).chunk(3, dim=-1)
-        r, i = torch.sigmoid(xr + mr), torch.sigmoid(xi + mi)
-        new = (1 - i) * torch.tanh(xn + r * mn) + i * h
+        new = self._gru(gates_x, agg, h)
         if mask_t is not None:  # absent agents keep their state
             new = torch.where(mask_t.unsqueeze(-1), new, h)
         return new
+
+    def _gru(self, gates_x: torch.Tensor, agg: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """The gated update: gates_x [..., 3H], agg [..., H] (the mean message), h [..., H] -> new h [..., H]."""
+        xr, xi, xn = gates_x.chunk(3, dim=-1)
+        mr, mi, mn = self.message_gates(agg).chunk(3, dim=-1)
+        r, i = torch.sigmoid(xr + mr), torch.sigmoid(xi + mi)
+        return (1 - i) * torch.tanh(xn + r * mn) + i * h
 
     def forward(self, x: torch.Tensor, z: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """Teacher-forced: x [B, T, N, D], z [B, T, E, K] -> predictions of x_{t+1}, [B, T, N, D]."""
@@ -308,13 +312,42 @@ class RecurrentDecoder(nn.Module):
         return self._next(x_t, self.out(h)), h
 
     _next = MarkovDecoder._next
+    edge_evidence = MarkovDecoder.edge_evidence  # the same contract; the options are scored by _evidence below
+
+    def _evidence(self, x: torch.Tensor, z: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                  nll: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
+        """Each step's update of the receiver from its state before it (the teacher-forced recurrence with z as
+        drawn, replayed once), the edge's share of the mean message swapped: one step of evidence, not what the
+        edge leaves in later states."""
+        (b, t, n, _), recv = x.shape, edge_index(x.shape[-2], x.device)[1]
+        gates_x, h, before = self.input_gates(x), self.init_state(b, n, x), []
+        for s in range(t):  # the recurrence: sequential in time only
+            before.append(h)
+            h = self._update(gates_x[:, s], z[:, s], h, None if mask is None else mask[:, s])
+        h_prev = torch.stack(before, 1)  # [B, T, N, H]
+        msg = self.messages.typed(h_prev) / self.type_norm  # [B, T, E, K', H]
+        if mask is None:
+            present, count = None, torch.full((), float(max(n - 1, 1)), dtype=msg.dtype, device=msg.device)
+        else:
+            present = edge_mask(mask).unsqueeze(-1).to(msg.dtype)  # [B, T, E, 1]
+            msg = msg * present.unsqueeze(-1)
+            count = aggregate_to_receivers(present, n).clamp_min(1.0).index_select(-2, recv).unsqueeze(-2)
+        held = (msg * z[..., self.messages.first:, None].to(msg.dtype)).sum(-2)  # [B, T, E, H]
+        base = aggregate_to_receivers(held, n).index_select(-2, recv) - held  # the receiver's sum without the edge
+        options = torch.cat([base.unsqueeze(-2), base.unsqueeze(-2) + msg], -2) / count  # [B, T, E, K, H]: means
+        pick = lambda a: a.index_select(-2, recv).unsqueeze(-2)  # noqa: E731  [B, T, N, F] -> [B, T, E, 1, F]
+        new = self._gru(pick(gates_x), options, pick(h_prev))
+        x_r = pick(x).expand(*options.shape[:-1], x.shape[-1])
+        cost = nll(self._next(x_r, self.out(new)), pick(target).expand_as(x_r))  # [B, T, E, K]
+        evidence = cost[..., 0] - cost[..., 1:].amin(-1)
+        return evidence if present is None else evidence * present.squeeze(-1)
 
 
 def evidence_problem(decoder: nn.Module) -> str | None:
     """Why ``decoder`` cannot score each edge's evidence (:meth:`MarkovDecoder.edge_evidence`), said as the end of a
     sentence about the evidence; None when it can."""
     if not hasattr(decoder, "edge_evidence"):
-        return f"{type(decoder).__name__} does not give (model.net.decoder=markov does)"
+        return f"{type(decoder).__name__} does not give (model.net.decoder=markov and recurrent do)"
     if decoder.messages.first != 1:
         return "needs type 0 to send no message (model.net.decoder.skip_first=true)"
     if decoder.messages.drop.p > 0:  # each option would draw its own dropout masks: the difference would be noise

@@ -118,7 +118,7 @@ class Indifference(Term):
     """A prior that prefers "none" where the likelihood cannot tell the types apart: every edge-step the posterior
     holds an interaction at costs ``weight`` (times its probability) where the decoder's evidence for it is below
     ``threshold`` nats (the receiver's one-step NLL with the edge at "none" minus at its best interaction type,
-    every other edge as drawn, the gradient stopped: :meth:`~dider.models.decoders.MarkovDecoder.edge_evidence`).
+    every other edge as drawn, the gradient stopped: the decoder's ``edge_evidence``).
     Where the evidence is there the term costs nothing, so it trims what the likelihood leaves to the KL terms (a
     run held on before an interaction starts or after it ends) without taxing the interactions themselves, as a
     heavier sparsity term would. Off for the first ``after`` of training: until the decoder has learned what an
