@@ -50,6 +50,19 @@ def test_jobs_that_differ_by_an_override_are_grouped_apart_unless_asked(tmp_path
         main([str(tmp_path / "nothing"), "--out", str(out)])
 
 
+def test_two_spellings_of_one_configuration_are_recorded_as_one_model(tmp_path):
+    fake_job(tmp_path / "a", "j1", "dider", 1, 1.0, ["+model.net.objective.w=2"])
+    fake_job(tmp_path / "b", "j2", "dider", 2, 3.0, ["model/net/objective=w2"])
+    fake_job(tmp_path / "c", "j3", "dnri", 1, 5.0)
+    out, paths = tmp_path / "rec.json", [str(tmp_path / d) for d in "abc"]
+    record = main([*paths, "--out", str(out), "--rename", "dider [+model.net.objective.w=2]=w2",
+                   "--rename", "dider [model/net/objective=w2]=w2"])
+    assert sorted(record["models"]) == ["dnri", "w2"] and record["models"]["w2"]["test/mse/h15"]["mean"] == 2.0
+    assert sorted(j["model"] for j in record["jobs"]) == ["dnri", "w2", "w2"]
+    with pytest.raises(ValueError, match="no job is labelled 'dider'"):
+        main([*paths, "--out", str(out), "--rename", "dider=w2"])
+
+
 def test_training_metrics_come_from_the_csv_log(tmp_path):
     """train/ and val/ metrics are read from csv/metrics.csv: the last row that holds a value."""
     fake_job(tmp_path, "j1", "dider", 1, 1.0)

@@ -138,7 +138,10 @@ def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, flo
 
 
 def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,
-          label: str = "name", by_overrides: bool = True, curves: Sequence[str] = ()) -> dict[str, Any]:
+          label: str = "name", by_overrides: bool = True, curves: Sequence[str] = (),
+          rename: dict[str, str] | None = None) -> dict[str, Any]:
+    """rename: a group's label -> the label it is recorded under (one configuration spelt by two sets of
+    overrides, recorded as one model)."""
     jobs, unfinished = [], []
     for folder in job_folders(paths):
         record, state = read_job(folder)
@@ -161,6 +164,11 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
     for job in jobs if by_overrides else ():
         own = sorted(o for o in set(job["overrides"]) - common if not o.startswith("model="))
         job["model"] = job["model"] + (f" [{' '.join(own)}]" if own else "")
+    for old_label in (rename or {}).keys() - {j["model"] for j in jobs}:
+        raise ValueError(f"--rename {old_label}=...: no job is labelled {old_label!r}; the labels: "
+                         f"{sorted({j['model'] for j in jobs})}")
+    for job in jobs:
+        job["model"] = (rename or {}).get(job["model"], job["model"])
     if not jobs:
         raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
     seen: dict[tuple[str, int], str] = {}
@@ -197,9 +205,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         "over the epochs, from each job's CSV log (repeatable)")
     parser.add_argument("--by-name", action="store_true", help="group jobs by their model's name alone, not by "
                         "the overrides that differ between them (sweeps of one configuration run apart)")
+    parser.add_argument("--rename", action="append", default=[], metavar="LABEL=NEW", help="record the jobs "
+                        "labelled LABEL as NEW (repeatable; two spellings of one configuration merge)")
     args = parser.parse_args(argv)
+    if bad := [r for r in args.rename if "=" not in r]:
+        parser.error(f"--rename {bad[0]}: expected LABEL=NEW")
+    rename = dict(r.rsplit("=", 1) for r in args.rename)
     record = build(args.paths, args.metric or DEFAULT_METRICS, args.baseline, args.command, args.label,
-                   by_overrides=not args.by_name, curves=args.curve)
+                   by_overrides=not args.by_name, curves=args.curve, rename=rename)
     atomic_write_text(args.out, json.dumps(record, indent=1))
     for name, per_metric in record["models"].items():
         cells = [f"{k.removeprefix('test/')} {v['mean']:.4g}" for k, v in per_metric.items()
