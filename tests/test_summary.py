@@ -25,6 +25,9 @@ def test_the_summary_reads_the_forecast_the_edges_and_example_timelines(tmp_path
     assert "1 step(s) ahead: off by 0.2 m on average, constant velocity by 0.1 m (no better than it, 2.00x)" in text
     assert "15 step(s) ahead: off by 0.5 m on average, constant velocity by 1 m (better than it, 0.50x)" in text
     assert "Its edges help: with every edge off its error is 1.25x" in text
+    metrics["test/ade_vs_no_edges/h15"] = 0.9997  # no interaction held: the two roll-outs differ by rounding
+    assert "Its edges do not help: with every edge off its error is 1.00x" in summary.plain_summary(
+        metrics, [1, 15], tmp_path, "m")
     assert "train longer" not in text  # it beats constant velocity at the longest horizon
     lines = text.splitlines()
     first = next(i for i, line in enumerate(lines) if "clip 0, agent 0 -> 1:" in line)

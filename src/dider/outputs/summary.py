@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dider.evaluation.scoring import edges_help
 from dider.evaluation.type_meaning import profile_notes
 
 # A timeline's characters: "." no interaction, "1".."9" a type, " " the edge absent.
@@ -78,7 +79,7 @@ def plain_summary(metrics: Mapping[str, float], horizons: Sequence[int], run: Pa
     if ratio is not None and math.isfinite(ratio) and ratio >= 1 and budget_note:
         lines.append(f"  It does not beat constant velocity: {budget_note}")
     if (edges := metrics.get(f"test/ade_vs_no_edges/h{longest:02d}")) is not None and math.isfinite(edges):
-        word = "help" if edges < 1 else "do not help"
+        word = "help" if edges_help(edges) else "do not help"
         lines.append(f"  Its edges {word}: with every edge off its error is {1 / edges:.2f}x what it is with them.")
     rows, k = [], 0
     while f"test/type{k}/share" in metrics:
