@@ -164,11 +164,12 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
     for job in jobs if by_overrides else ():
         own = sorted(o for o in set(job["overrides"]) - common if not o.startswith("model="))
         job["model"] = job["model"] + (f" [{' '.join(own)}]" if own else "")
-    for old_label in (rename or {}).keys() - {j["model"] for j in jobs}:
-        raise ValueError(f"--rename {old_label}=...: no job is labelled {old_label!r}; the labels: "
+    rename = rename or {}
+    if unknown := sorted(rename.keys() - {j["model"] for j in jobs}):
+        raise ValueError(f"--rename {unknown[0]}=...: no job is labelled {unknown[0]!r}; the labels: "
                          f"{sorted({j['model'] for j in jobs})}")
     for job in jobs:
-        job["model"] = (rename or {}).get(job["model"], job["model"])
+        job["model"] = rename.get(job["model"], job["model"])
     if not jobs:
         raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
     seen: dict[tuple[str, int], str] = {}

@@ -335,7 +335,10 @@ class RecurrentDecoder(nn.Module):
         held = (msg * z[..., self.messages.first:, None].to(msg.dtype)).sum(-2)  # [B, T, E, H]
         base = aggregate_to_receivers(held, n).index_select(-2, recv) - held  # the receiver's sum without the edge
         options = torch.cat([base.unsqueeze(-2), base.unsqueeze(-2) + msg], -2) / count  # [B, T, E, K, H]: means
-        pick = lambda a: a.index_select(-2, recv).unsqueeze(-2)  # noqa: E731  [B, T, N, F] -> [B, T, E, 1, F]
+
+        def pick(a: torch.Tensor) -> torch.Tensor:  # each edge's receiver: [B, T, N, F] -> [B, T, E, 1, F]
+            return a.index_select(-2, recv).unsqueeze(-2)
+
         new = self._gru(pick(gates_x), options, pick(h_prev))
         x_r = pick(x).expand(*options.shape[:-1], x.shape[-1])
         cost = nll(self._next(x_r, self.out(new)), pick(target).expand_as(x_r))  # [B, T, E, K]
