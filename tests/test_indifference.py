@@ -1,12 +1,15 @@
 """The edge evidence (MarkovDecoder.edge_evidence) against one decoder pass per edge and type, and the
 indifference term (dider.models.objective.Indifference) by hand."""
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 
 from dider.graph import edge_index
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder, evidence_problem
 from dider.models.losses import gaussian_nll_each
+from dider.models.objective import Indifference
 from dider.models.plugins import Progress
 from helpers.models import build, clip
 
@@ -51,22 +54,41 @@ def test_indifference_charges_marked_edge_steps_where_the_evidence_is_below_the_
     net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
                 "model.net.objective.indifference.threshold=0.5")
     term = net.objective.terms["indifference"]
-    assert (term.weight, term.threshold, term.after) == (2.0, 0.5, 0.25)
+    assert (term.weight, term.threshold, term.after, term.weighting) == (2.0, 0.5, 0.0, "backed_share")
     out = net.infer(clip(), hard=True)
     assert out.evidence is not None and out.evidence.shape == out.present.shape
     indifferent = (out.evidence < 0.5) & out.present
-    marked = 1 - out.probs[..., 0]
+    marked = (1 - out.probs[..., 0]) * out.present
+    backed = (marked * ~indifferent).sum() / marked.sum()  # every receiver present: every step scored
+    assert 0 < backed < 1
     by_hand = (marked * indifferent).flatten(1).sum(1) / out.present.flatten(1).sum(1)
-    assert torch.allclose(out.terms["indifference"], by_hand)
+    assert torch.allclose(out.terms["indifference"], by_hand * backed)
+    assert torch.allclose(out.terms["indifference/backed"], backed.expand_as(by_hand))
     # the evidence is computed without a gradient; the term's gradient reaches the posterior through probs
     out.terms["indifference"].sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.encoder.parameters())
     assert "indifference" not in build(make_cfg, "model=dider").objective.terms
 
 
+def test_the_backed_share_by_hand():
+    # one edge, four steps: held interaction mass 0.5, 1, 0, 0.25; evidence 2, 0.5, 3, and unscored (receiver gone)
+    out = SimpleNamespace(probs=torch.tensor([[[[0.5, 0.5], [0.0, 1.0], [1.0, 0.0], [0.75, 0.25]]]]),
+                          evidence=torch.tensor([[[2.0, 0.5, 3.0, float("inf")]]]), present=torch.ones(1, 1, 4).bool(),
+                          pred=torch.zeros(1, 3, 2, 4))
+    share, fixed = Indifference(threshold=1.0), Indifference(threshold=1.0, weighting="fixed")
+    assert torch.allclose(share.stats(out)["backed"], torch.tensor([0.5 / 1.5]))  # of the scored mass 1.5, 0.5 passes
+    assert torch.allclose(fixed(out, {}), torch.tensor([1.0 / 4]))  # step 1's mass over 4 present edge-steps
+    assert torch.allclose(share(out, {}), torch.tensor([1.0 / 4 / 3]))
+    out.evidence = torch.full((1, 1, 4), 0.5)  # nothing backed (a decoder that has learned nothing): the term is off
+    assert share(out, {}).item() == 0.0 and fixed(out, {}).item() > 0
+    out.probs = torch.tensor([[[[1.0, 0.0]] * 4]])  # nothing held: a share of 0, not NaN
+    assert share.stats(out)["backed"].item() == 0.0
+
+
 def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
     net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
-                "model.net.objective.indifference.weight=1.0", "model.net.objective.indifference.after=0.3")
+                "model.net.objective.indifference.weight=1.0", "model.net.objective.indifference.after=0.3",
+                "model.net.objective.indifference.weighting=fixed")
     out = net.infer(clip(), hard=True)
     assert out.terms["indifference"].sum() > 0
     early, late = net.loss(out, Progress(29, total=100)), net.loss(out, Progress(30, total=100))

@@ -26,7 +26,8 @@ SCHEDULES = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=72
 
 
 # the segment end's path with a term switched on mid-run (the indifference prior's `on/` weight, a device scalar in
-# the graph; the evidence's pass); the plain segment end's and the Gaussian's, about 30 s more each: make test-all
+# the graph; the evidence's pass and its backed share); the plain segment end's and the Gaussian's, about 30 s more
+# each: make test-all
 @pytest.mark.parametrize("model", [
     ["model=dider", "model/net/objective=dider_indifference", "model.net.objective.indifference.after=0.5"],
     pytest.param(["model=dider"], marks=pytest.mark.slow),

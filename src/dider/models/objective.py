@@ -36,10 +36,12 @@ class Term(nn.Module):
     """One term of the objective: ``forward(out, batch) -> [B]``, counted with ``weight`` (and ``capacity``).
 
     ``warms_up``: weighted by the KL warm-up (the KL terms and what is fitted to the posterior). ``in_nelbo``:
-    counted, at its weight and without schedules, in ``nelbo``, the objective that selects checkpoints."""
+    counted, at its weight and without schedules, in ``nelbo``, the objective that selects checkpoints. ``STATS``:
+    the figures ``stats`` gives beside the value, logged as ``<term>/<stat>``, outside the loss."""
 
     warms_up: ClassVar[bool] = True
     in_nelbo: ClassVar[bool] = True
+    STATS: ClassVar[tuple[str, ...]] = ()
     SETTINGS: ClassVar[dict[str, Rule]] = {"weight": at_least(0), "capacity": at_least(0)}
 
     def __init__(self, weight: float = 1.0, capacity: float = 0.0) -> None:
@@ -49,6 +51,10 @@ class Term(nn.Module):
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
         raise NotImplementedError
+
+    def stats(self, out: Inference) -> dict[str, torch.Tensor]:
+        """The figures named in ``STATS``, each [B] (a batch figure repeated per clip)."""
+        return {}
 
 
 def per_edge_step(values: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
@@ -121,24 +127,49 @@ class Indifference(Term):
     every other edge as drawn, the gradient stopped: the decoder's ``edge_evidence``).
     Where the evidence is there the term costs nothing, so it trims what the likelihood leaves to the KL terms (a
     run held on before an interaction starts or after it ends) without taxing the interactions themselves, as a
-    heavier sparsity term would. Off for the first ``after`` of training: until the decoder has learned what an
-    interaction does, no step has evidence for one, and the term from the first step would hold every edge at
-    "none", where the decoder never learns it."""
+    heavier sparsity term would.
+
+    ``weighting: backed_share`` scales the term by the batch's backed share (:meth:`stats`; detached): the part of
+    the held interaction mass whose evidence passes the threshold. Until the decoder has learned what an interaction
+    does, nothing held has evidence and the term is off by itself, at any budget; charged at full weight from the
+    first step it would hold every edge at "none", where the message network gets no gradient and never learns the
+    interaction. As the term trims what has no evidence the share grows, and the term with it. ``fixed`` weighs it
+    fully from the step ``after`` (a share of training) on, which fails wherever that share of training ends before
+    the decoder has learned an interaction."""
 
     needs_evidence: ClassVar[bool] = True
-    SETTINGS = {"weight": at_least(0), "threshold": above(0), "after": FRACTION_OF_TRAINING}
+    STATS: ClassVar[tuple[str, ...]] = ("backed",)
+    SETTINGS = {"weight": at_least(0), "threshold": above(0), "after": FRACTION_OF_TRAINING,
+                "weighting": one_of("backed_share", "fixed")}
 
-    def __init__(self, weight: float = 1.0, threshold: float = 1.0, after: float = 0.25) -> None:
+    def __init__(self, weight: float = 1.0, threshold: float = 1.0, after: float = 0.0,
+                 weighting: str = "backed_share") -> None:
         super().__init__(weight)
         check_settings(self, locals())
-        self.threshold, self.after = float(threshold), float(after)
+        self.threshold, self.after, self.weighting = float(threshold), float(after), weighting
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        marked, indifferent = self._held(out)
+        cost = per_edge_step(marked * indifferent, out.present)
+        return cost * self._backed(marked, indifferent, out) if self.weighting == "backed_share" else cost
+
+    def stats(self, out: Inference) -> dict[str, torch.Tensor]:
+        """``backed``: the share of the batch's held interaction mass whose evidence passes the threshold, over the
+        edge-steps whose receiver is present at the next step (0 where nothing is held), repeated per clip [B]."""
+        return {"backed": self._backed(*self._held(out), out).expand(out.pred.shape[0])}
+
+    def _held(self, out: Inference) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (the held interaction probability on present edge-steps, the steps below the threshold), [B, E, T-1]."""
         if out.evidence is None:
             raise RuntimeError("the indifference term needs the pass's edge evidence (Inference.evidence)")
-        indifferent = (out.evidence < self.threshold) & out.present  # [B, E, T-1]
-        marked = 1.0 - out.probs[..., 0]
-        return per_edge_step(marked * indifferent, out.present)
+        marked = (1.0 - out.probs[..., 0]) * out.present
+        return marked, (out.evidence < self.threshold) & out.present
+
+    @staticmethod
+    def _backed(marked: torch.Tensor, indifferent: torch.Tensor, out: Inference) -> torch.Tensor:
+        """The backed share, a detached device scalar (no host sync)."""
+        scored = marked.detach() * torch.isfinite(out.evidence)
+        return (scored * ~indifferent).sum() / scored.sum().clamp_min(1e-6)
 
 
 class PriorFit(Term):
@@ -187,8 +218,14 @@ class Objective(nn.Module):
         self.needs_evidence = any(getattr(t, "needs_evidence", False) for t in self.terms.values())
 
     def values(self, out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
-        """Every term's value per clip: name -> [B]."""
-        return {name: term(out, batch) for name, term in self.terms.items()}
+        """Every term's value per clip: name -> [B], and each term's logged figures (``<term>/<stat>``, its
+        ``stats``; outside the loss)."""
+        values = {name: term(out, batch) for name, term in self.terms.items()}
+        return values | {f"{name}/{k}": v for name, term in self.terms.items() for k, v in term.stats(out).items()}
+
+    def names(self) -> list[str]:
+        """The names :meth:`values` gives: the terms, then their figures (``<term>/<stat>``)."""
+        return [*self.terms, *(f"{name}/{k}" for name, term in self.terms.items() for k in term.STATS)]
 
     def schedule(self, progress: Progress = Progress()) -> dict[str, float | torch.Tensor]:
         """The annealed weights at ``progress``: the KL warm-up's ``kl_weight``, each ``capacity/<term>`` that has
@@ -203,8 +240,8 @@ class Objective(nn.Module):
         return {k: progress.value(k, v) for k, v in out.items()}
 
     def forward(self, values: Mapping[str, torch.Tensor], progress: Progress = Progress()) -> dict[str, torch.Tensor]:
-        """values: :meth:`values` -> ``loss``, each term's batch mean and ``nelbo``: the objective free of
-        schedules and capacities (the terms ``in_nelbo`` at their weights), what selects checkpoints."""
+        """values: :meth:`values` -> ``loss``, each term's (and figure's) batch mean and ``nelbo``: the objective
+        free of schedules and capacities (the terms ``in_nelbo`` at their weights), what selects checkpoints."""
         sched = self.schedule(progress)
         means = {name: v.mean() for name, v in values.items()}
         loss = means["nll"]

@@ -165,7 +165,7 @@ class RelationalVAEModule(L.LightningModule):
         edge recalls) and training's epoch means. Some are logged only where the data allow (a horizon no agent
         reaches, an own cut without a boundary); the set holds every name that can be."""
         hs = [f"h{int(h):02d}" for h in self.hparams.horizons]
-        terms = [*self.model.objective.terms, "loss", "nelbo"]
+        terms = [*self.model.objective.names(), "loss", "nelbo"]
         segments = ["segments_per_edge", "steps_per_segment", "sigma"]
         val = {*(f"val/{k}" for k in [*terms, "select"]), *(f"val/segments/{k}" for k in segments),
                "val/segments/on_switch", "val/segments/boundary_f1", "val/segments/per_constant_edge",
@@ -218,7 +218,7 @@ class RelationalVAEModule(L.LightningModule):
 
     def _log_epoch_means(self) -> None:
         """train/<term>_epoch, train/segments/*, train/schedule/*: the epoch's means (kept by :class:`EpochMeans`)."""
-        terms = {f"train/{k}" for k in (*self.model.objective.terms, "loss", "nelbo")}
+        terms = {f"train/{k}" for k in (*self.model.objective.names(), "loss", "nelbo")}
         means = {f"{k}_epoch" if k in terms else k: v for k, v in self._epoch_means.means().items()}
         if means:
             self.log_dict(means, on_step=False, on_epoch=True, sync_dist=True, batch_size=1)  # means already
