@@ -25,7 +25,7 @@ demo: $(STAMP)  ## train + evaluate DIDER on a small synthetic set (CPU, minutes
 	$(BIN)/python -m dider.run experiment=demo
 
 test: $(STAMP)  ## fast test suite (CPU, < 15 min)
-	$(BIN)/python -m pytest -m "not slow" -q
+	$(BIN)/python -m pytest -m "not slow" -q --durations=15
 
 test-all: $(STAMP)  ## every test, including the slow end-to-end ones
 	$(BIN)/python -m pytest -q

@@ -211,6 +211,7 @@ def test_largest_agents_never_runs_a_probe_predicted_over_the_machine():
     assert none["largest_agents"] is None  # even the smallest measured N is over the budget
 
 
+@pytest.mark.slow  # trains the documented job; make test-all
 def test_time_to_result_runs_the_documented_job_and_reads_its_metrics(tmp_path, capsys):
     """``--only result/demo --quick``: the demo's job at toy sizes, as its own process; the record has the wall
     time and the model's edge recall and forecast error read back from the run's metrics.json."""

@@ -170,7 +170,7 @@ CLI = {
 }
 
 
-@pytest.mark.parametrize("name", list(CLI))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "many-agents" else n for n in CLI])
 def test_command_line_probe(name, trained, tmp_path):
     row = CLI[name]
     import shutil

@@ -110,6 +110,9 @@ def test_broken_failed_and_running_jobs_are_named_and_left_out(tmp_path, caplog)
     assert states["running"].startswith(f"running (pid {os.getpid()}")
     for name in states:
         assert str(sweep / name) in caplog.text
+    # only unfinished jobs: refused by name, not a crash on an empty set of overrides
+    with pytest.raises(FileNotFoundError, match=r"no finished job \(1 running or failed\)"):
+        main([str(sweep / "failed"), "--out", str(tmp_path / "none.json")])
 
 
 def test_two_jobs_of_one_model_and_seed_are_refused(tmp_path):

@@ -159,6 +159,8 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
         if curves:
             job["curves"] = logged_curves(folder, curves)
         jobs.append(job)
+    if not jobs:
+        raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
     # a job's group: its model's name and the overrides that not every job shares (besides model= itself)
     common = set.intersection(*(set(j["overrides"]) for j in jobs))
     for job in jobs if by_overrides else ():
@@ -170,8 +172,6 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
                          f"{sorted({j['model'] for j in jobs})}")
     for job in jobs:
         job["model"] = rename.get(job["model"], job["model"])
-    if not jobs:
-        raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
     seen: dict[tuple[str, int], str] = {}
     for job in jobs:  # a record pairs by model and seed: two jobs there would make one of them vanish
         if (other := seen.setdefault((job["model"], job["seed"]), job["folder"])) != job["folder"]:
