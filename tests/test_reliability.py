@@ -409,6 +409,16 @@ def test_bf16_on_a_cpu_that_emulates_it_is_named(make_cfg, caplog, monkeypatch, 
     assert ("trainer.precision=bf16-mixed: this CPU has no native bf16" in caplog.text) is not native
 
 
+def test_a_gpu_trainer_that_an_experiment_puts_back_on_the_cpu_is_refused(make_cfg):
+    # The CPU-sized experiments pin trainer.accelerator: cpu after the trainer group; trainer=gpu alone would
+    # train on the CPU without a word.
+    with pytest.raises(ConfigError, match=r"trainer=gpu with trainer\.accelerator=cpu .*add trainer\.accelerator=gpu"):
+        validate_config(make_cfg(["experiment=synth_protocol", "trainer=gpu"], tiny=False))
+    cfg = make_cfg(["experiment=synth_protocol", "trainer=gpu", "trainer.accelerator=gpu"], tiny=False)
+    assert cfg.trainer.accelerator == "gpu"
+    validate_config(cfg)
+
+
 def test_a_corrupt_cache_is_named_moved_aside_and_rebuilt(make_cfg, tmp_path, caplog):
     from dider.data.cache import load_or_build
 

@@ -108,6 +108,7 @@ def files_override(files: dict[str, str]) -> str:
     return "data.files={" + ",".join(f"{k}:'{v}'" for k, v in files.items()) + "}"
 
 
+@pytest.mark.slow  # 15 s; the soccer recipe's training runs in the default set (test_experiments)
 def test_train_then_predict_on_another_half(make_cfg, tmp_path):
     """`python -m dider.run data=soccer` trains on one Hawk-Eye sample and scores against constant velocity in
     metres; mode=predict reads the other sample at the rate the checkpoint carries (never given here)."""

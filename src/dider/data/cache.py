@@ -9,7 +9,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,17 @@ def load_or_build(path: Path, build: Callable[[], Any]) -> Any:
     blob = build()
     atomic_torch_save(blob, path)
     return blob
+
+
+def cached_splits(sizes: Mapping[str, int], path_of: Callable[[str, int], Path],
+                  build: Callable[[str, int, Path], Any]) -> dict[str, Any]:
+    """Each split of ``sizes`` (split -> number of clips) from its cache file ``path_of(split, size)``, or
+    ``build(split, size, path)``'s result written there (a generated data set's splits)."""
+    out = {}
+    for split, size in sizes.items():
+        path = path_of(split, size)
+        out[split] = load_or_build(path, lambda split=split, size=size, path=path: build(split, size, path))
+    return out
 
 
 def remove_stale_temporaries(folder: Path, older_than_s: float = 3600.0) -> None:

@@ -17,12 +17,11 @@ from typing import Any, ClassVar
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.cache import cache_key, load_or_build
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, spread_indices
 from dider.data.loader import Loader
 from dider.data.nri_files import read_nri_split
-from dider.data.particles import SYSTEMS, simulate_particles
-from dider.graph import edge_index
+from dider.data.particles import SYSTEMS
+from dider.data.readers import particles
 from dider.protocol import check_horizons
 from dider.validation import Rule, check_settings, integer, one_of, optional, within
 
@@ -90,22 +89,8 @@ class NRIDataModule(ClipDataModule):
         self.init_shared(frames, length_key="data.simulate.num_frames", integer_horizons=True)
 
     def _simulated(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
-        sim, h = self.simulation, self.hparams
-        params = {**asdict(sim), "split": split, "num_samples": getattr(h, f"num_{split}"), "version": 1}
-        path = self.cache_dir / f"{sim.system}_{split}_{cache_key(params)}.pt"
-
-        def build() -> dict[str, torch.Tensor]:
-            log.info("simulating %d %s clips of %s (%d balls) -> %s", params["num_samples"], split, sim.system,
-                     sim.num_balls, path)
-            loc, vel, edges = simulate_particles(sim.system, params["num_samples"], sim.num_frames, sim.num_balls,
-                                                 sim.sample_every, sim.switch_prob,
-                                                 seed=sim.seed * 1000 + SPLITS.index(split))
-            send, recv = edge_index(sim.num_balls)
-            states = torch.cat([loc, vel], dim=2).transpose(2, 3).float()  # [S, T, N, 4]
-            return {"states": states.contiguous(), "edges": edges[:, 1:, recv, send].contiguous()}
-
-        blob = load_or_build(path, build)
-        return blob["states"], blob["edges"]
+        clips = particles.read(self.simulation, {split: getattr(self.hparams, f"num_{split}")}, self.cache_dir)[split]
+        return clips.states, clips.edges
 
     def _read(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
         if not self.hparams.root:

@@ -10,10 +10,10 @@ from typing import Any, ClassVar
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.cache import cache_key, load_or_build
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
 from dider.data.loader import Loader
-from dider.data.simulate import PUSH_SHAPES, simulate_push
+from dider.data.readers import push
+from dider.data.simulate import PUSH_SHAPES
 from dider.validation import Rule, check_settings, finite, integer, one_of
 
 log = logging.getLogger(__name__)
@@ -60,35 +60,24 @@ class SynthDataModule(ClipDataModule):
         self.save_hyperparameters(logger=False)
         self.init_shared(num_steps, length_key="data.num_steps", integer_horizons=True)
 
-    def _split_params(self, split: str) -> dict:
+    def _source(self) -> tuple[push.Settings, dict[str, int]]:
         h = self.hparams
-        size = {"train": h.num_train, "val": h.num_val, "test": h.num_test}[split]
-        shape = {} if h.get("push", "linear") == "linear" else {"push": h.push}  # the linear push's caches stay valid
-        return {"kind": "push", "split": split, "num_samples": size, "num_steps": h.num_steps,
-                "push_factor": h.push_factor, "seed": h.seed * 1000 + SPLITS.index(split), "version": 1, **shape}
+        settings = push.Settings(h.num_steps, h.push_factor, h.get("push", "linear"), h.seed)
+        return settings, {"train": h.num_train, "val": h.num_val, "test": h.num_test}
 
     def _path(self, split: str) -> Path:
-        return self.cache_dir / f"synth_{split}_{cache_key(self._split_params(split))}.pt"
-
-    def _generate(self, split: str) -> dict:
-        p = self._split_params(split)
-        log.info("generating %d synthetic %s clips -> %s", p["num_samples"], split, self._path(split))
-        states, edges = simulate_push(p["num_samples"], p["num_steps"], p["push_factor"], seed=p["seed"],
-                                      shape=p.get("push", "linear"))
-        return {"states": states, "edges": edges, "params": p}
+        settings, sizes = self._source()
+        return push.cache_path(settings, split, sizes[split], self.cache_dir)
 
     def prepare_data(self) -> None:
-        for split in SPLITS:
-            if not self._path(split).exists():
-                load_or_build(self._path(split), lambda split=split: self._generate(split))
+        settings, sizes = self._source()
+        push.read(settings, {s: n for s, n in sizes.items() if not self._path(s).exists()}, self.cache_dir)
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        raw = {split: load_or_build(self._path(split), lambda split=split: self._generate(split)) for split in SPLITS}
-        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"]["states"]))
-        for split, blob in raw.items():
-            states = self.normalizer.normalize(blob["states"])
-            mask = torch.ones(states.shape[:3], dtype=torch.bool)
-            # edges[t] produced state t from t-1, so the transition t -> t+1 is labelled by edges[t+1].
-            self.datasets[split] = ClipDataset(states, mask, blob["edges"][:, 1:])
+        raw = push.read(*self._source(), self.cache_dir)
+        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"].states))
+        for split, clips in raw.items():
+            states = self.normalizer.normalize(clips.states)
+            self.datasets[split] = ClipDataset(states, torch.ones(states.shape[:3], dtype=torch.bool), clips.edges)

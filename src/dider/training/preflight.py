@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -59,7 +60,7 @@ def validate_config(cfg: DictConfig) -> None:
     problems += _checkpoint_problems(mode, get("ckpt_path"))
     if mode != "predict":  # prediction uses the checkpoint's model and scores no data horizons
         problems += _protocol_problems(get)
-    problems += _path_problems(get) + _logger_problems(get)
+    problems += _path_problems(get) + _logger_problems(get) + _trainer_choice_problems(get)
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(_once(problems, cfg)))
     for warning in config_warnings(cfg):
@@ -150,6 +151,17 @@ def _path_problems(get: Callable[[str], Any]) -> list[str]:
         if not found:
             problems.append(f"{key}={value}: no such {kind}")
     return problems
+
+
+def _trainer_choice_problems(get: Callable[[str], Any]) -> list[str]:
+    """``trainer=gpu`` picked but the accelerator left on the CPU: the CPU-sized experiments (applied after the
+    trainer group) pin ``trainer.accelerator: cpu``, which would train on the CPU without a word."""
+    if not HydraConfig.initialized() or HydraConfig.get().runtime.choices.get("trainer") != "gpu":
+        return []
+    if (accelerator := get("trainer.accelerator")) == "cpu":
+        return [f"trainer=gpu with trainer.accelerator={accelerator} (set after the trainer group, by an "
+                "experiment sized for a CPU): add trainer.accelerator=gpu to train on the GPU"]
+    return []
 
 
 def _logger_problems(get: Callable[[str], Any]) -> list[str]:

@@ -1,7 +1,12 @@
-"""Readers of trajectory formats. Each turns its files into one long track table, a DataFrame with the columns agent,
-frame (integer steps), x, y and optionally scene, vx, vy and agent_class, naming the file and line of any problem;
-``data=table``'s windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new
-format is one reader here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``).
+"""Readers of trajectory formats and sources of clips.
+
+A track reader turns its files into one long track table, a DataFrame with the columns agent, frame (integer steps),
+x, y and optionally scene, vx, vy and agent_class, naming the file and line of any problem; ``data=table``'s
+windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one reader
+here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``).
+
+A clip source (``push``, ``particles``: the simulators) gives each split as :class:`~dider.data.tracks.Clips`,
+already cut to a fixed length, raw; its data module normalises and batches them.
 """
 
 from __future__ import annotations

@@ -1,0 +1,53 @@
+"""The 3-particle push system as a clip source (``data=synth``): each split generated from its own seed
+(:func:`~dider.data.simulate.simulate_push`), cached under the cache folder by every setting that made it, so a
+changed ``num_test`` never changes the training clips."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dider.data.cache import cache_key, cached_splits
+from dider.data.common import SPLITS
+from dider.data.simulate import simulate_push
+from dider.data.tracks import Clips
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the simulation depends on (the data module checks each value)."""
+
+    num_steps: int = 50
+    push_factor: float = 0.05
+    push: str = "linear"  # the push's shape inside the radius: linear (DNRI's) or step
+    seed: int = 1  # the data seed; split i draws from seed * 1000 + i
+
+
+def cache_params(s: Settings, split: str, size: int) -> dict[str, Any]:
+    """Everything that makes a split's clips: its cache key (the linear push's files predate the ``push`` key)."""
+    shape = {} if s.push == "linear" else {"push": s.push}
+    return {"kind": "push", "split": split, "num_samples": size, "num_steps": s.num_steps,
+            "push_factor": s.push_factor, "seed": s.seed * 1000 + SPLITS.index(split), "version": 1, **shape}
+
+
+def cache_path(s: Settings, split: str, size: int, cache_dir: Path) -> Path:
+    return cache_dir / f"synth_{split}_{cache_key(cache_params(s, split, size))}.pt"
+
+
+def read(s: Settings, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
+    """Each split of ``sizes`` (split -> number of clips), from the cache or simulated and cached."""
+
+    def build(split: str, size: int, path: Path) -> dict[str, Any]:
+        p = cache_params(s, split, size)
+        log.info("generating %d synthetic %s clips -> %s", size, split, path)
+        states, edges = simulate_push(size, s.num_steps, s.push_factor, seed=p["seed"], shape=s.push)
+        return {"states": states, "edges": edges, "params": p}
+
+    blobs = cached_splits(sizes, lambda split, size: cache_path(s, split, size, cache_dir), build)
+    # edges[t] produced state t from t-1, so the transition t -> t+1 is labelled by edges[t+1].
+    return {split: Clips(b["states"], edges=b["edges"][:, 1:]) for split, b in blobs.items()}
