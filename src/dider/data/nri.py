@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -20,32 +19,12 @@ from dider.data.batch import Normalizer
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, spread_indices
 from dider.data.loader import Loader
 from dider.data.nri_files import read_nri_split
-from dider.data.particles import SYSTEMS
 from dider.data.readers import particles
+from dider.data.readers.particles import Simulation
 from dider.protocol import check_horizons
-from dider.validation import Rule, check_settings, integer, one_of, optional, within
+from dider.validation import Rule, check_settings, integer, optional
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Simulation:
-    """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`); the
-    split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
-
-    system: str = "springs"  # springs or charged
-    num_balls: int = 5
-    num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
-    sample_every: int = 100  # integration steps per frame
-    switch_prob: float = 0.0  # chance per frame that a spring breaks or forms / a charge flips (0: NRI's static graph)
-    seed: int = 1  # the data seed; each split draws from its own stream
-
-    SETTINGS: ClassVar[dict[str, Rule]] = {
-        "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2), "sample_every": integer(1),
-        "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
-
-    def __post_init__(self) -> None:
-        check_settings(self, asdict(self), key="data.simulate")
 
 
 class NRIDataModule(ClipDataModule):

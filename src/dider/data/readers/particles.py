@@ -6,38 +6,48 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, ClassVar
 
 import torch
 
 from dider.data.cache import cache_key, cached_splits
 from dider.data.common import SPLITS
-from dider.data.particles import simulate_particles
+from dider.data.particles import SYSTEMS, simulate_particles
 from dider.data.tracks import Clips
 from dider.graph import edge_index
+from dider.validation import Rule, check_settings, integer, one_of, within
 
 log = logging.getLogger(__name__)
 
 
-class Simulated(Protocol):
-    """The settings (``dider.data.nri.Simulation``); their field names are part of every cache key."""
+@dataclass(frozen=True)
+class Simulation:
+    """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`); the
+    split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
 
-    system: str
-    num_balls: int
-    num_frames: int
-    sample_every: int
-    switch_prob: float
-    seed: int
+    system: str = "springs"  # springs or charged
+    num_balls: int = 5
+    num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
+    sample_every: int = 100  # integration steps per frame
+    switch_prob: float = 0.0  # chance per frame that a spring breaks or forms / a charge flips (0: NRI's static graph)
+    seed: int = 1  # the data seed; each split draws from its own stream
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2), "sample_every": integer(1),
+        "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
+
+    def __post_init__(self) -> None:
+        check_settings(self, asdict(self), key="data.simulate")
 
 
-def cache_path(sim: Simulated, split: str, size: int, cache_dir: Path) -> Path:
+def cache_path(sim: Simulation, split: str, size: int, cache_dir: Path) -> Path:
     params = {**asdict(sim), "split": split, "num_samples": size, "version": 1}
     return cache_dir / f"{sim.system}_{split}_{cache_key(params)}.pt"
 
 
-def read(sim: Simulated, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
+def read(sim: Simulation, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
     """Each split of ``sizes`` (split -> number of clips), from the cache or simulated and cached."""
 
     def build(split: str, size: int, path: Path) -> dict[str, Any]:
