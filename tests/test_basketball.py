@@ -7,7 +7,8 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from dider.data.basketball import BasketballDataModule, detect_format
+from dider.data.basketball import BasketballDataModule
+from dider.data.readers.basketball import detect_format
 from helpers.fixtures import write_dnri_bball, write_zhan
 
 

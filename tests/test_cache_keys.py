@@ -40,7 +40,7 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
     monkeypatch.setattr(cache, "load_or_build", record)
     dm = NRIDataModule(simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
     with pytest.raises(LookupError):
-        dm._simulated("train")
+        dm.prepare_data()
     assert [p.name for p in seen] == [name]
 
 

@@ -8,8 +8,8 @@ import torch
 from hydra.utils import instantiate
 
 from dider.data.nri import NRIDataModule
-from dider.data.nri_files import nri_path, read_nri_split, write_nri_split
 from dider.data.particles import STIFFNESS, _forces, simulate_particles
+from dider.data.readers.nri_files import nri_path, read_nri_split, write_nri_split
 from dider.graph import edge_index
 
 SMALL = dict(burn_in=10, horizons=(1, 5), loader={"batch_size": 4, "eval_batch_size": 4})

@@ -22,9 +22,10 @@ from hypothesis.extra import numpy as hnp
 
 from dider.data.ind import InDDataModule
 from dider.data.levelx.recordings import discover_recordings
+from dider.data.readers.trajectories import load_trajectories
 from dider.data.simulate import simulate_push
 from dider.data.synth import SynthDataModule
-from dider.data.trajectories import TrajectoryDataModule, load_trajectories
+from dider.data.trajectories import TrajectoryDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
 from helpers.fixtures import write_ind_root

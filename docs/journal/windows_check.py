@@ -32,8 +32,8 @@ TESTS = Path(__file__).resolve().parents[2] / "tests"
 sys.path.insert(0, str(TESTS))
 
 from dider.data.example import example_tracks  # noqa: E402
-from dider.data.nri_files import write_nri_split  # noqa: E402
 from dider.data.particles import simulate_particles  # noqa: E402
+from dider.data.readers.nri_files import write_nri_split  # noqa: E402
 from helpers.fixtures import write_dnri_bball, write_ind_root, write_trajectories, write_zhan  # noqa: E402
 from test_dnri_files import write_dnri  # noqa: E402
 from test_readers import write_scenes  # noqa: E402
@@ -133,7 +133,8 @@ def main() -> None:
     args.out.write_text(json.dumps(result, indent=1, sort_keys=True))
     if args.compare:
         before = json.loads(args.compare.read_text())
-        differ = [k for k in sorted(set(before) | set(result)) if before.get(k) != result.get(k)]
+        names = set(result) if args.only else set(before) | set(result)  # --only: the cases it ran
+        differ = [k for k in sorted(names) if before.get(k) != result.get(k)]
         print("differ:", differ or "none")
 
 

@@ -25,7 +25,7 @@ import pandas as pd
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.trajectories import trajectory_states
+from dider.data.readers.trajectories import trajectory_states
 from dider.models.checkpoint_format import upgrade
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame

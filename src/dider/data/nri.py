@@ -13,14 +13,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, ClassVar
 
-import torch
-
 from dider.data.batch import Normalizer
-from dider.data.common import SPLITS, ClipDataModule, ClipDataset, spread_indices
+from dider.data.clip_splits import capped, clip_datasets
+from dider.data.common import SPLITS, ClipDataModule
 from dider.data.loader import Loader
-from dider.data.nri_files import read_nri_split
-from dider.data.readers import particles
+from dider.data.readers import nri_files, particles
 from dider.data.readers.particles import Simulation
+from dider.data.tracks import Clips
 from dider.protocol import check_horizons
 from dider.validation import Rule, check_settings, integer, optional
 
@@ -54,7 +53,7 @@ class NRIDataModule(ClipDataModule):
         cache_dir: str | None = None,
     ) -> None:
         """simulate: the simulation's settings (:class:`Simulation`), or null to read ``root``. root: a folder of
-        NRI's files (:mod:`dider.data.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
+        NRI's files (:mod:`dider.data.readers.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
         super().__init__()
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
         both = lambda v: "give data.root or data.simulate, not both" if v and simulate is not None else None  # noqa: E731
@@ -67,36 +66,30 @@ class NRIDataModule(ClipDataModule):
         frames = None if simulate is None else self.simulation.num_frames  # files: checked in setup
         self.init_shared(frames, length_key="data.simulate.num_frames", integer_horizons=True)
 
-    def _simulated(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
-        clips = particles.read(self.simulation, {split: getattr(self.hparams, f"num_{split}")}, self.cache_dir)[split]
-        return clips.states, clips.edges
-
-    def _read(self, split: str) -> tuple[torch.Tensor, torch.Tensor]:
-        if not self.hparams.root:
-            raise ValueError("data.root is not set: point it at a folder of NRI's .npy files (or set data.simulate)")
-        root = Path(self.hparams.root).expanduser()
-        if not root.is_dir():
-            raise FileNotFoundError(f"data.root={root}: no such folder")
-        states, edges = read_nri_split(root, split, self.hparams.suffix)
-        check_horizons(self.hparams.horizons, states.shape[1], self.hparams.burn_in,
-                       where=f" in {root} ({split}: {states.shape[1]} frames)")
-        return states, edges
+    def _read(self) -> dict[str, Clips]:
+        h = self.hparams
+        if self.simulation is not None:
+            return particles.read(self.simulation, {s: getattr(h, f"num_{s}") for s in SPLITS}, self.cache_dir)
+        raw = nri_files.read(h.root, h.suffix)
+        for split, clips in raw.items():
+            frames = clips.states.shape[1]
+            check_horizons(h.horizons, frames, h.burn_in, where=f" in {Path(h.root).expanduser()} ({split}: "
+                                                                  f"{frames} frames)")
+        return raw
 
     def prepare_data(self) -> None:
         if self.simulation is not None:
-            for split in SPLITS:
-                self._simulated(split)
+            self._read()
 
     def setup(self, stage: str | None = None) -> None:
         if all(s in self.datasets for s in SPLITS):
             return
-        raw = {split: self._simulated(split) if self.simulation else self._read(split) for split in SPLITS}
-        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"][0]))
-        caps = {"train": self.hparams.num_train, "val": self.hparams.num_val, "test": self.hparams.num_test}
-        for split, (states, edges) in raw.items():
-            idx = spread_indices(len(states), None if self.simulation else caps[split])
-            clips = states[idx]
-            self.datasets[split] = ClipDataset(self.normalizer.normalize(clips),
-                                               torch.ones(clips.shape[:3], dtype=torch.bool), edges[idx], {"clip": idx})
+        raw = self._read()
+        # NRI fits the ranges on the whole training file; read from files, num_* then cap each split
+        self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"].states))
+        h = self.hparams
+        caps = {} if self.simulation else {"train": h.num_train, "val": h.num_val, "test": h.num_test}
+        self.datasets.update(clip_datasets(capped(raw, caps), self.normalizer))
+        train = raw["train"].states
         log.info("%s: %s clips, %d balls, %d frames", self.simulation.system if self.simulation else self.hparams.root,
-                 {s: len(d) for s, d in self.datasets.items()}, raw["train"][0].shape[2], raw["train"][0].shape[1])
+                 {s: len(d) for s, d in self.datasets.items()}, train.shape[2], train.shape[1])

@@ -7,9 +7,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
-import torch
-
 from dider.data.batch import Normalizer
+from dider.data.clip_splits import clip_datasets
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
 from dider.data.loader import Loader
 from dider.data.readers import push
@@ -78,6 +77,4 @@ class SynthDataModule(ClipDataModule):
             return
         raw = push.read(*self._source(), self.cache_dir)
         self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"].states))
-        for split, clips in raw.items():
-            states = self.normalizer.normalize(clips.states)
-            self.datasets[split] = ClipDataset(states, torch.ones(states.shape[:3], dtype=torch.bool), clips.edges)
+        self.datasets.update(clip_datasets(raw, self.normalizer))

@@ -46,7 +46,7 @@ from dider.data.common import (
 from dider.data.readers import READERS
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
-from dider.data.windowing import MAX_GRID_CELLS, cut_windows
+from dider.data.windowing import MAX_GRID_CELLS, grid_windows
 from dider.protocol import fill_absent
 from dider.validation import Rule, above, check_settings, finite, integer, one_of, optional
 
@@ -125,11 +125,10 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
         grid, present, fast = drop_jumps(grid, present, max_speed)
         steps_kept, steps_fast = steps_kept + int(present.sum()), steps_fast + fast
         longest = max(longest, present.shape[0])
-        starts, window, agent = cut_windows(present, seq_len, stride, min_agent_steps, min_agents)
-        steps = starts[window][:, None] + np.arange(seq_len)  # [p, T]
+        states, mask, counts, starts, agent = grid_windows(grid, present, seq_len, stride, min_agent_steps,
+                                                           min_agents)
         parts.append({
-            "states": grid[steps, agent[:, None]].astype(np.float32), "mask": present[steps, agent[:, None]],
-            "counts": np.bincount(window, minlength=len(starts)), "agent": ids[agent],
+            "states": states, "mask": mask, "counts": counts, "agent": ids[agent],
             "agent_class": None if t["agent_class"] is None else t["agent_class"][rows][first][agent],
             "scene_index": np.full(len(starts), z), "frame": first_frame[z] + (starts + drop) * downsample,
         })

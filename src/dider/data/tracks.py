@@ -21,3 +21,19 @@ class Clips:
 
     def __len__(self) -> int:
         return self.states.shape[0]
+
+    @property
+    def present(self) -> torch.Tensor:
+        """[S, T, N] bool: the mask, or every agent present."""
+        return torch.ones(self.states.shape[:3], dtype=torch.bool) if self.mask is None else self.mask
+
+    def select(self, idx: torch.Tensor) -> Clips:
+        """The clips ``idx`` [K] long, in that order, ids and all."""
+        pick = lambda t: None if t is None else t[idx]  # noqa: E731
+        return Clips(self.states[idx], pick(self.mask), pick(self.edges),
+                     None if self.ids is None else {k: v[idx] for k, v in self.ids.items()})
+
+    def crop(self, steps: int) -> Clips:
+        """Every clip's first ``steps`` steps (and the transitions between them)."""
+        return Clips(self.states[:, :steps], None if self.mask is None else self.mask[:, :steps],
+                     None if self.edges is None else self.edges[:, :steps - 1], self.ids)

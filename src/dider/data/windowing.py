@@ -38,3 +38,18 @@ def cut_windows(present: np.ndarray, seq_len: int, stride: int, min_agent_steps:
     good = kept.sum(1) >= min_agents
     window, agent = np.nonzero(kept[good])
     return starts[good], window, agent
+
+
+def grid_windows(grid: np.ndarray, present: np.ndarray, seq_len: int, stride: int, min_agent_steps: int,
+                 min_agents: int, max_agents: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One scene's windows, packed (:func:`cut_windows` decides which).
+
+    grid: [S, K, 4] (x, y, vx, vy; any float dtype), present: [S, K] bool -> states [P, T, 4] float32 (rounded
+    once from the grid's values), mask [P, T] bool, counts [W] (agents per window), starts [W] and agent [P]
+    int64 (each row's column in the grid), rows by window then agent.
+    """
+    starts, window, agent = cut_windows(present, seq_len, stride, min_agent_steps, min_agents, max_agents)
+    steps = starts[window][:, None] + np.arange(seq_len)[None, :]  # [P, T]
+    states = grid[steps, agent[:, None]].astype(np.float32, copy=False)
+    return states, present[steps, agent[:, None]], np.bincount(window, minlength=len(starts)), starts, agent

@@ -5,8 +5,9 @@ x, y and optionally scene, vx, vy and agent_class, naming the file and line of a
 windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one reader
 here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``).
 
-A clip source (``push``, ``particles``: the simulators) gives each split as :class:`~dider.data.tracks.Clips`,
-already cut to a fixed length, raw; its data module normalises and batches them.
+A clip source gives each split as :class:`~dider.data.tracks.Clips`, already cut to a fixed length, raw: the
+simulators (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
+``trajectories``); its data module splits, caps and normalises them (:mod:`dider.data.clip_splits`).
 """
 
 from __future__ import annotations

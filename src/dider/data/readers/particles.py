@@ -1,6 +1,6 @@
 """NRI's particle systems as a clip source (``data=springs``, ``data=charged``): each split simulated from its own
 seed (:func:`~dider.data.particles.simulate_particles`), cached under the cache folder by every setting that made
-it. Edges come receiver-major as in NRI's files, one per transition t -> t+1."""
+it. Edges come receiver-major as in NRI's files, one per transition t -> t+1; ids: ``clip``, the clip's index."""
 
 from __future__ import annotations
 
@@ -59,4 +59,5 @@ def read(sim: Simulation, sizes: Mapping[str, int], cache_dir: Path) -> dict[str
         return {"states": states.contiguous(), "edges": edges[:, 1:, recv, send].contiguous()}
 
     blobs = cached_splits(sizes, lambda split, size: cache_path(sim, split, size, cache_dir), build)
-    return {split: Clips(b["states"], edges=b["edges"]) for split, b in blobs.items()}
+    return {split: Clips(b["states"], edges=b["edges"], ids={"clip": torch.arange(len(b["states"]))})
+            for split, b in blobs.items()}

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dider.data.common import check_finite
+from dider.data.common import SPLITS, check_finite
+from dider.data.tracks import Clips
 from dider.graph import edge_index
 from dider.io import atomic_write
 
@@ -70,6 +71,21 @@ def read_nri_split(root: Path, split: str, suffix: str) -> tuple[torch.Tensor, t
         labels = labels[:, None].expand(s, t, n, n)
     send, recv = edge_index(n)
     return states.contiguous(), labels[:, 1:, recv, send].contiguous()  # rows receive (NRI's code)
+
+
+def read(root: str | Path | None, suffix: str) -> dict[str, Clips]:
+    """Every split's files in the folder ``root`` (``data.root``) as clips, ids ``clip`` (the clip's index in its
+    file)."""
+    if not root:
+        raise ValueError("data.root is not set: point it at a folder of NRI's .npy files (or set data.simulate)")
+    folder = Path(root).expanduser()
+    if not folder.is_dir():
+        raise FileNotFoundError(f"data.root={folder}: no such folder")
+    out = {}
+    for split in SPLITS:
+        states, edges = read_nri_split(folder, split, suffix)
+        out[split] = Clips(states, edges=edges, ids={"clip": torch.arange(len(states))})
+    return out
 
 
 def write_nri_split(root: Path, split: str, suffix: str, loc: torch.Tensor, vel: torch.Tensor,
