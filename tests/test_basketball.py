@@ -10,6 +10,7 @@ from hydra.utils import instantiate
 from dider.data.basketball import BasketballDataModule
 from dider.data.readers.basketball import detect_format
 from helpers.fixtures import write_dnri_bball, write_zhan
+from helpers.protocol import fits
 
 
 def make_dm(root: Path, **kw) -> BasketballDataModule:
@@ -26,7 +27,8 @@ def raw(dm: BasketballDataModule, split: str) -> torch.Tensor:
 def test_zhan_format_dnri_setting(tmp_path):
     files = write_zhan(tmp_path)
     dm = make_dm(tmp_path)
-    assert dm.format == "zhan" and list(dm.hparams.horizons) == [1, 5, 9] and dm.hparams.burn_in == 40
+    assert dm.format == "zhan" and dm.clip_steps() == {"train": 49, "val": 49, "test": 49}
+    fits(dm, 40, (1, 5, 9))  # DNRI's protocol: 40 observed, 9 forecast
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 36, "val": 4, "test": 12}
     batch = next(iter(dm.train_dataloader()))
     assert set(batch) == {"states", "mask", "everyone"} and batch["everyone"]
@@ -111,11 +113,12 @@ def test_bad_input(tmp_path):
     with pytest.raises(ValueError, match=r"test.npz: key 'data': 1 NaN/inf"):
         make_dm(tmp_path)
     _write_npz(tmp_path / "test.npz", data=np.zeros((4, 30, 22)))  # 29 steps < 40 burn-in
-    with pytest.raises(ValueError, match="data.burn_in=40 must be shorter"):
-        make_dm(tmp_path)
+    with pytest.raises(ValueError, match=r"model.burn_in=40 must be shorter than the clips \(29 steps, the test"):
+        fits(make_dm(tmp_path), 40, (1, 5, 9))
     _write_npz(tmp_path / "test.npz", data=np.zeros((4, 47, 22)))  # 46 steps: horizon 9 needs 49
-    with pytest.raises(ValueError, match="data.horizons"):
-        make_dm(tmp_path)
+    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 9\]: each must lie in 1..6 .*protocol.horizons"):
+        fits(make_dm(tmp_path), 40, (1, 5, 9))
+    fits(make_dm(tmp_path, train_len=40), 40, (1, 5, 6), stage="fit")  # training crops may be as short as the burn-in
     write_dnri_bball(tmp_path)
     with pytest.raises(ValueError, match="both Zhan npz and DNRI npy"):
         make_dm(tmp_path)
@@ -132,8 +135,7 @@ def test_bad_input(tmp_path):
 
 
 BAD_CONFIG = [({"format": "csv"}, "data.format"), ({"agents": "ball"}, "data.agents"),
-              ({"val_fraction": 1.0}, "data.val_fraction"), ({"train_len": 1}, "data.train_len"),
-              ({"horizons": []}, "data.horizons"), ({"burn_in": 0}, "data.burn_in")]
+              ({"val_fraction": 1.0}, "data.val_fraction"), ({"train_len": 1}, "data.train_len")]
 
 
 @pytest.mark.parametrize("kw, key", BAD_CONFIG)

@@ -147,9 +147,9 @@ def test_eval_and_predict_configs_need_a_checkpoint(name):
     GlobalHydra.instance().clear()
 
 
-def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
-    """Each data set picks its forecast protocol; ``protocol.*`` (or ``protocol=NAME``) changes the data's and
-    the model's at once."""
+def test_each_data_set_picks_the_models_protocol(make_cfg):
+    """Each data set picks its forecast protocol, which the model reads (the data have none of their own);
+    ``protocol.*`` (or ``protocol=NAME``) changes it."""
     expected = {"synth": (5, [1, 15, 25], "global"), "dnri_files": (5, [1, 15, 25], "global"),
                 "basketball": (40, [1, 5, 9], "global"), "ind": (5, [1, 20, 40], "per_agent"),
                 "ind200": (5, [1, 40, 120, 190], "per_agent"), "table": (5, [1, 5, 10], "per_agent"),
@@ -158,12 +158,13 @@ def test_one_protocol_node_reaches_the_data_and_the_model(make_cfg):
     assert set(options("protocol")) == {"synth", "basketball", "ind", "ind200", "tracking", "springs", "pedestrians"}
     for data, (burn_in, horizons, mode) in expected.items():
         cfg = make_cfg([f"data={data}"])
-        for node in (cfg.protocol, cfg.data, cfg.model):
+        for node in (cfg.protocol, cfg.model):
             assert (node.burn_in, list(node.horizons), node.burn_in_mode) == (burn_in, horizons, mode), data
+        assert not {"burn_in", "horizons", "burn_in_mode"} & set(cfg.data), data
     cfg = make_cfg(["data=table", "protocol.burn_in=3", "protocol.horizons=[1,2]", "protocol.burn_in_mode=global"])
-    assert (cfg.data.burn_in, list(cfg.model.horizons), cfg.model.burn_in_mode) == (3, [1, 2], "global")
+    assert (cfg.model.burn_in, list(cfg.model.horizons), cfg.model.burn_in_mode) == (3, [1, 2], "global")
     cfg = make_cfg(["data=synth", "protocol=ind"])
-    assert (list(cfg.data.horizons), cfg.model.burn_in_mode) == ([1, 20, 40], "per_agent")
+    assert (list(cfg.model.horizons), cfg.model.burn_in_mode) == ([1, 20, 40], "per_agent")
 
 
 def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):

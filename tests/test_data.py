@@ -41,8 +41,7 @@ def test_cache_is_keyed_and_reused(tmp_path):
 
 @pytest.mark.parametrize(
     "kw, key",
-    [({"num_train": 0}, "data.num_train"), ({"burn_in": 50}, "data.burn_in"),
-     ({"horizons": (1, 46)}, "data.horizons"), ({"num_steps": 1}, "data.num_steps")],
+    [({"num_train": 0}, "data.num_train"), ({"num_steps": 1}, "data.num_steps")],
 )
 def test_bad_config_names_the_key(tmp_path, kw, key):
     with pytest.raises(ValueError, match=key):
@@ -63,12 +62,14 @@ def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
         SynthDataModule(cache_dir=str(tmp_path), loader={"workers": 2})
 
 
-def test_an_older_data_config_gets_its_loader_node():
-    from dider.data.loader import loader_node
+def test_an_older_data_config_gets_its_loader_node_and_leaves_the_protocol_to_the_model():
+    from dider.data.legacy import upgrade_data_node
 
-    older = {"_target_": "x", "batch_size": 8, "pin_memory": True, "num_train": 5}
-    assert loader_node(older) == {"_target_": "x", "num_train": 5, "loader": {"batch_size": 8, "pin_memory": True}}
-    assert loader_node({"loader": {"batch_size": 3}}) == {"loader": {"batch_size": 3}}
+    older = {"_target_": "x", "batch_size": 8, "pin_memory": True, "num_train": 5, "burn_in": 5, "horizons": [1],
+             "burn_in_mode": "global"}
+    assert upgrade_data_node(older) == {"_target_": "x", "num_train": 5,
+                                        "loader": {"batch_size": 8, "pin_memory": True}}
+    assert upgrade_data_node({"loader": {"batch_size": 3}}) == {"loader": {"batch_size": 3}}
 
 
 def test_every_data_setting_is_a_constructor_argument():

@@ -12,7 +12,7 @@ from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 
 SIZES = {"train": 8, "val": 3, "test": 5}
 STEPS = 30
-SMALL = dict(burn_in=5, horizons=(1, 10), loader={"batch_size": 4, "eval_batch_size": 4})
+SMALL = dict(loader={"batch_size": 4, "eval_batch_size": 4})
 
 
 def write_dnri(root: Path, sizes: dict[str, int] = SIZES, steps: int = STEPS) -> dict[str, tuple]:
@@ -143,14 +143,11 @@ def test_bad_input(root, tmp_path):
         torch.save(value, root / f"test_{kind}")
         with pytest.raises(ValueError, match=match):
             make_dm(root)
-    write_dnri(root, steps=12)
-    with pytest.raises(ValueError, match=r"data.horizons=\[1, 10\]: each must lie in 1..7"):
-        make_dm(root)
 
 
 @pytest.mark.parametrize("kw, key", [({"normalization": "minmax"}, "data.normalization"),
                                      ({"predict_split": "all"}, "data.predict_split"),
-                                     ({"num_train": 0}, "data.num_train"), ({"burn_in": 0}, "data.burn_in")])
+                                     ({"num_train": 0}, "data.num_train")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
         DNRIFilesDataModule(**kw)

@@ -18,8 +18,7 @@ from dider.protocol import burn_in_mask
 from helpers.fixtures import edit_csv, write_background, write_ind_root
 
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
-SMALL = dict(split=(2, 1, 1), seq_len=20, burn_in=5, horizons=(1, 5, 15),
-             loader={"batch_size": 4, "eval_batch_size": 4})
+SMALL = dict(split=(2, 1, 1), seq_len=20, loader={"batch_size": 4, "eval_batch_size": 4})
 
 
 @pytest.fixture
@@ -143,7 +142,7 @@ def test_normalizer_fit_on_present_train_agents(root, tmp_path):
 
 def test_downsample_stride_and_window_filters(root, tmp_path):
     cache = tmp_path / "cache"
-    dm = make_dm(root, cache, downsample=5, seq_len=30, horizons=(1, 20))  # 120 steps: 4 windows
+    dm = make_dm(root, cache, downsample=5, seq_len=30)  # 120 steps: 4 windows
     assert len(dm.datasets["test"]) == 4 and dm.dt == pytest.approx(0.2)
     dm = make_dm(root, cache, stride=5, eval_stride=40)  # train windows at 0, 5, ..., 40; eval at 0, 40
     assert dm.datasets["train"].window_start.tolist() == list(range(0, 41, 5)) * 2
@@ -196,9 +195,9 @@ def test_splits_and_recording_selection(root, tmp_path):
 def test_default_is_dnri_protocol():
     dm = InDDataModule()
     h = dm.hparams
-    assert list(h.split) == [19, 7, 7] and h.downsample == 10 and h.seq_len == 50 and h.burn_in == 5
+    assert list(h.split) == [19, 7, 7] and h.downsample == 10 and h.seq_len == 50
     assert list(h.features) == ["xCenter", "yCenter", "xVelocity", "yVelocity"] and h.classes is None
-    assert list(h.horizons) == [1, 20, 40] and h.min_agents == 2
+    assert h.min_agents == 2
 
 
 def test_cache_is_shared_keyed_and_invalidated(root, tmp_path, monkeypatch):
@@ -220,7 +219,7 @@ def test_cache_is_shared_keyed_and_invalidated(root, tmp_path, monkeypatch):
     os.utime(root / "03_tracks.csv", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     make_dm(root, cache)
     assert len(list((cache / "levelx").glob("*.pt"))) == 5
-    make_dm(root, cache, seq_len=25, horizons=(1, 5))
+    make_dm(root, cache, seq_len=25)
     assert len(list((cache / "levelx").glob("*.pt"))) == 9
 
 
@@ -328,11 +327,10 @@ def test_empty_metadata_file(root, tmp_path):
 
 def test_too_short_and_bad_config(root, tmp_path):
     with pytest.raises(ValueError, match=r"no window of data.seq_len=70 .* too short"):
-        make_dm(root, tmp_path / "c", seq_len=70, horizons=(1, 5))
+        make_dm(root, tmp_path / "c", seq_len=70)
     with pytest.raises(ValueError, match=r"data.classes=\['tram'\] left too few tracks"):
         make_dm(root, tmp_path / "c", classes=["tram"])
-    for kw, key in [({"burn_in": 20}, "data.burn_in"), ({"horizons": (1, 16)}, "data.horizons"),
-                    ({"seq_len": 1}, "data.seq_len"), ({"downsample": 0}, "data.downsample"),
+    for kw, key in [({"seq_len": 1}, "data.seq_len"), ({"downsample": 0}, "data.downsample"),
                     ({"max_agents": 0}, "data.max_agents"), ({"features": ["xCenter"]}, "data.features"),
                     ({"tracks_pattern": "tracks.csv"}, "data.tracks_pattern"),
                     ({"split": (1, 1)}, "data.split")]:

@@ -76,7 +76,7 @@ def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     # The fixture's tracks 0 and 1 are parked cars present in every window; the other tracks move.
     root = write_ind_root(tmp_path / "inD")
     dm = InDDataModule(root=str(root), cache_dir=str(tmp_path / "cache"), split=(2, 1, 1), seq_len=20,
-                       horizons=(1, 5, 15), loader={"batch_size": 4, "eval_batch_size": 4})
+                       loader={"batch_size": 4, "eval_batch_size": 4})
     dm.prepare_data()
     dm.setup()
     batch = next(iter(dm.test_dataloader()))

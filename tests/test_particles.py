@@ -11,8 +11,9 @@ from dider.data.nri import NRIDataModule
 from dider.data.particles import STIFFNESS, _forces, simulate_particles
 from dider.data.readers.nri_files import nri_path, read_nri_split, write_nri_split
 from dider.graph import edge_index
+from helpers.protocol import fits
 
-SMALL = dict(burn_in=10, horizons=(1, 5), loader={"batch_size": 4, "eval_batch_size": 4})
+SMALL = dict(loader={"batch_size": 4, "eval_batch_size": 4})
 
 
 def test_forces_by_hand():
@@ -151,5 +152,7 @@ def test_the_data_module_names_bad_settings(tmp_path, make_cfg):
     with pytest.raises(ValueError, match="data.root is not set"):
         NRIDataModule(**SMALL).setup()
     write_sim(tmp_path / "f", frames=12)
-    with pytest.raises(ValueError, match=r"horizon.*f \(train: 12 frames\)"):
-        NRIDataModule(root=str(tmp_path / "f"), suffix="_springs4", **SMALL).setup()
+    dm = NRIDataModule(root=str(tmp_path / "f"), suffix="_springs4", **SMALL)
+    dm.setup()
+    with pytest.raises(ValueError, match=r"model.horizons=\[1, 10\]: each must lie in 1..2 .*12-step clips, the test"):
+        fits(dm, 10, (1, 10))

@@ -64,7 +64,7 @@ def test_checkpoint_describes_itself(run):
     assert meta["version"] == dider.__version__
     assert meta["data"]["features"] == ["x", "y", "vx", "vy"]
     assert meta["data"]["args"]["frame_rate"] == 10
-    dm = TrajectoryDataModule(path=meta["data"]["args"]["path"], frame_rate=10, horizons=[1, 5], num_val=4)
+    dm = TrajectoryDataModule(path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
     dm.setup("fit")  # the same file and split refit the same normaliser
     assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
     assert ckpt["hyper_parameters"]["net"]["name"] == "dider"

@@ -133,7 +133,7 @@ def test_trajectory_reader_fails_cleanly(spec):
         if "edges" in out:
             assert out["edges"].shape == (s, t - 1, num_edges(n)) and (out["edges"] >= 0).all()
         # ...and the whole DataModule on top of it also fails only cleanly.
-        dm = TrajectoryDataModule(path=str(path), burn_in=1, horizons=[1], frame_rate=spec["frame_rate"],
+        dm = TrajectoryDataModule(path=str(path), frame_rate=spec["frame_rate"],
                                   loader={"batch_size": 2, "eval_batch_size": 2})
         try:
             dm.setup()
@@ -202,8 +202,7 @@ def test_levelx_reader_fails_cleanly_and_caches_atomically(ops, seed):
                                      num_parked=1, seed=seed), Path(tmp) / "cache"
         for op in ops:
             corrupt(root, op)
-        dm = InDDataModule(root=str(root), cache_dir=str(cache), split=(1, 1, 1), seq_len=10, burn_in=3,
-                           horizons=(1, 5))
+        dm = InDDataModule(root=str(root), cache_dir=str(cache), split=(1, 1, 1), seq_len=10)
         params = dm.window_params("train")
         try:
             files = discover_recordings(root)[0]
@@ -244,9 +243,7 @@ def test_simulator_rejects_bad_parameters_by_name(num_samples, num_steps, push_f
 
 SYNTH = st.fixed_dictionaries({
     "num_train": COUNT, "num_val": st.integers(0, 6), "num_test": st.integers(1, 6),
-    "num_steps": st.one_of(st.integers(0, 12), st.integers(6, 12), st.just("x")), "burn_in": st.integers(-1, 5),
-    "push_factor": REAL, "seed": SEED,
-    "horizons": st.one_of(st.lists(st.integers(-1, 12), max_size=3), st.just([1]), st.just(["a"])),
+    "num_steps": st.one_of(st.integers(0, 12), st.integers(6, 12), st.just("x")), "push_factor": REAL, "seed": SEED,
 })
 
 
@@ -273,8 +270,8 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
     """A save that dies part-way (disk full, Ctrl-C) leaves the finished splits and nothing else; the next
     run regenerates the missing ones and everything loads."""
     with tempfile.TemporaryDirectory() as tmp:
-        dm = SynthDataModule(num_train=num_train, num_val=3, num_test=2, num_steps=8, burn_in=2,
-                             horizons=[1], cache_dir=tmp, loader={"batch_size": 4})
+        dm = SynthDataModule(num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
+                             loader={"batch_size": 4})
         real_save, calls = torch.save, []
 
         def dying_save(obj, f, *args, **kwargs):

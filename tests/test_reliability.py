@@ -275,7 +275,7 @@ def _npz(tmp_path: Path) -> Path:
 BAD_CONFIGS = [
     (["model.num_edges=1"], r"model.num_edges=1: must be >= 2"),
     (["protocol.burn_in=50"], r"protocol.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
-    (["data.burn_in=50"], r"data.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
+    (["model.burn_in=50"], r"model.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
     (["data.num_steps=20", "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
     (["protocol.horizons=[0,5]"], r"protocol.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
@@ -284,10 +284,12 @@ BAD_CONFIGS = [
     (["model.net.objective.kl_duration.weight=-1"], r"model.net.objective.kl_duration.weight=-1: must be >= 0"),
     (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
     (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
-    (["data=ind", "data.seq_len=20", "data.burn_in=20"], r"data.burn_in=20: must be shorter .*data.seq_len=20"),
+    (["data=ind", "data.seq_len=20", "protocol.burn_in=20"], r"protocol.burn_in=20: must be shorter .*data.seq_len=20"),
+    (["data=springs", "data.simulate.num_frames=20", "protocol.burn_in=20"],
+     r"protocol.burn_in=20: must be shorter .*data.simulate.num_frames=20"),
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
-    (["data.burn_in_mode=sideways"], r"data.burn_in_mode='sideways'"),
+    (["model.burn_in_mode=sideways"], r"model.burn_in_mode='sideways'"),
     (["protocol.burn_in=0", "model=dider"], r"configuration:\n  - protocol.burn_in=0: must be >= 1$"),  # not again
     (["+model.gumbel_tau=0.3"], r"model.gumbel_tau: not a setting of .* \(model.net.gumbel_tau\)"),
     (["protocol.burn_in_mode=sideways"], r"configuration:\n  - protocol.burn_in_mode='sideways': expected one of "
@@ -319,12 +321,12 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
         raise AssertionError("work started")
 
     monkeypatch.setattr("dider.run.instantiate", boom)
-    cfg = make_cfg(["model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "data.burn_in=60"],
+    cfg = make_cfg(["model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "model.burn_in=60"],
                    out=tmp_path / "run")
     with pytest.raises(ConfigError) as info:
         train(cfg)
     message = str(info.value)  # every problem at once
-    for key in ("model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "data.burn_in=60"):
+    for key in ("model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "model.burn_in=60"):
         assert key in message
     assert not (tmp_path / "run").exists()
 
@@ -393,9 +395,8 @@ def test_resume_last_in_a_new_folder_is_an_error(make_cfg, tmp_path):
 
 def test_warnings_name_suspicious_settings(make_cfg, caplog):
     with caplog.at_level("WARNING"):
-        validate_config(make_cfg(["trainer.max_epochs=0", "model.burn_in=4", "+foo=1"]))
+        validate_config(make_cfg(["trainer.max_epochs=0", "+foo=1"]))
     assert "trainer.max_epochs=0: nothing is trained" in caplog.text
-    assert "model.burn_in=4 differs from data.burn_in=5" in caplog.text and "set protocol.burn_in" in caplog.text
     assert "foo: top-level key(s) that nothing reads" in caplog.text
 
 
@@ -545,3 +546,9 @@ def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
         assert resolve_ckpt("last", tmp_path, folder_given=True) == str(folder / "epoch_001.ckpt")
     assert not (folder / ".last.ckpt.x1y2.tmp").exists()
     assert "last.ckpt is missing" in caplog.text and "removing the temporary file" in caplog.text
+
+
+def test_horizons_are_whole_steps_on_every_data_set(make_cfg):
+    for data in ("synth", "trajectories"):
+        with pytest.raises(ConfigError, match=r"protocol.horizons=\[1, 2.5\]: each must be a whole number of steps"):
+            validate_config(make_cfg([f"data={data}", "protocol.horizons=[1,2.5]"]))

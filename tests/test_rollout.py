@@ -5,7 +5,6 @@ from types import SimpleNamespace
 import pytest
 import torch
 import torch.nn.functional as F
-from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from dider.evaluation.metrics import HorizonMSE
@@ -180,10 +179,7 @@ def test_model_takes_the_mode_from_the_protocol(make_cfg, tmp_path):
     for data, mode in [("synth", "global"), ("basketball", "global"), ("ind", "per_agent"),
                        ("ind200", "per_agent"), ("round", "per_agent"), ("trajectories", "per_agent")]:
         cfg = make_cfg([f"data={data}"])
-        assert cfg.protocol.burn_in_mode == cfg.data.burn_in_mode == cfg.model.burn_in_mode == mode, data
-    assert instantiate(make_cfg([]).data, _convert_="all").burn_in_mode == "global"
-    with pytest.raises(Exception, match="data.burn_in_mode"):
-        instantiate(make_cfg(["data.burn_in_mode=first"]).data, _convert_="all")
+        assert cfg.protocol.burn_in_mode == cfg.model.burn_in_mode == mode, data
 
 
 def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):

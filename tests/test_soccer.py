@@ -53,8 +53,7 @@ def test_every_provider_reads_into_metres(provider):
 
 def test_hawkeye_windows_velocities_and_rate():
     """Downsampling 50 Hz by 8 gives 6.25 Hz steps; a velocity is the step's displacement x 6.25 (m/s)."""
-    dm = SoccerDataModule(provider="hawkeye", files=HAWKEYE, downsample=8, seq_len=12, stride=12, burn_in=5,
-                          horizons=[1, 5])
+    dm = SoccerDataModule(provider="hawkeye", files=HAWKEYE, downsample=8, seq_len=12, stride=12)
     dm.setup("fit")
     assert dm.hparams.frame_rate == 50.0 and dm.dt == pytest.approx(0.16)
     ds = dm.datasets["train"]
@@ -83,7 +82,7 @@ def test_hawkeye_windows_velocities_and_rate():
 ])
 def test_bad_input_is_named(kwargs, match):
     with pytest.raises((ValueError, FileNotFoundError), match=match):
-        settings = {"provider": "hawkeye", "files": HAWKEYE, "seq_len": 12, "horizons": [1, 5]} | kwargs
+        settings = {"provider": "hawkeye", "files": HAWKEYE, "seq_len": 12} | kwargs
         SoccerDataModule(**settings).setup("fit")
 
 

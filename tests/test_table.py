@@ -23,7 +23,7 @@ SPEED = {"amy": 1.0, "bob": 0.5, "cat": -1.0, "dan": 2.0}
 X0 = {"amy": 0.0, "bob": 10.0, "cat": 20.0, "dan": 5.0}
 Y0 = {"amy": 0.0, "bob": 1.0, "cat": 2.0, "dan": 3.0}
 RATE = 2.0  # frames per second
-SMALL = dict(seq_len=4, stride=2, burn_in=2, horizons=(1, 2), frame_rate=RATE,
+SMALL = dict(seq_len=4, stride=2, frame_rate=RATE,
              loader={"batch_size": 2, "eval_batch_size": 2})
 COLUMNS = {"scene": "place", "agent": "who", "frame": "t", "x": "px", "y": "py"}
 IDENTITY = Normalizer((-1.0, 1.0), (-1.0, 1.0))  # normalize() returns raw units: windows checked by value
@@ -112,7 +112,7 @@ def test_given_velocities_and_downsample(table):
     torch.testing.assert_close(ds.states[lo][1], expected("bob", [10, 11, 12, 13], vel="given"))
     # downsample=2: north keeps frames 10, 12, 14, 16 (13 is skipped, amy has no gap); differences span 2
     # frames at RATE / 2; east (0, 2, 4 -> 2 steps after the drop) is too short for seq_len=3.
-    dm, ds = windows(table, downsample=2, seq_len=3, horizons=(1,))
+    dm, ds = windows(table, downsample=2, seq_len=3)
     assert ds.sources["frame"].tolist() == [12] and dm.frame_step == 2 and dm.dt == pytest.approx(1.0)
     assert ds.agent_ids.tolist() == [0, 1, 2] and ds.mask.int().tolist() == [[1, 1, 1], [1, 1, 1], [0, 0, 1]]
     torch.testing.assert_close(ds.states[0], expected("amy", [12, 14, 16], span=2), atol=1e-4, rtol=0)
@@ -125,7 +125,7 @@ def test_steps_faster_than_max_speed_are_absent(tmp_path, caplog):
             for a in ("amy", "bob") for f in range(9)]
     path = tmp_path / "jump.csv"
     pd.DataFrame(rows).to_csv(path, index=False)
-    kw = dict(columns={"agent": "agent"}, seq_len=8, stride=8, burn_in=2, horizons=(1,), frame_rate=2.0)
+    kw = dict(columns={"agent": "agent"}, seq_len=8, stride=8, frame_rate=2.0)
     _, kept = windows(path, **kw)
     assert kept.mask.all() and kept.states[..., 2].max() == pytest.approx(62.0)  # (30 + 1) m in half a second
     with caplog.at_level(logging.WARNING, logger="dider.data.table"):
@@ -317,7 +317,7 @@ def test_bad_input(tmp_path, table):
         windows(table, min_agents=4)
     df[df.t % 2 == 0].to_csv(p, index=False)  # frames 0, 2, 4, ...: no two consecutive steps for a velocity
     with pytest.raises(ValueError, match=r"no window .* \(frames step by 2: set data.downsample=2\?\)"):
-        windows(p, seq_len=2, burn_in=1, horizons=(1,))
+        windows(p, seq_len=2)
     p.write_bytes(b"\x00\xff\xfe garbage")
     with pytest.raises(ValueError, match="bad.csv"):
         windows(p)
@@ -327,7 +327,6 @@ def test_bad_input(tmp_path, table):
     ({"seq_len": 1}, "data.seq_len"), ({"seq_len": 2.5}, r"data.seq_len=2.5: must be an integer"),
     ({"stride": 0}, "data.stride"), ({"frame_rate": 0}, "data.frame_rate"), ({"downsample": 0}, "data.downsample"),
     ({"min_agent_steps": 5}, "data.min_agent_steps=5: must be <= data.seq_len=4"), ({"min_agents": 0}, "min_agents"),
-    ({"burn_in": 4}, "data.burn_in=4 must be shorter"), ({"horizons": (1, 3)}, "data.horizons"),
     ({"split": (0.5, 0.5)}, "data.split"), ({"columns": {"speed": "v"}}, r"data.columns: unknown key\(s\) \['speed'\]"),
     ({"columns": {"x": None}}, "data.columns.x is null"), ({"columns": {"vx": "vx"}}, "give both velocity columns"),
     ({"columns": {"x": "p", "y": "p"}}, r"column\(s\) \['p'\] named for more than one key"),

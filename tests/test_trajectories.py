@@ -8,7 +8,9 @@ import torch
 from hydra.utils import instantiate
 
 from dider.data.trajectories import TrajectoryDataModule, split_indices
+from dider.run import train
 from helpers.fixtures import write_trajectories
+from helpers.protocol import fits
 
 
 def make_dm(path: Path | None, **kw) -> TrajectoryDataModule:
@@ -121,8 +123,6 @@ def test_bad_input(tmp_path):
         ({"positions": pos, "edges": np.full((4, 20, 6), -1)}, r"negative edge types"),
         ({"positions": np.full((4, 20, 3, 2), np.nan)}, r"key 'positions' \(mark absent agents with a"),
         ({"positions": np.zeros((4, 1, 3, 2))}, r"finite-difference velocities need >= 2"),
-        ({"positions": np.zeros((4, 6, 3, 2))}, r"data.burn_in=5 must be shorter"),  # 5 steps, differenced
-        ({"positions": np.zeros((4, 12, 3, 2))}, r"data.horizons"),  # 11 steps: horizon 10 needs 15
         ({"positions": np.zeros((2, 20, 3, 2))}, r"too few for train, val and test"),
     ]
     for arrays, match in cases:
@@ -134,12 +134,28 @@ def test_bad_input(tmp_path):
     np.savez(p, **arrays)
     with pytest.raises(ValueError, match=r"key 'positions': 2 NaN/inf values \(first at index \(0, 0, 0, 0"):
         make_dm(p)
+    write_trajectories(p, num=10, steps=12)  # 11 steps once differenced: horizon 10 needs 15
+    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 10\]: each must lie in 1..6 \(the predicted steps "
+                                         r"after model.burn_in=5 of 11-step clips, the test split's\)"):
+        fits(make_dm(p), 5, (1, 5, 10))
+    with pytest.raises(ValueError, match=r"model.burn_in=11 must be shorter .*\(set by protocol.burn_in\)"):
+        fits(make_dm(p), 11, (1,), stage="fit")
 
 
 @pytest.mark.parametrize("kw, key", [({"split": (0.5, 0.5)}, "data.split"),
                                      ({"frame_rate": 0}, "data.frame_rate"),
-                                     ({"burn_in": 0}, "data.burn_in"),
                                      ({"loader": {"batch_size": 0}}, "data.loader.batch_size")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
         TrajectoryDataModule(**kw)
+
+
+def test_a_run_checks_the_protocol_against_the_clips_before_training(make_cfg, tmp_path):
+    """The clip length of a file is known once it is read: the run stops there, naming the model's key and the
+    protocol's, before any training step."""
+    write_trajectories(tmp_path / "short.npz", num=10, steps=9)  # 8 steps once differenced
+    cfg = make_cfg(["data=trajectories", f"data.path={tmp_path / 'short.npz'}", "logger=none"], out=tmp_path / "run")
+    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 10\]: each must lie in 1..3 .*the val split's\)"
+                                         r" \(set by protocol.horizons\)"):
+        train(cfg)
+    assert not list((tmp_path / "run").rglob("*.ckpt"))

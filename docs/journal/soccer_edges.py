@@ -34,7 +34,7 @@ def score(run, split):
     dm = instantiate(cfg.data, _convert_="all")
     dm.prepare_data()
     dm.setup("fit")
-    burn_in, steps = cfg.data.burn_in, max(HORIZONS)
+    burn_in, steps = cfg.model.burn_in, max(HORIZONS)
     sums = {k: torch.zeros(len(HORIZONS)) for k in ("sample", "argmax", "none", "cv")}
     counts = torch.zeros(len(HORIZONS))
     for batch in dm._loader(split, train=False):

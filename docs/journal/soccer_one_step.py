@@ -11,8 +11,8 @@ import dider
 import dider.run  # noqa: F401  (registers the kloppy_sample resolver)
 
 # the recipe the run was trained with (docs/journal/soccer.md)
-RECIPE = ["data.provider=skillcorner", "data.downsample=2", "data.seq_len=30", "data.stride=30", "data.burn_in=10",
-          "data.horizons=[1,10,20]", "data.min_agent_steps=15", "data.min_agents=4",
+RECIPE = ["data.provider=skillcorner", "data.downsample=2", "data.seq_len=30", "data.stride=30", "protocol.burn_in=10",
+          "protocol.horizons=[1,10,20]", "data.min_agent_steps=15", "data.min_agents=4",
           "data.files={meta_data:'${kloppy_sample:skillcorner_match_data.json}',"
           "raw_data:'${kloppy_sample:skillcorner_structured_data.json}'}"]
 run = sys.argv[1]

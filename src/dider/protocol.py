@@ -12,7 +12,7 @@ rolls out from its own predictions. There are two ways to place the burn-in (``b
 A horizon h is the h-th predicted step after the burn-in: for ``global`` the frame ``burn_in + h - 1`` of
 every agent, for ``per_agent`` the agent's h-th present frame after its own burn-in. A forecast frame is scored
 only while the agent has been present since its last observed frame (:func:`scored_targets`). Test errors are
-reported at a few such horizons (``protocol.horizons``, which the data and the model configs read), each of
+reported at a few such horizons (``protocol.horizons``, which the model config reads), each of
 which must therefore lie in 1..T - burn_in.
 
 Absent agents (mask False) get zero states, the centre of the normalised range, so no NaN ever reaches
@@ -80,7 +80,7 @@ def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(mask[..., None], states, torch.zeros((), dtype=states.dtype))
 
 
-def horizons_problem(horizons: object, longest: int | None, key: str = "data.horizons", context: str = "",
+def horizons_problem(horizons: object, longest: int | None, key: str = "model.horizons", context: str = "",
                      integers: bool = False) -> str | None:
     """The one rule for forecast horizons: a non-empty list, each h in 1..longest (h is the h-th predicted
     step after the burn-in, so ``longest`` = clip length - burn_in; None while the clip length is unknown:
@@ -91,7 +91,7 @@ def horizons_problem(horizons: object, longest: int | None, key: str = "data.hor
     except (TypeError, ValueError):
         return f"{key}={horizons!r}: expected a list of ints"
     if integers and not all(isinstance(h, numbers.Integral) and not isinstance(h, bool) for h in hs):
-        hs = []  # reported with the range below
+        return f"{key}={list(horizons)}: each must be a whole number of steps"  # type: ignore[arg-type]
     if longest is None:
         return None if hs and min(hs) >= 1 else f"{key}={list(horizons)}: need at least one horizon >= 1"  # type: ignore[arg-type]
     if hs and min(hs) >= 1 and max(hs) <= longest:
@@ -99,33 +99,33 @@ def horizons_problem(horizons: object, longest: int | None, key: str = "data.hor
     return f"{key}={list(horizons)}: each must lie in 1..{longest}" + (f" ({context})" if context else "")  # type: ignore[arg-type]
 
 
-# What the data modules' protocol messages add: the key a config sets them by.
-SET_BY = " (protocol.{0} sets the data's and the model's)"
+# What the protocol's messages add: the key a config sets the model's values by.
+SET_BY = " (set by protocol.{0})"
 
 
 def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, where: str = "", *,
                    length_key: str | None = None, integers: bool = False) -> None:
-    """Raise a ValueError naming ``data.burn_in`` or ``data.horizons`` (a data module's arguments, which the
-    ``protocol`` node sets: the message says so) unless the burn-in is shorter than the clips and every horizon
-    fits after it (:func:`horizons_problem`).
+    """Raise a ValueError naming ``model.burn_in`` or ``model.horizons`` (which the ``protocol`` node sets: the
+    message says so) unless the burn-in is shorter than the clips and every horizon fits after it
+    (:func:`horizons_problem`).
 
-    seq_len: the clip length in steps, or None while it is unknown (data modules that learn it only when
-    they read their files): then only that there is a horizon and none is below 1. where: appended to the
-    clip length in messages (e.g. " in <file>"); length_key: the config key that sets the clip length,
-    named in messages instead of "<seq_len>-step clips"; integers: see :func:`horizons_problem`.
+    seq_len: the clip length in steps, or None while it is unknown: then only that there is a horizon and none is
+    below 1. where: appended to the clip length in messages (e.g. ", the test split's"); length_key: the config key
+    that sets the clip length, named in messages instead of "<seq_len>-step clips"; integers: see
+    :func:`horizons_problem`.
     """
     if seq_len is not None:
         if burn_in < 1:
-            raise ValueError(f"data.burn_in={burn_in}: must be >= 1{SET_BY.format('burn_in')}")
+            raise ValueError(f"model.burn_in={burn_in}: must be >= 1{SET_BY.format('burn_in')}")
         if length_key is None:
             clip, clips = f"the clips ({seq_len} steps{where})", f"{seq_len}-step clips{where}"
         else:
             clip, clips = f"the clip ({length_key}={seq_len})", f"{length_key}={seq_len}"
         if burn_in >= seq_len:
-            raise ValueError(f"data.burn_in={burn_in} must be shorter than {clip}{SET_BY.format('burn_in')}")
+            raise ValueError(f"model.burn_in={burn_in} must be shorter than {clip}{SET_BY.format('burn_in')}")
     longest = None if seq_len is None else seq_len - burn_in
-    context = "" if seq_len is None else f"the predicted steps after data.burn_in={burn_in} of {clips}"
-    if (found := horizons_problem(horizons, longest, context=context, integers=integers)) is not None:
+    context = "" if seq_len is None else f"the predicted steps after model.burn_in={burn_in} of {clips}"
+    if (found := horizons_problem(horizons, longest, "model.horizons", context, integers)) is not None:
         raise ValueError(found + SET_BY.format("horizons"))
 
 

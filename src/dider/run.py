@@ -161,8 +161,6 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
     take = _checkpoint_features(cfg, trained, "predict.force")
     with open_dict(cfg):
         cfg.data.update(take)
-        if "horizons" in cfg.data:  # the data's test horizons score nothing here: no clip length to fit them in
-            cfg.data.horizons = [1]
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
         raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "

@@ -17,8 +17,8 @@ from dider.validation import Rule, above, boolean, folder_name, integer, one_of,
 
 @dataclass
 class Protocol:
-    """The forecast protocol (:mod:`dider.protocol`), which the data and the model read alike (``conf/protocol``:
-    one per data set; ``protocol=NAME`` picks another)."""
+    """The forecast protocol (:mod:`dider.protocol`), which the model reads and checks against the clips
+    (``conf/protocol``: one per data set; ``protocol=NAME`` picks another)."""
 
     burn_in: Any = MISSING  # frames observed before the roll-out
     horizons: Any = MISSING  # test horizons: steps after the burn-in, each <= clip length - burn_in

@@ -31,7 +31,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from dider.data.loader import loader_node
+from dider.data.legacy import upgrade_data_node
 from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
 from dider.io import atomic_write_text
@@ -106,7 +106,7 @@ def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequenc
     cfg = run_config(run)
     ckpt = find_checkpoint(run)
     net = RelationalVAE.from_checkpoint(ckpt).eval()
-    datamodule = instantiate(loader_node(OmegaConf.to_container(cfg.data, resolve=True)), _convert_="all")
+    datamodule = instantiate(upgrade_data_node(OmegaConf.to_container(cfg.data, resolve=True)), _convert_="all")
     datamodule.setup("test")
     batches, seen = [], 0
     for batch in datamodule.test_dataloader():

@@ -1,6 +1,6 @@
 """Basketball player trajectories as a data module (the files and their reader:
-:mod:`dider.data.readers.basketball`). DNRI's setting is the default: the 5 offence players of Zhan et al.'s files,
-40 burn-in steps + 9 predicted (horizons 1/5/9).
+:mod:`dider.data.readers.basketball`). DNRI's setting is the default: the 5 offence players of Zhan et al.'s files
+(its forecast protocol, ``conf/protocol/basketball.yaml``: 40 burn-in steps + 9 predicted, horizons 1/5/9).
 
 The validation split is carved from the training file with a seeded permutation (``val_fraction``,
 ``seed``) when the files have none. Positions and velocities are normalised with the scalar min/max of
@@ -10,7 +10,7 @@ the training split (DNRI's scheme). All agents are present at every step (mask a
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import torch
@@ -22,7 +22,6 @@ from dider.data.loader import Loader
 from dider.data.readers import basketball
 from dider.data.readers.basketball import AGENT_COLUMNS
 from dider.data.tracks import Clips
-from dider.protocol import check_horizons
 from dider.validation import Rule, above, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)
@@ -61,14 +60,11 @@ class BasketballDataModule(ClipDataModule):
         val_fraction: float = 0.1,
         seed: int = 1,
         train_len: int | None = None,
-        burn_in: int = 40,
-        horizons: Sequence[int] = (1, 5, 9),
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "global",
     ) -> None:
         """format: auto (from the files in ``root``) | zhan | dnri.
         agents: the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (the ball and the 10).
@@ -79,7 +75,7 @@ class BasketballDataModule(ClipDataModule):
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
-        self.init_shared()  # the clip length is known once the files are read: horizons checked in setup
+        self.init_shared()
         self.format: str | None = None
 
     def _read(self) -> dict[str, Clips]:
@@ -104,9 +100,6 @@ class BasketballDataModule(ClipDataModule):
             return
         h = self.hparams
         raw = self._read()
-        # Forecasting needs the full clip at val/test; DNRI trains on shorter crops (train_len 40).
-        check_horizons(h.horizons, raw["test"].states.shape[1], h.burn_in, where=f" in {h.root}")
-        check_horizons(h.horizons, raw["val"].states.shape[1], h.burn_in, where=f" in {h.root}, validation")
         if h.train_len is not None:
             if h.train_len > raw["train"].states.shape[1]:
                 raise ValueError(f"data.train_len={h.train_len}: longer than the training clips "

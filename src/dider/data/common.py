@@ -27,8 +27,7 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 from dider.data.batch import Batch, Normalizer
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
-from dider.protocol import BURN_IN_MODES, check_horizons
-from dider.validation import Rule, integer, one_of, optional
+from dider.validation import Rule, integer, optional
 
 SPLITS = ("train", "val", "test")
 # The per-agent features of every batch, in order (raw units before normalisation).
@@ -240,15 +239,15 @@ class ClipDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
     Every subclass takes ``loader`` (the DataLoaders' settings, :class:`~dider.data.loader.Loader`: a mapping
-    that overrides its class's ``LOADER`` defaults key by key), ``burn_in``, ``horizons``, ``burn_in_mode``
-    (the forecast protocol, :mod:`dider.protocol`), ``num_train`` / ``num_val`` / ``num_test`` and
+    that overrides its class's ``LOADER`` defaults key by key), ``num_train`` / ``num_val`` / ``num_test`` and
     ``cache_dir``, with defaults of its own. Its ``__init__`` checks its arguments by its class's ``SETTINGS``
     (``check_settings(self, locals(), key="data")``: errors name ``data.<key>``), calls
     ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments of the ``__init__``
     that calls it, so hparams, and the checkpoints, hold every argument of the subclass) and then
-    :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``. A data config
-    picks the forecast protocol that its ``burn_in``, ``horizons`` and ``burn_in_mode`` interpolate, in its
-    defaults list: ``- /protocol@_global_.protocol: NAME`` (``conf/protocol``).
+    :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``. The forecast
+    protocol (burn-in, horizons) is the model's: it checks the clips against it (:meth:`clip_steps`); a data
+    config picks the protocol that suits its clips in its defaults list: ``- /protocol@_global_.protocol: NAME``
+    (``conf/protocol``).
 
     num_train, num_val, num_test: a cap on each split's clips (windows), evenly spread; null: all (the synthetic
     data set generates that many).
@@ -258,8 +257,8 @@ class ClipDataModule(L.LightningDataModule):
 
     # The rules of the shared arguments; a subclass adds its own (``ClipDataModule.SETTINGS | {...}``).
     SETTINGS: ClassVar[dict[str, Rule | type]] = {
-        "loader": Loader, "burn_in": integer(1), "burn_in_mode": one_of(*BURN_IN_MODES),
-        "num_train": optional(integer(1)), "num_val": optional(integer(1)), "num_test": optional(integer(1)),
+        "loader": Loader, "num_train": optional(integer(1)), "num_val": optional(integer(1)),
+        "num_test": optional(integer(1)),
     }
     LOADER = Loader()  # this data set's loader defaults
 
@@ -311,23 +310,15 @@ class ClipDataModule(L.LightningDataModule):
         train split)."""
         return self.normalizer if self.normalizer is not None else fit()
 
-    def init_shared(self, clip_len: int | None = None, *, length_key: str | None = None,
-                    integer_horizons: bool = False) -> None:
-        """Check the horizons in ``self.hparams`` and set ``loader`` and ``cache_dir``.
-
-        clip_len: the clip length in steps, which the horizons must fit in, or None when it is known only
-        once the data are read (the subclass then calls :func:`dider.protocol.check_horizons` in
-        ``setup``). length_key, integer_horizons: see :func:`dider.protocol.check_horizons`.
-        """
+    def init_shared(self) -> None:
+        """Set ``loader`` and ``cache_dir`` from ``self.hparams``."""
         h = self.hparams
         self.loader = replace(self.LOADER, **dict(h.loader or {}))
-        check_horizons(h.horizons, clip_len, h.burn_in, length_key=length_key, integers=integer_horizons)
         self.cache_dir = Path(h.cache_dir) if h.cache_dir else default_cache_dir()
 
-    @property
-    def burn_in_mode(self) -> str:
-        """How forecasts are observed before the roll-out: ``global`` or ``per_agent`` (:mod:`dider.protocol`)."""
-        return self.hparams.get("burn_in_mode", "global")
+    def clip_steps(self) -> dict[str, int]:
+        """Each built split's clip length in steps (after ``setup``), which the forecast protocol must fit."""
+        return {split: int(ds.states.shape[1]) for split, ds in self.datasets.items()}
 
     def background(self, split: str, index: int) -> tuple[object, tuple[float, float, float, float]] | None:
         """An image to draw clip ``index`` of ``split`` on, with its extent in the data's raw units (for

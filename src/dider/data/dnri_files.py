@@ -11,7 +11,7 @@ fitted on the whole train file, also when ``num_train`` uses fewer of its clips.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -22,7 +22,6 @@ from dider.data.clip_splits import capped, clip_datasets
 from dider.data.common import SPLITS, ClipDataModule
 from dider.data.loader import Loader
 from dider.data.readers import dnri_files
-from dider.protocol import check_horizons
 from dider.validation import Rule, check_settings, one_of
 
 log = logging.getLogger(__name__)
@@ -64,17 +63,14 @@ class DNRIFilesDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        burn_in: int = 5,
-        horizons: Sequence[int] = (1, 15, 25),
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "global",
     ) -> None:
         """root: the folder holding the six files (required)."""
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
-        self.init_shared()  # the clip length is known once the files are read: horizons checked in setup
+        self.init_shared()
         self.frame_step = 1
 
     def setup(self, stage: str | None = None) -> None:
@@ -89,8 +85,6 @@ class DNRIFilesDataModule(ClipDataModule):
             return
         raw = dnri_files.read(h.root)
         root = Path(h.root).expanduser()
-        for split, clips in raw.items():
-            check_horizons(h.horizons, clips.states.shape[1], h.burn_in, where=f" in {root / f'{split}_feats'}")
         try:
             self.normalizer = self.train_normalizer(lambda: fit_normalizer(raw["train"].states, h.normalization))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range

@@ -2,9 +2,9 @@
 
 The defaults follow the DNRI paper's inD setup: recordings in sorted order split 19 / 7 / 7 into train /
 val / test, features [xCenter, yCenter, xVelocity, yVelocity] (metres, m/s), 25 Hz downsampled by 10 to
-2.5 Hz, all road-user classes, min/max normalisation fitted on the present agents of the train split, and
-a burn-in of 5 steps per agent (``burn_in_mode=per_agent``: each agent is observed for its own first 5
-present steps, then rolled out; see :mod:`dider.protocol`).
+2.5 Hz, all road-user classes, min/max normalisation fitted on the present agents of the train split; its
+forecast protocol (``conf/protocol/ind.yaml``) observes each agent for its own first 5 present steps
+(``burn_in_mode=per_agent``, :mod:`dider.protocol`).
 
 Recordings are found and split by :mod:`dider.data.levelx.recordings`, read and validated by
 :mod:`dider.data.levelx.reading` and cut into packed windows of ``seq_len`` steps by
@@ -92,8 +92,6 @@ class InDDataModule(ClipDataModule):
         seq_len: int = 50,
         stride: int | None = None,
         eval_stride: int | None = None,
-        burn_in: int = 5,
-        horizons: Sequence[int] = (1, 20, 40),
         min_agent_steps: int = 1,
         min_agents: int = 2,
         max_agents: int | None = None,
@@ -102,7 +100,6 @@ class InDDataModule(ClipDataModule):
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "per_agent",
         pairs: dict[str, Any] | None = None,
         background_pattern: str = "{id}_background.png",
         background_scale: float = 12.0,
@@ -142,7 +139,7 @@ class InDDataModule(ClipDataModule):
         if len(features) != 4:
             raise ValueError(f"data.features={list(features)}: need 4 columns (x, y, x velocity, y velocity)")
         self.save_hyperparameters(logger=False)
-        self.init_shared(seq_len)  # after seq_len's own check above: the horizons must fit in it
+        self.init_shared()
         for key, pattern in [("tracks_pattern", tracks_pattern), ("tracks_meta_pattern", tracks_meta_pattern),
                              ("recording_meta_pattern", recording_meta_pattern)]:
             try:

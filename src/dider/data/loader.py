@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass, fields
-from typing import Any, ClassVar
+from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 from dider.validation import Rule, boolean, check_settings, integer
 
@@ -24,13 +23,3 @@ class Loader:
 
     def __post_init__(self) -> None:
         check_settings(self, asdict(self), key="data.loader")
-
-
-def loader_node(data: Mapping[str, Any]) -> dict[str, Any]:
-    """A data config (plain) with the loader's settings in its ``loader`` node, where a run folder's older config
-    has them at the top (``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory``)."""
-    names = [f.name for f in fields(Loader)]
-    node = {k: v for k, v in data.items() if k not in names}
-    if older := {k: data[k] for k in names if k in data}:
-        node["loader"] = {**older, **dict(data.get("loader") or {})}
-    return node

@@ -9,8 +9,7 @@ velocities each mapped to [-1, 1] by the training split's scalar min and max), m
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
-from pathlib import Path
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 from dider.data.batch import Normalizer
@@ -20,7 +19,6 @@ from dider.data.loader import Loader
 from dider.data.readers import nri_files, particles
 from dider.data.readers.particles import Simulation
 from dider.data.tracks import Clips
-from dider.protocol import check_horizons
 from dider.validation import Rule, check_settings, integer, optional
 
 log = logging.getLogger(__name__)
@@ -46,9 +44,6 @@ class NRIDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        burn_in: int = 29,
-        horizons: Sequence[int] = (1, 10, 20),
-        burn_in_mode: str = "global",
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
@@ -64,18 +59,13 @@ class NRIDataModule(ClipDataModule):
         self.save_hyperparameters(logger=False)
         self.simulation = None if simulate is None else Simulation(**dict(simulate))
         frames = None if simulate is None else self.simulation.num_frames  # files: checked in setup
-        self.init_shared(frames, length_key="data.simulate.num_frames", integer_horizons=True)
+        self.init_shared()
 
     def _read(self) -> dict[str, Clips]:
         h = self.hparams
         if self.simulation is not None:
             return particles.read(self.simulation, {s: getattr(h, f"num_{s}") for s in SPLITS}, self.cache_dir)
-        raw = nri_files.read(h.root, h.suffix)
-        for split, clips in raw.items():
-            frames = clips.states.shape[1]
-            check_horizons(h.horizons, frames, h.burn_in, where=f" in {Path(h.root).expanduser()} ({split}: "
-                                                                  f"{frames} frames)")
-        return raw
+        return nri_files.read(h.root, h.suffix)
 
     def prepare_data(self) -> None:
         if self.simulation is not None:

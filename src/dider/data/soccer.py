@@ -160,11 +160,8 @@ class SoccerDataModule(TableDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        burn_in: int = 5,
-        horizons: Sequence[int] = (1, 5, 10),
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "per_agent",
         max_speed: float | None = 12.0,
     ) -> None:
         """provider: kloppy's reader: hawkeye, skillcorner, metrica_csv, metrica_epts, tracab, sportec,
@@ -181,8 +178,7 @@ class SoccerDataModule(TableDataModule):
         The other settings as :class:`~dider.data.table.TableDataModule`'s."""
         check_settings(self, locals(), key="data")
         super().__init__(None, None, frame_rate or 1.0, downsample, seq_len, stride, min_agent_steps, min_agents,
-                         split, seed, num_train, num_val, num_test, burn_in, horizons, loader, cache_dir,
-                         burn_in_mode, max_speed)
+                         split, seed, num_train, num_val, num_test, loader, cache_dir, max_speed)
         self._rows: dict[str, Any] | None = None
 
     def _source(self) -> str:

@@ -42,13 +42,10 @@ class SynthDataModule(ClipDataModule):
         num_val: int = 1000,
         num_test: int = 1000,
         num_steps: int = 50,
-        burn_in: int = 5,
         push_factor: float = 0.05,
         loader: Mapping[str, Any] | None = None,
         seed: int = 1,
         cache_dir: str | None = None,
-        horizons: tuple[int, ...] = (1, 15, 25),
-        burn_in_mode: str = "global",
         push: str = "linear",
     ) -> None:
         """seed: the data seed (the top-level ``seed`` drives the model and training). push: the push's shape inside
@@ -57,7 +54,7 @@ class SynthDataModule(ClipDataModule):
         super().__init__()
         check_settings(self, locals(), key="data")
         self.save_hyperparameters(logger=False)
-        self.init_shared(num_steps, length_key="data.num_steps", integer_horizons=True)
+        self.init_shared()
 
     def _source(self) -> tuple[push.Settings, dict[str, int]]:
         h = self.hparams

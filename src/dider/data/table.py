@@ -211,11 +211,8 @@ class TableDataModule(ClipDataModule):
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
-        burn_in: int = 5,
-        horizons: Sequence[int] = (1, 5, 10),
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "per_agent",
         max_speed: float | None = None,
         reader: str = "table",
     ) -> None:
@@ -237,7 +234,7 @@ class TableDataModule(ClipDataModule):
             raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
         split_indices(10**4, split, seed)  # checks the form of split early; the window count comes later
         self.save_hyperparameters(logger=False)
-        self.init_shared(seq_len, length_key="data.seq_len")
+        self.init_shared()
         self.frame_step = downsample
         self.dt = downsample / frame_rate
 

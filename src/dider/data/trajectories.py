@@ -18,7 +18,6 @@ from dider.data.batch import Normalizer
 from dider.data.clip_splits import capped, clip_datasets
 from dider.data.common import ClipDataModule
 from dider.data.readers import trajectories
-from dider.protocol import check_horizons
 from dider.validation import Rule, above, check_settings
 
 log = logging.getLogger(__name__)
@@ -55,14 +54,11 @@ class TrajectoryDataModule(ClipDataModule):
         split: Sequence[float] = (0.8, 0.1, 0.1),
         seed: int = 1,
         frame_rate: float = 1.0,
-        burn_in: int = 5,
-        horizons: Sequence[int] = (1, 5, 10),
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        burn_in_mode: str = "per_agent",
     ) -> None:
         """path: the .npz file (required).
         split: train / val / test fractions of the clips (a permutation seeded by ``seed``).
@@ -71,7 +67,7 @@ class TrajectoryDataModule(ClipDataModule):
         check_settings(self, locals(), key="data")
         split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup
         self.save_hyperparameters(logger=False)
-        self.init_shared()  # the clip length is known once the file is read: horizons checked in setup
+        self.init_shared()
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
@@ -84,7 +80,6 @@ class TrajectoryDataModule(ClipDataModule):
             return
         clips = trajectories.read(h.path, h.frame_rate)
         path = Path(h.path).expanduser()
-        check_horizons(h.horizons, clips.states.shape[1], h.burn_in, where=f" in {path}")
         parts = {s: clips.select(idx) for s, idx in split_indices(len(clips), h.split, h.seed).items()}
         parts = capped(parts, {"train": h.num_train, "val": h.num_val, "test": h.num_test})
         train = parts["train"]

@@ -1,6 +1,6 @@
-"""Callbacks every training of the relational VAE runs with (``RelationalVAEModule.configure_callbacks``):
-evaluation that depends on the weights only, a guard that stops on NaN/inf naming where it came from, and a
-checkpoint saved when the run is terminated."""
+"""Callbacks every training of the relational VAE runs with (``RelationalVAEModule.configure_callbacks``): the
+forecast protocol checked against the clips, evaluation that depends on the weights only, a guard that stops on
+NaN/inf naming where it came from, and a checkpoint saved when the run is terminated."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ import lightning as L
 import torch
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from dider.protocol import check_horizons
 from dider.training.rng import rng_state, set_rng_state
 
 log = logging.getLogger(__name__)
@@ -21,6 +22,21 @@ log = logging.getLogger(__name__)
 
 class NonFiniteError(FloatingPointError):
     """A NaN/inf loss term or gradient during training: the message names the step, batch and term."""
+
+
+class ProtocolFits(L.Callback):
+    """Once the data are read, before any step: the model's burn-in and horizons must fit the clips it forecasts
+    (validation's in a fit, the test's in a test), named by the model's keys. Training clips may be shorter (DNRI
+    trains basketball on 40-step crops); prediction checks its own forecast length."""
+
+    SPLITS = {"fit": ("val",), "validate": ("val",), "test": ("test",)}
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        steps = getattr(trainer.datamodule, "clip_steps", dict)()
+        h = pl_module.hparams
+        for split in self.SPLITS.get(stage, ()):
+            if split in steps:
+                check_horizons(h.horizons, steps[split], h.burn_in, where=f", the {split} split's", integers=True)
 
 
 class EvalRandomState(L.Callback):

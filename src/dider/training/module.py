@@ -40,7 +40,7 @@ from dider.models.checkpoint_format import network_config, read, stamp, upgrade
 from dider.models.plugins import Progress
 from dider.models.vae import Inference, RelationalVAE, plain_config
 from dider.protocol import agent_horizons, scored_targets
-from dider.training.callbacks import EvalRandomState, FiniteGuard, ResumeMidEpoch, SaveOnTerminate
+from dider.training.callbacks import EvalRandomState, FiniteGuard, ProtocolFits, ResumeMidEpoch, SaveOnTerminate
 from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
 from dider.training.step_metrics import EpochMeans
@@ -178,7 +178,7 @@ class RelationalVAEModule(L.LightningModule):
 
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []
-        return [EvalRandomState(self.hparams.eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]
+        return [ProtocolFits(), EvalRandomState(self.hparams.eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]
 
     def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
         """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""

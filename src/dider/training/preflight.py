@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 MODES = ("train", "eval", "predict")
 
 # The key holding the clip length of each data module that knows it from its config alone.
-CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len")
+CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len", "data.simulate.num_frames")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -113,17 +113,17 @@ def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
 
 def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
     """The forecast protocol's burn-in and horizons against the clip length, where the config states it, and the
-    data's or the model's own where an override set them apart from the protocol (``predict.burn_in`` is checked
-    against the clips once they are read)."""
+    model's own where an override set them apart from the protocol (files are checked once they are read, and
+    ``predict.burn_in`` against the clips it forecasts)."""
     problems = []
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
     protocol = {key: get(f"protocol.{key}") for key in ("burn_in", "horizons")}
-    for section in ("protocol", "data", "model"):
+    for section in ("protocol", "model"):
         values = {key: get(f"{section}.{key}") for key in ("burn_in", "horizons")}
         if section != "protocol" and values == protocol:
             continue  # the protocol's, checked above
-        burn_in = values["burn_in"]  # its own rule (an integer >= 1) is among the data's SETTINGS and RULES
+        burn_in = values["burn_in"]  # its own rule (an integer >= 1) is among the protocol's SETTINGS
         burn_in = burn_in if isinstance(burn_in, int) and burn_in >= 1 else None
         if burn_in is not None and isinstance(clip, int) and burn_in >= clip:
             problems.append(f"{section}.burn_in={burn_in}: must be shorter than the clips ({clip_key}={clip})")
@@ -132,7 +132,8 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
         longest = clip - burn_in if isinstance(clip, int) and isinstance(burn_in, int) else None
         longest = longest if longest is not None and longest >= 1 else None  # else burn_in is reported above
         context = f"the predicted steps after {section}.burn_in={burn_in} of {clip_key}={clip}"
-        if (found := horizons_problem(values["horizons"], longest, f"{section}.horizons", context)) is not None:
+        found = horizons_problem(values["horizons"], longest, f"{section}.horizons", context, integers=True)
+        if found is not None:
             problems.append(found)
     return problems
 
@@ -202,16 +203,11 @@ TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allo
 
 
 def config_warnings(cfg: DictConfig) -> list[str]:
-    """Settings that are valid but probably not meant, each named: a run that trains nothing, a burn-in the
-    model and the data disagree on, top-level keys nothing reads (a `+key=value` typo)."""
+    """Settings that are valid but probably not meant, each named: a run that trains nothing, bf16 emulated on a
+    CPU, top-level keys nothing reads (a `+key=value` typo)."""
     found = []
     if cfg.get("mode") == "train" and OmegaConf.select(cfg, "trainer.max_epochs") == 0:
         found.append("trainer.max_epochs=0: nothing is trained; the test scores the initial weights")
-    for key in ("burn_in", "horizons", "burn_in_mode"):  # both read protocol.<key>, unless one was overridden
-        model_v, data_v = OmegaConf.select(cfg, f"model.{key}"), OmegaConf.select(cfg, f"data.{key}")
-        if model_v is not None and data_v is not None and model_v != data_v:
-            found.append(f"model.{key}={model_v} differs from data.{key}={data_v}: the model forecasts and scores "
-                         f"by its own, the data module checks its clips by the data's; set protocol.{key} for both")
     precision, accelerator = OmegaConf.select(cfg, "trainer.precision"), OmegaConf.select(cfg, "trainer.accelerator")
     if "bf16" in str(precision) and trains_on_cpu(accelerator) and not native_bf16("cpu"):
         found.append(f"trainer.precision={precision}: this CPU has no native bf16 (no AVX-512), so autocast "
