@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from dider.data.common import check_finite
+from dider.data.readers.folder import data_root
 from dider.data.tracks import Clips
 
 log = logging.getLogger(__name__)
@@ -109,12 +110,8 @@ def load_dnri(root: Path, split: str) -> torch.Tensor:
 def read(root: str | Path | None, format: str = "auto", agents: str = "offence",
          frame_rate: float = 6.25) -> tuple[str, dict[str, Clips]]:
     """(the format read, 'zhan' or 'dnri'; its splits: train and test, and val where the files have one)."""
-    if root is None:
-        raise ValueError("data.root is not set: point it at the folder with train.npz/test.npz (Zhan et "
-                         "al.) or {loc,vel}_{train,valid,test}_bball.npy (DNRI)")
-    folder = Path(root).expanduser()
-    if not folder.is_dir():
-        raise FileNotFoundError(f"data.root={folder}: no such folder")
+    folder = data_root(root, "the folder with train.npz/test.npz (Zhan et al.) or "
+                             "{loc,vel}_{train,valid,test}_bball.npy (DNRI)")
     fmt = detect_format(folder) if format == "auto" else format
     if fmt == "zhan":
         pair = next((p for p in ZHAN_FILES if all((folder / f).is_file() for f in p)), ZHAN_FILES[0])

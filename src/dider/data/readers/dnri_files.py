@@ -31,6 +31,7 @@ from pathlib import Path
 import torch
 
 from dider.data.common import SPLITS, check_finite
+from dider.data.readers.folder import data_root
 from dider.data.tracks import Clips
 from dider.graph import num_edges
 
@@ -94,12 +95,7 @@ def load_split(root: Path, split: str) -> tuple[torch.Tensor, torch.Tensor]:
 def read(root: str | Path | None, splits: Sequence[str] = SPLITS) -> dict[str, Clips]:
     """The ``splits`` of the folder ``root`` (``data.root``) as clips: edges[:, 1:] for the transitions t -> t+1,
     ids ``clip`` (the clip's index in its file)."""
-    if root is None:
-        raise ValueError("data.root is not set: point it at the folder with the DNRI code's train_feats, "
-                         "train_edges, val_feats, ... files")
-    folder = Path(root).expanduser()
-    if not folder.is_dir():
-        raise FileNotFoundError(f"data.root={folder}: no such folder")
+    folder = data_root(root, "the folder with the DNRI code's train_feats, train_edges, val_feats, ... files")
     out = {}
     for split in splits:
         feats, edges = load_split(folder, split)

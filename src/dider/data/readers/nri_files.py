@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from dider.data.common import SPLITS, check_finite
+from dider.data.readers.folder import data_root
 from dider.data.tracks import Clips
 from dider.graph import edge_index
 from dider.io import atomic_write
@@ -76,11 +77,7 @@ def read_nri_split(root: Path, split: str, suffix: str) -> tuple[torch.Tensor, t
 def read(root: str | Path | None, suffix: str) -> dict[str, Clips]:
     """Every split's files in the folder ``root`` (``data.root``) as clips, ids ``clip`` (the clip's index in its
     file)."""
-    if not root:
-        raise ValueError("data.root is not set: point it at a folder of NRI's .npy files (or set data.simulate)")
-    folder = Path(root).expanduser()
-    if not folder.is_dir():
-        raise FileNotFoundError(f"data.root={folder}: no such folder")
+    folder = data_root(root, "a folder of NRI's .npy files (or set data.simulate)")
     out = {}
     for split in SPLITS:
         states, edges = read_nri_split(folder, split, suffix)
