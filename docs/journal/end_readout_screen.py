@@ -2,8 +2,11 @@
 
 Each seed's tested checkpoint is tested again on the same 500 test clips with the end read three ways: ``threshold``
 (the first candidate whose posterior hazard passes 0.5, else the clip's end: the shipped readout), ``mode`` (the
-mode of q(end)) and ``hybrid`` (the threshold's end, or q(end)'s mode where no candidate passes and the segment would
-run to the clip's end). Sampled futures are off (``samples=0``); everything else is the run's test pass.
+mode of q(end)), ``hybrid`` (the threshold's end, or q(end)'s mode where no candidate passes and the segment would
+run to the clip's end) and ``hybrid_held`` (the hybrid for segments that hold an interaction only: a "none" segment
+that no hazard ends runs to the clip's end). Every readout cuts with all starts at once (``sync_free``), which reads
+the same ends as the CPU's segment-by-segment cut. Sampled futures are off (``samples=0``); everything else is the
+run's test pass.
 
     python docs/journal/end_readout_screen.py multirun/fix_t025_s4 multirun/fix_t025_s3 multirun/fix_t025_s2 \
         multirun/indiff_t025_s1 --out docs/records/end_readout_screen.json
@@ -38,10 +41,30 @@ def hybrid(logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor, value
     return torch.where(end >= logits.shape[-1], mode, end)
 
 
+HELD: dict[str, torch.Tensor] = {}  # "interaction": [B, E, S] whether the segment starting at each step holds one
+_every_start = segment_end.SegmentEnd._every_start
+
+
+def every_start_noting_types(self, feats, steps, types, fixed, value):  # noqa: ANN001, ANN201
+    """The plugin's cut with all starts at once, noting the type each start's segment holds (read at its start)."""
+    HELD["interaction"] = types[..., 1:].sum(-1) > 0.5
+    return _every_start(self, feats, steps, types, fixed, value)
+
+
+def hybrid_held(logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor, value: torch.Tensor,
+                threshold: float = 0.5) -> torch.Tensor:
+    """The hybrid's end for a segment holding an interaction; the decided end (or the clip's end) for a "none" one."""
+    end = decided_end(logits, start, fixed, value, threshold)
+    mode = end_log_probs(logits, start, fixed, value).argmax(-1)
+    return torch.where((end >= logits.shape[-1]) & HELD["interaction"], mode, end)
+
+
+segment_end.SegmentEnd._every_start = every_start_noting_types
 READOUTS = {  # name -> (the plugin's end_readout, the functions segment_end calls for it)
     "threshold": ("threshold", {"decided_end": decided_end}),
     "mode": ("median", {"median_end": lambda log_q: log_q.argmax(-1)}),
     "hybrid": ("threshold", {"decided_end": hybrid}),
+    "hybrid_held": ("threshold", {"decided_end": hybrid_held}),
 }
 
 
@@ -62,6 +85,7 @@ def main() -> None:
             module = RelationalVAEModule.load_from_checkpoint(meta["checkpoint"], map_location="cpu")
             module.hparams.samples = 0
             module.model.duration.end_readout = readout
+            module.model.duration.sync_free = True
             dm = SynthDataModule(num_train=10000, num_val=200, num_test=500, loader={"eval_batch_size": 250})
             trainer = L.Trainer(accelerator="cpu", max_epochs=16, logger=False, enable_progress_bar=False,
                                 enable_model_summary=False)
