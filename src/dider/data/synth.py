@@ -67,7 +67,8 @@ class SynthDataModule(ClipDataModule):
 
     def prepare_data(self) -> None:
         settings, sizes = self._source()
-        push.read(settings, {s: n for s, n in sizes.items() if not self._path(s).exists()}, self.cache_dir)
+        missing = {s: n for s, n in sizes.items() if not push.cache_path(settings, s, n, self.cache_dir).exists()}
+        push.read(settings, missing, self.cache_dir)
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
