@@ -93,6 +93,32 @@ def test_evaluation_reads_each_segments_median_or_decided_end():
     assert plugin.segment(h_fwd, h_rev, torch.zeros(1)).valid.all()
 
 
+def test_held_mode_ends_an_undecided_interaction_at_its_mode():
+    """Posterior hazard 0.2 at every step (none passes 1/2), 26 steps: from a start s, q(end = s + 1) = 0.2 and the
+    mass left for the clip's end 0.8^(25 - s), so q(end)'s mode is the next step for s <= 17 (0.8^(25 - s) < 0.2
+    needs 25 - s > 7.2). Edge 0 holds an interaction at every step: segments start at 0..18, and the one at 18 runs
+    on (its mode is the clip's end: 0.8^7 = 0.21 > 0.2). Edge 1 holds "none":
+    no decided end, one segment (as ``threshold`` reads every edge). Edge 2 holds an interaction at steps 0-2, then
+    "none": boundaries at 0, 1, 2, 3 and the "none" segment from 3 runs on."""
+    plugin = SegmentEnd(rnn_hidden=8, hidden=8).eval()
+    assert plugin.end_readout == "held_mode"
+    constant_hazards(plugin, math.log(0.2 / 0.8), 0.0)
+    h_fwd, h_rev = torch.randn(1, 3, 26, 8), torch.randn(1, 3, 26, 8)
+    interaction = torch.zeros(1, 3, 26, dtype=torch.bool)
+    interaction[0, 0], interaction[0, 2, :3] = True, True
+    types = torch.stack([~interaction, interaction], -1).float()
+    for every_start in (True, False):
+        plugin.sync_free = every_start
+        valid = plugin.segment(h_fwd, h_rev, None, types=types).valid[0]
+        assert valid[0].nonzero().view(-1).tolist() == list(range(19))
+        assert valid[1].nonzero().view(-1).tolist() == [0]
+        assert valid[2].nonzero().view(-1).tolist() == [0, 1, 2, 3]
+    plugin.end_readout = "threshold"
+    assert plugin.segment(h_fwd, h_rev, None, types=types).valid.sum(-1).eq(1).all()
+    plugin.end_readout = "held_mode"  # without the posterior's types (NRI's burn-in edges): the threshold's ends
+    assert plugin.segment(h_fwd, h_rev, None).valid.sum(-1).eq(1).all()
+
+
 def test_duration_kl_is_the_exact_kl_of_each_segment():
     """One segment per edge (hazard ~0 under both): q puts all its mass on the clip's end. With rate_mix = 1 the
     KL is -log p(no boundary in 9 free steps) = -9 log(1 - rate), per edge-step."""
@@ -233,14 +259,16 @@ class SharedNoise(SegmentEnd):
 @pytest.mark.parametrize("reads", ["position", "remaining"])
 @pytest.mark.parametrize("burn_in", [None, 5])
 @pytest.mark.parametrize("agents_come_and_go", [False, True])
-def test_every_start_at_once_cuts_as_segment_after_segment(reads, burn_in, agents_come_and_go):
+@pytest.mark.parametrize("end_readout", ["held_mode", "threshold"])
+def test_every_start_at_once_cuts_as_segment_after_segment(reads, burn_in, agents_come_and_go, end_readout):
     """The GPU's path (every candidate start at once, the chain by pointer jumping) and the CPU's (one pass per
     segment) give the same cut and duration KL in evaluation, and in training with the same noise per start the same
     draws, KL and gradients."""
     from helpers.fixtures import comings_and_goings
 
     torch.manual_seed(0)
-    plugin = SharedNoise(rnn_hidden=8, hidden=16, reads=reads, burn_in=burn_in, rate=0.15, num_types=3)
+    plugin = SharedNoise(rnn_hidden=8, hidden=16, reads=reads, burn_in=burn_in, rate=0.15, num_types=3,
+                         end_readout=end_readout)
     h_fwd, h_rev = torch.randn(3, 6, 20, 8), torch.randn(3, 6, 20, 8)
     types = torch.randn(3, 6, 20, 3).softmax(-1)  # the posterior's types at each start, which the prior reads
     present = comings_and_goings(3, 6, 20) if agents_come_and_go else None

@@ -5,7 +5,11 @@ and what it scores, so that ``dider.load(NAME)`` and ``ckpt_path=NAME`` find it.
         --evaluate experiment=synth_protocol model=dider data.num_test=100
 
 The evaluation command (``mode=eval ckpt_path=NAME`` and the given overrides) runs here, in a fresh process, and
-its test metrics go into the record; the shipped test (tests/test_shipped.py) runs it again and compares.
+its test metrics go into the record; the shipped test (tests/test_shipped.py) runs it again and compares. When a
+change of the evaluation's defaults changes what a shipped model scores, ``--rescore NAME`` runs its recorded
+command again and records the new metrics (the checkpoint and how it was trained stay):
+
+    python -m dider.analysis.ship --rescore synth/dider
 """
 
 from __future__ import annotations
@@ -67,13 +71,31 @@ def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any
     return entries[name]
 
 
+def rescore(name: str) -> dict[str, Any]:
+    """Score the shipped model ``name`` again with its recorded command and write the metrics into its record."""
+    entries = dict(catalog())
+    if name not in entries:
+        raise SystemExit(f"--rescore: no shipped model {name!r} (shipped: {', '.join(sorted(entries))})")
+    entries[name] = {**entries[name], "metrics": evaluate(name, entries[name]["evaluate"])}
+    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
+    catalog.cache_clear()
+    return entries[name]
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a trained run folder (or a checkpoint file)")
-    parser.add_argument("name", help="the name to ship it under, e.g. synth/dider")
-    parser.add_argument("--what", required=True, help="one line on what it is")
+    parser.add_argument("run", type=Path, nargs="?", help="a trained run folder (or a checkpoint file)")
+    parser.add_argument("name", nargs="?", help="the name to ship it under, e.g. synth/dider")
+    parser.add_argument("--what", help="one line on what it is (required to ship)")
     parser.add_argument("--evaluate", nargs="*", default=[], help="the overrides of its scoring command")
+    parser.add_argument("--rescore", metavar="NAME", help="score a shipped model again with its recorded command")
     args = parser.parse_args(argv)
+    if args.rescore:
+        record = rescore(args.rescore)
+        print(f"{args.rescore}: {len(record['metrics'])} test metrics scored again")
+        return
+    if args.run is None or args.name is None or not args.what:
+        parser.error("shipping needs RUN, NAME and --what (or --rescore NAME)")
     record = ship(args.run, args.name, args.what, args.evaluate)
     size = (HERE / record["file"]).stat().st_size
     print(f"{args.name}: {HERE / record['file']} ({size / 1e6:.2f} MB), {len(record['metrics'])} test metrics")

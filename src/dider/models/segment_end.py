@@ -24,7 +24,10 @@ For an edge's segment k starting at s_k, holding type z_k:
 - segment k + 1 exists where segment k ends before the clip's end: its edge KL and duration KL are weighted by
   that straight-through indicator, so the number of segments has a gradient;
 - evaluation reads each segment's end where it is decided (``end_readout: threshold``: the first candidate whose
-  posterior hazard passes 1/2), or at the median of q(end) (``median``);
+  posterior hazard passes 1/2), or at the median of q(end) (``median``); ``held_mode`` (the default) reads the
+  decided end too, but a segment holding an interaction (a type other than 0, "none") that no candidate ends takes
+  q(end)'s mode instead of running to the next fixed boundary: a push the hazard never closes would otherwise hold
+  its interaction to the clip's end, while a "none" segment with no decided end rightly runs on;
 - every candidate start's end categorical is computed at once and the chain of segments from step 0 followed by
   pointer jumping: the same cut as drawing segment after segment, in a fixed number of steps (no host
   synchronisation, one CUDA graph);
@@ -67,7 +70,8 @@ class SegmentEnd(HazardPrior):
 
     ``temperature``: of the Gumbel-softmax over the candidate ends. ``reads``: ``position`` (DIDER) or
     ``remaining`` (SKID). ``end_readout``: where evaluation reads a segment's end, ``threshold`` (where its hazard
-    passes 1/2) or ``median``. ``online_prior``: the prior hazard reads the held type and the segment's age besides
+    passes 1/2), ``held_mode`` (the threshold's end, or q(end)'s mode for a segment holding an interaction that no
+    candidate ends) or ``median``. ``online_prior``: the prior hazard reads the held type and the segment's age besides
     the past (``held_type``) or the past alone (``past``; online, a segment then also ends where the prior's type
     flips). ``num_types``: the edge types (the held type's outputs). ``rate``, ``rate_mix``, ``online_threshold``
     and ``burn_in``: :class:`~dider.models.hazard.HazardPrior` (the fixed ``rate``, mixed into the prior, is what a
@@ -75,7 +79,8 @@ class SegmentEnd(HazardPrior):
     """
 
     SETTINGS = HazardPrior.SETTINGS | {
-        "temperature": above(0), "reads": one_of("position", "remaining"), "end_readout": one_of("threshold", "median"),
+        "temperature": above(0), "reads": one_of("position", "remaining"),
+        "end_readout": one_of("held_mode", "threshold", "median"),
         "online_prior": one_of("held_type", "past"), "num_types": integer(1),  # >= 2: the network's num_edges says
     }
     SHAPES: ClassVar[tuple[str, ...]] = ("reads", "online_prior")  # non-integer settings that fix parameter shapes
@@ -90,7 +95,7 @@ class SegmentEnd(HazardPrior):
         online_threshold: float = 0.5,
         burn_in: int | None = None,
         reads: str = "position",
-        end_readout: str = "threshold",
+        end_readout: str = "held_mode",
         online_prior: str = "held_type",
         num_types: int = 2,
     ) -> None:
@@ -151,11 +156,11 @@ class SegmentEnd(HazardPrior):
         return -torch.empty_like(log_q).exponential_().log()
 
     def _draw(self, log_q: torch.Tensor, logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor,
-              value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+              value: torch.Tensor, interaction: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Each segment's end from its categorical log_q [..., T+1] (its hazards' logits [..., T], start [...]
-        long): drawn in training with a straight-through Gumbel-softmax, read in evaluation (``end_readout``) -> the
-        end [...] long and its straight-through one-hot [..., T+1] (exactly one-hot forward, the soft sample's
-        gradient)."""
+        long): drawn in training with a straight-through Gumbel-softmax, read in evaluation (``end_readout``;
+        ``interaction`` [...] bool: whether the segment holds an interaction, None: not known) -> the end [...] long
+        and its straight-through one-hot [..., T+1] (exactly one-hot forward, the soft sample's gradient)."""
         t = log_q.shape[-1] - 1
         if self.training:
             # exp(z - logsumexp z), not F.softmax: ATen's softmax over a long row rounds with the CPU's vector
@@ -163,8 +168,10 @@ class SegmentEnd(HazardPrior):
             z = (log_q + self.gumbel(log_q, start)) / self.temperature
             soft = (z - z.logsumexp(-1, keepdim=True)).exp()
             end = soft.argmax(-1)
-        elif self.end_readout == "threshold":
+        elif self.end_readout != "median":
             soft, end = None, decided_end(logits, start, fixed, value)
+            if interaction is not None:  # held_mode: an interaction no candidate ends stops at q(end)'s mode
+                end = torch.where((end >= t) & interaction, log_q.argmax(-1), end)
         else:
             soft, end = None, median_end(log_q)
         # a segment ends after its start, whatever the numbers (NaN hazards would otherwise hold it there)
@@ -194,19 +201,29 @@ class SegmentEnd(HazardPrior):
         fixed, value = fixed.expand(b, e, t), value.expand(b, e, t)
         feats = torch.cat([h_fwd, h_rev], -1)
         steps, width = self.prior.steps(h_fwd), self.prior.width  # [B, E, T, K']
+        held_types = types
         if not self.prior.held or types is None:
             types = steps.new_full((b, e, t, width), 1.0 / width)
         every_start = h_fwd.is_cuda if self.sync_free is None else self.sync_free
         cut = self._every_start if every_start else self._segment_by_segment
-        ends, kl = cut(feats, steps, types.float(), fixed, value)
+        ends, kl = cut(feats, steps, types.float(), fixed, value, self._holds_interaction(held_types))
         gate = torch.where(fixed, value.to(ends.dtype), ends[..., :t])  # step 0 is fixed: the first segment's start
         n = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
         slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
         valid = gate.detach() > 0.5
         return Segmentation(slots, valid, hold_assignment(gate), kl.sum(1) / n, weight=gate, fixed=fixed)
 
+    def _holds_interaction(self, types: torch.Tensor | None) -> torch.Tensor | None:
+        """Whether the segment starting at each step holds an interaction, where evaluation's end readout needs it:
+        types [B, E, T, K] (the posterior's, read at the start) -> [B, E, T] bool, or None (not needed, or no types
+        given: every end read by the threshold)."""
+        if self.training or self.end_readout != "held_mode" or types is None:
+            return None
+        return types[..., 1:].float().sum(-1) > 0.5
+
     def _every_start(self, feats: torch.Tensor, steps: torch.Tensor, types: torch.Tensor, fixed: torch.Tensor,
-                     value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                     value: torch.Tensor, interaction: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The cut with every candidate start's end categorical at once ([B, E, S, T+1]: given the features, the
         ends of different starts are independent), one end drawn (or read) per start, and the chain of segments
         from step 0 found by pointer jumping (log2 T gathers): a fixed number of operations, no host
@@ -217,7 +234,7 @@ class SegmentEnd(HazardPrior):
         logits = self.posterior_logits(feats, self.candidates(feats))  # [B, E, S, T]
         log_q = end_log_probs(logits, at_start, fixed_s, value_s)  # [B, E, S, T+1]
         seg_kl = self._kl(log_q, self.prior.of_start(steps, starts), types, at_start, fixed_s, value_s)
-        end, drawn = self._draw(log_q, logits, starts.expand(*log_q.shape[:-1]), fixed_s, value_s)
+        end, drawn = self._draw(log_q, logits, starts.expand(*log_q.shape[:-1]), fixed_s, value_s, interaction)
         on = chain_from_zero(end).to(log_q.dtype)  # [B, E, S]: the starts of the segments from step 0
         ends = (on.unsqueeze(-1) * drawn).sum(2)  # the chain's drawn ends (fp32, not a matmul under autocast)
         # a segment exists (weight 1 forward) where the previous one's drawn end opens it: the straight-through value
@@ -228,7 +245,8 @@ class SegmentEnd(HazardPrior):
         return ends, (seg_kl * exists * on).sum(-1)
 
     def _segment_by_segment(self, feats: torch.Tensor, steps: torch.Tensor, types: torch.Tensor,
-                            fixed: torch.Tensor, value: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                            fixed: torch.Tensor, value: torch.Tensor, interaction: torch.Tensor | None = None
+                            ) -> tuple[torch.Tensor, torch.Tensor]:
         """The same cut drawn segment after segment (one pass per segment, vectorised over batch and edges, at most
         T passes whatever the numbers): on a CPU cheaper than every start at once (a pass costs a T-th of it),
         but each pass asks the host whether an edge still runs."""
@@ -247,7 +265,8 @@ class SegmentEnd(HazardPrior):
             held = types.gather(2, start.clamp(max=t - 1)[..., None, None].expand(-1, -1, 1, types.shape[-1]))
             seg_kl = self._kl(log_q, self.prior.of_start(steps, start), held.squeeze(2), start, fixed, value)
             kl = kl + seg_kl * exists * running
-            end, drawn = self._draw(log_q, logits, start, fixed, value)
+            held_on = None if interaction is None else interaction.gather(2, start.clamp(max=t - 1).unsqueeze(-1))
+            end, drawn = self._draw(log_q, logits, start, fixed, value, None if held_on is None else held_on.squeeze(2))
             ends = ends + drawn * running.unsqueeze(-1)
             # the next segment's existence: forced where the end is a fixed boundary, else the drawn end's
             opens = drawn.gather(-1, end.unsqueeze(-1)).squeeze(-1)
