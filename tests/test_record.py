@@ -128,3 +128,23 @@ def test_a_baseline_with_none_of_a_quantity_pairs_without_a_ratio():
 
     diff = paired({1: 0.5, 2: 0.7}, {1: 0.0, 2: 0.0})
     assert diff["mean"] == pytest.approx(0.6) and diff["below"] == 0 and math.isnan(diff["ratio_of_means"])
+
+
+def test_a_baseline_can_come_from_a_committed_record(tmp_path):
+    """--jobs-from RECORD:MODEL pairs new jobs against a model's jobs as an earlier record holds them (the run
+    folders gone): differences 1 - 2 and 3 - 5 by seed."""
+    for seed, b in {1: 2.0, 2: 5.0}.items():
+        fake_job(tmp_path / "old", f"dnri{seed}", "dnri", seed, b)
+    old = tmp_path / "old.json"
+    main([str(tmp_path / "old"), "--out", str(old)])
+    for seed, a in {1: 1.0, 2: 3.0}.items():
+        fake_job(tmp_path / "new", f"gate{seed}", "gate", seed, a)
+    record = main([str(tmp_path / "new"), "--out", str(tmp_path / "rec.json"), "--baseline", "dnri",
+                   "--jobs-from", f"{old}:dnri", "--metric", "test/mse/h15"])
+    diff = record["models"]["gate"]["test/mse/h15"]["vs_dnri"]
+    assert diff["n"] == 2 and diff["mean"] == pytest.approx(-1.5) and diff["se"] == pytest.approx(0.5)
+    borrowed = [j for j in record["jobs"] if j["model"] == "dnri"]
+    assert len(borrowed) == 2 and {j["recorded_in"] for j in borrowed} == {str(old)}
+    assert all(set(j["metrics"]) == {"test/mse/h15"} for j in borrowed)
+    with pytest.raises(ValueError, match="records no job of model 'nri'.*dnri"):
+        main(["--out", str(tmp_path / "x.json"), "--jobs-from", f"{old}:nri"])

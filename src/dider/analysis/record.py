@@ -11,6 +11,10 @@ model's name and seed (with ``--curve``, a metric's course over the epochs too),
 jobs, and per model the mean, sample std, min and max of each metric and, against ``--baseline``, the mean and
 standard error of the difference model - baseline over the seeds both have. The documentation quotes these
 files, so each of its figures comes with its record.
+
+``--jobs-from RECORD:MODEL`` takes a model's jobs from a committed record as it recorded them (their metrics, curves
+and provenance; the run folders need not exist any more), for a new configuration paired against a baseline that
+was run and recorded before.
 """
 
 from __future__ import annotations
@@ -137,13 +141,32 @@ def paired(model: dict[int, float], baseline: dict[int, float]) -> dict[str, flo
             "ratio_of_means": sum(model[s] for s in seeds) / total if total else math.nan}
 
 
+def recorded_jobs(spec: str, metrics: Sequence[str]) -> list[dict[str, Any]]:
+    """``RECORD:MODEL`` -> the jobs of MODEL in the record file RECORD, as recorded (the kept ``metrics`` only), each
+    naming the record it came from."""
+    path, sep, model = spec.rpartition(":")
+    if not sep or not path or not model:
+        raise ValueError(f"--jobs-from {spec}: expected RECORD:MODEL, e.g. docs/records/protocol.json:dnri")
+    try:
+        record = json.loads(Path(path).read_text())
+        jobs = [j for j in record["jobs"] if j["model"] == model]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"--jobs-from {spec}: {path} is not a readable record ({type(e).__name__}: {e})") from None
+    if not jobs:
+        raise ValueError(f"--jobs-from {spec}: {path} records no job of model {model!r}; its models: "
+                         f"{sorted({j['model'] for j in record['jobs']})}")
+    return [dict(j, metrics={k: v for k, v in j["metrics"].items() if k in metrics}, recorded_in=path)
+            for j in jobs]
+
+
 def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, command: str | None,
           label: str = "name", by_overrides: bool = True, curves: Sequence[str] = (),
-          rename: dict[str, str] | None = None) -> dict[str, Any]:
+          rename: dict[str, str] | None = None, borrowed: Sequence[str] = ()) -> dict[str, Any]:
     """rename: a group's label -> the label it is recorded under (one configuration spelt by two sets of
-    overrides, recorded as one model)."""
+    overrides, recorded as one model). borrowed: ``RECORD:MODEL`` specs (:func:`recorded_jobs`), added under their
+    recorded labels."""
     jobs, unfinished = [], []
-    for folder in job_folders(paths):
+    for folder in job_folders(paths) if paths else ():
         record, state = read_job(folder)
         if record is None:
             log.warning("%s: %s; left out of the record", folder, state)
@@ -159,10 +182,10 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
         if curves:
             job["curves"] = logged_curves(folder, curves)
         jobs.append(job)
-    if not jobs:
+    if not jobs and not borrowed:
         raise FileNotFoundError(f"{', '.join(map(str, paths))}: no finished job ({len(unfinished)} running or failed)")
     # a job's group: its model's name and the overrides that not every job shares (besides model= itself)
-    common = set.intersection(*(set(j["overrides"]) for j in jobs))
+    common = set.intersection(*(set(j["overrides"]) for j in jobs)) if jobs else set()
     for job in jobs if by_overrides else ():
         own = sorted(o for o in set(job["overrides"]) - common if not o.startswith("model="))
         job["model"] = job["model"] + (f" [{' '.join(own)}]" if own else "")
@@ -172,6 +195,7 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
                          f"{sorted({j['model'] for j in jobs})}")
     for job in jobs:
         job["model"] = rename.get(job["model"], job["model"])
+    jobs += [job for spec in borrowed for job in recorded_jobs(spec, metrics)]
     seen: dict[tuple[str, int], str] = {}
     for job in jobs:  # a record pairs by model and seed: two jobs there would make one of them vanish
         if (other := seen.setdefault((job["model"], job["seed"]), job["folder"])) != job["folder"]:
@@ -195,7 +219,7 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(prog="python -m dider.analysis.record", description=__doc__.split("\n\n")[0])
-    parser.add_argument("paths", nargs="+", type=Path, help="sweep folders or run folders")
+    parser.add_argument("paths", nargs="*", type=Path, help="sweep folders or run folders")
     parser.add_argument("--out", type=Path, required=True, help="the JSON file to write")
     parser.add_argument("--baseline", help="a model name: differences paired by seed against it")
     parser.add_argument("--command", help="the command that ran the sweeps (kept in the record)")
@@ -208,12 +232,16 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         "the overrides that differ between them (sweeps of one configuration run apart)")
     parser.add_argument("--rename", action="append", default=[], metavar="LABEL=NEW", help="record the jobs "
                         "labelled LABEL as NEW (repeatable; two spellings of one configuration merge)")
+    parser.add_argument("--jobs-from", action="append", default=[], metavar="RECORD:MODEL", help="a model's jobs "
+                        "from a committed record, as recorded (repeatable)")
     args = parser.parse_args(argv)
+    if not args.paths and not args.jobs_from:
+        parser.error("give sweep or run folders, or --jobs-from RECORD:MODEL")
     if bad := [r for r in args.rename if "=" not in r]:
         parser.error(f"--rename {bad[0]}: expected LABEL=NEW")
     rename = dict(r.rsplit("=", 1) for r in args.rename)
     record = build(args.paths, args.metric or DEFAULT_METRICS, args.baseline, args.command, args.label,
-                   by_overrides=not args.by_name, curves=args.curve, rename=rename)
+                   by_overrides=not args.by_name, curves=args.curve, rename=rename, borrowed=args.jobs_from)
     atomic_write_text(args.out, json.dumps(record, indent=1))
     for name, per_metric in record["models"].items():
         cells = [f"{k.removeprefix('test/')} {v['mean']:.4g}" for k, v in per_metric.items()
