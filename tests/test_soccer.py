@@ -11,7 +11,8 @@ import torch
 
 kloppy = pytest.importorskip("kloppy")
 
-from dider.data.soccer import PROVIDERS, SoccerDataModule, kloppy_tracking, tracking_rows  # noqa: E402
+from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows  # noqa: E402
+from dider.data.soccer import SoccerDataModule  # noqa: E402
 
 FILES = Path(kloppy.__file__).parent / "tests" / "files"
 HAWKEYE = {"ball_feeds": str(FILES / "hawkeye_1_1.football.samples.ball"),
@@ -130,7 +131,7 @@ def test_train_then_predict_on_another_half(make_cfg, tmp_path):
 
 
 def test_kloppy_sample_finds_the_files_kloppy_ships():
-    from dider.data.soccer import kloppy_sample
+    from dider.data.readers.kloppy import kloppy_sample
 
     assert Path(kloppy_sample("tracab_meta.xml")) == FILES / "tracab_meta.xml"
     with pytest.raises(FileNotFoundError, match=r"kloppy_sample:nope.xml: kloppy .* ships no such sample"):

@@ -40,9 +40,9 @@ def default_precision(accelerator: str | None) -> str:
 
 
 def kloppy_sample(name: str) -> str:
-    """``${kloppy_sample:NAME}``: :func:`dider.data.soccer.kloppy_sample`, imported when a config uses it (composing
-    a config loads neither the data modules nor Lightning)."""
-    from dider.data.soccer import kloppy_sample as find
+    """``${kloppy_sample:NAME}``: :func:`dider.data.readers.kloppy.kloppy_sample`, imported when a config uses it
+    (composing a config loads neither the data modules nor Lightning)."""
+    from dider.data.readers.kloppy import kloppy_sample as find
 
     return find(name)
 

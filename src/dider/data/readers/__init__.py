@@ -3,7 +3,8 @@
 A track reader turns its files into one long track table, a DataFrame with the columns agent, frame (integer steps),
 x, y and optionally scene, vx, vy and agent_class, naming the file and line of any problem; ``data=table``'s
 windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one reader
-here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``).
+here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``). ``kloppy`` reads a
+soccer provider's files into the same rows (``data=soccer``).
 
 A clip source gives each split as :class:`~dider.data.tracks.Clips`, already cut to a fixed length, raw: the
 simulators (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
