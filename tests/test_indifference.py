@@ -123,23 +123,3 @@ def test_an_absent_receiver_is_never_indifferent(make_cfg):
     out = net.infer(batch, hard=True)
     _, recv = edge_index(3)
     assert torch.isinf(out.evidence[:, recv == 0, 9:]).all() and torch.isfinite(out.evidence[:, recv != 0]).all()
-
-
-def test_the_latched_term_starts_once_the_running_share_reaches_its_level_and_stays_on():
-    """A backed share of 1 at every batch: the running mean after n training batches is 1 - 0.98^n, which reaches
-    0.5 at n = 35 (0.98^34 = 0.503, 0.98^35 = 0.493). The term costs nothing before, its full charge from there, and
-    stays on when the share falls; evaluation neither moves nor reads anything but the latch."""
-    backed = SimpleNamespace(probs=torch.tensor([[[[0.0, 1.0]] * 4]]), evidence=torch.full((1, 1, 4), 2.0),
-                             present=torch.ones(1, 1, 4).bool(), pred=torch.zeros(1, 3, 2, 4))
-    term = Indifference(threshold=1.0, weighting="latched", start_share=0.5)
-    assert set(dict(term.named_buffers())) == {"share_mean", "latched"}  # a checkpoint keeps them
-    for n in range(1, 36):
-        assert term(backed, {}).item() == 0.0  # nothing below the threshold: no charge, whatever the latch
-        assert bool(term.latched) == (n >= 35), n
-    assert term.share_mean.item() == pytest.approx(1 - 0.98**35)
-    unbacked = SimpleNamespace(**{**vars(backed), "evidence": torch.full((1, 1, 4), 0.5)})
-    assert term(unbacked, {}).item() == pytest.approx(1.0)  # every held step below the threshold, at full weight
-    assert bool(term.latched) and term.stats(unbacked)["on"].item() == 1.0
-    fresh = Indifference(threshold=1.0, weighting="latched").eval()
-    assert fresh(backed, {}).item() == 0.0 and fresh.share_mean.item() == 0.0  # evaluation moves nothing
-    assert fresh(unbacked, {}).item() == 0.0  # not latched: off

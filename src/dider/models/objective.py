@@ -27,7 +27,7 @@ from dider.models.inference import Inference
 from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.plugins import Progress
 from dider.models.prior import fixed_log_probs
-from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, one_of, within, within_open
+from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, one_of, within_open
 
 Batch = Mapping[str, torch.Tensor]
 
@@ -135,49 +135,28 @@ class Indifference(Term):
     first step it would hold every edge at "none", where the message network gets no gradient and never learns the
     interaction. As the term trims what has no evidence the share grows, and the term with it. ``fixed`` weighs it
     fully from the step ``after`` (a share of training) on, which fails wherever that share of training ends before
-    the decoder has learned an interaction. ``latched`` weighs it fully from the first training step at which the
-    backed share, averaged over the last batches (an exponential mean, ``LATCH_MOMENTUM``), reaches ``start_share``,
-    and keeps it on from there (a state the checkpoint keeps): a start that waits for the decoder whatever the
-    budget, without the share's discount on the charge."""
+    the decoder has learned an interaction."""
 
     needs_evidence: ClassVar[bool] = True
     STATS: ClassVar[tuple[str, ...]] = ("backed",)
-    LATCH_MOMENTUM: ClassVar[float] = 0.98  # the latch's mean forgets a batch's share over about 50 batches
     SETTINGS = {"weight": at_least(0), "threshold": above(0), "after": FRACTION_OF_TRAINING,
-                "weighting": one_of("backed_share", "fixed", "latched"), "start_share": within(0.0, 1.0)}
+                "weighting": one_of("backed_share", "fixed")}
 
     def __init__(self, weight: float = 1.0, threshold: float = 1.0, after: float = 0.0,
-                 weighting: str = "backed_share", start_share: float = 0.5) -> None:
+                 weighting: str = "backed_share") -> None:
         super().__init__(weight)
         check_settings(self, locals())
         self.threshold, self.after, self.weighting = float(threshold), float(after), weighting
-        self.start_share = float(start_share)
-        if weighting == "latched":  # the running share and whether the term is on: kept by a checkpoint, resumed
-            self.register_buffer("share_mean", torch.zeros(()))
-            self.register_buffer("latched", torch.zeros((), dtype=torch.bool))
-            self.STATS = ("backed", "on")
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
         marked, indifferent = self._held(out)
         cost = per_edge_step(marked * indifferent, out.present)
-        if self.weighting == "backed_share":
-            return cost * self._backed(marked, indifferent, out)
-        if self.weighting == "latched":
-            if self.training:  # device tensors throughout: no host synchronisation
-                with torch.no_grad():
-                    share = self._backed(marked, indifferent, out)
-                    self.share_mean.mul_(self.LATCH_MOMENTUM).add_((1 - self.LATCH_MOMENTUM) * share)
-                    self.latched.logical_or_(self.share_mean >= self.start_share)
-            return cost * self.latched
-        return cost
+        return cost * self._backed(marked, indifferent, out) if self.weighting == "backed_share" else cost
 
     def stats(self, out: Inference) -> dict[str, torch.Tensor]:
         """``backed``: the share of the batch's held interaction mass whose evidence passes the threshold, over the
-        edge-steps whose receiver is present at the next step (0 where nothing is held), repeated per clip [B];
-        with ``latched``, ``on``: whether the term is on."""
-        b = out.pred.shape[0]
-        backed = {"backed": self._backed(*self._held(out), out).expand(b)}
-        return backed | ({"on": self.latched.float().expand(b)} if self.weighting == "latched" else {})
+        edge-steps whose receiver is present at the next step (0 where nothing is held), repeated per clip [B]."""
+        return {"backed": self._backed(*self._held(out), out).expand(out.pred.shape[0])}
 
     def _held(self, out: Inference) -> tuple[torch.Tensor, torch.Tensor]:
         """-> (the held interaction probability on present edge-steps, the steps below the threshold), [B, E, T-1]."""
