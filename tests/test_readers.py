@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -65,3 +66,28 @@ def test_a_short_training_on_pedestrian_files(make_cfg, tmp_path):
     assert cfg.protocol.burn_in == 8 and list(cfg.protocol.horizons) == [1, 6, 12]
     metrics = train(cfg)
     assert all(math.isfinite(metrics[f"test/ade/h{h:02d}"]) for h in (1, 6, 12))
+
+
+def test_a_new_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
+    """A module beside the readers that says TRACKS = True is a reader under its own name, with no list to edit:
+    ``data.reader`` accepts it and ``read_tracks`` reads with it."""
+    import dider.data.readers as readers
+
+    package = tmp_path / "extra"
+    package.mkdir()
+    (package / "pairs_tsv.py").write_text(
+        "import pandas as pd\nTRACKS = True\n\n\ndef read(path):\n"
+        "    return pd.read_csv(path, sep='\\t', names=['agent', 'frame', 'x', 'y'])\n")
+    (tmp_path / "walk.tsv").write_text("1\t0\t0.0\t0.0\n1\t1\t0.5\t0.0\n2\t0\t1.0\t1.0\n2\t1\t1.0\t1.5\n")
+    monkeypatch.setattr(readers, "__path__", [*readers.__path__, str(package)])  # as if it sat beside eth_ucy
+    readers.track_readers.cache_clear()
+    try:
+        assert "pairs_tsv" in readers.track_readers() and "eth_ucy" in readers.track_readers()
+        assert "push" not in readers.track_readers()  # a clip source is not a track reader
+        assert readers.reader_problem("pairs_tsv") is None
+        assert "expected one of" in readers.reader_problem("no_such_format")
+        table = readers.read_tracks("pairs_tsv", tmp_path / "walk.tsv")
+        assert list(table.columns) == ["agent", "frame", "x", "y"] and len(table) == 4
+    finally:
+        readers.track_readers.cache_clear()
+        sys.modules.pop(f"{readers.__name__}.pairs_tsv", None)

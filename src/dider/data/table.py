@@ -43,12 +43,12 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
-from dider.data.readers import READERS
+from dider.data.readers import reader_problem
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, id_name, read_table
 from dider.data.trajectories import split_indices
 from dider.data.windowing import MAX_GRID_CELLS, grid_windows
 from dider.protocol import fill_absent
-from dider.validation import Rule, above, check_settings, finite, integer, one_of, optional
+from dider.validation import Rule, above, check_settings, finite, integer, optional
 
 log = logging.getLogger(__name__)
 
@@ -193,7 +193,7 @@ class TableDataModule(ClipDataModule):
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
         "frame_rate": lambda value: above(0)(value) or finite(value), "downsample": integer(1),
         "seq_len": integer(2), "stride": optional(integer(1)), "min_agent_steps": integer(1),
-        "min_agents": integer(1), "max_speed": optional(above(0)), "reader": one_of("table", *READERS),
+        "min_agents": integer(1), "max_speed": optional(above(0)), "reader": reader_problem,
     }
 
     def __init__(

@@ -2,9 +2,10 @@
 
 A track reader turns its files into one long track table, a DataFrame with the columns agent, frame (integer steps),
 x, y and optionally scene, vx, vy and agent_class, naming the file and line of any problem; ``data=table``'s
-windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one reader
-here, entered in ``READERS``, and one YAML in ``conf/data`` that names it (``data.reader``). ``kloppy`` reads a
-soccer provider's files into the same rows (``data=soccer``).
+windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one module
+here that says ``TRACKS = True`` and defines ``read(path) -> DataFrame``, found by its name (``data.reader``: the
+module's), and one YAML in ``conf/data`` that names it. ``kloppy`` reads a soccer provider's files into the same rows
+(``data=soccer``).
 
 A clip source gives each split as :class:`~dider.data.tracks.Clips`, already cut to a fixed length, raw: the
 simulators (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
@@ -13,25 +14,42 @@ simulators (``push``, ``particles``) and the files that ship clips (``nri_files`
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import importlib
+import pkgutil
+from functools import cache
 from pathlib import Path
+from types import ModuleType
 
 import pandas as pd
 
-from dider.data.readers import eth_ucy
-
-READERS: dict[str, Callable[[Path], pd.DataFrame]] = {"eth_ucy": eth_ucy.read}
 COLUMNS = ("scene", "agent", "frame", "x", "y", "vx", "vy", "agent_class")
 
 
+@cache
+def track_readers() -> dict[str, ModuleType]:
+    """The track readers of this package by name: its modules that say ``TRACKS = True``."""
+    found = {}
+    for info in pkgutil.iter_modules(__path__):
+        module = importlib.import_module(f"{__name__}.{info.name}")
+        if getattr(module, "TRACKS", False):
+            found[info.name] = module
+    return found
+
+
+def reader_problem(reader: object) -> str | None:
+    """The setting rule of ``data.reader``: ``table`` or a track reader's name."""
+    known = ["table", *sorted(track_readers())]
+    return None if reader in known else f"expected one of {known}"
+
+
 def read_tracks(reader: str, path: Path) -> pd.DataFrame:
-    """The track table of ``path`` by the reader named ``reader`` (a key of :data:`READERS`)."""
-    if reader not in READERS:
+    """The track table of ``path`` by the track reader named ``reader`` (:func:`track_readers`)."""
+    if (module := track_readers().get(reader)) is None:
         raise ValueError(f"data.reader={reader!r}: unknown; known: table (data.columns over a .csv or .parquet), "
-                         f"{', '.join(sorted(READERS))}")
+                         f"{', '.join(sorted(track_readers()))}")
     if not path.exists():
         raise FileNotFoundError(f"data.path={path}: no such file or folder")
-    df = READERS[reader](path)
+    df = module.read(path)
     if missing := [k for k in ("agent", "frame", "x", "y") if k not in df.columns]:
         raise ValueError(f"data.reader={reader}: its table lacks the column(s) {missing}")
     if len(df) == 0:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+TRACKS = True  # a track reader: data.reader=eth_ucy
 FIELDS = ("frame", "agent", "x", "y")
 
 
