@@ -195,18 +195,18 @@ class SegmentEnd(HazardPrior):
                 progress: Progress = Progress(), present: torch.Tensor | None = None,
                 types: torch.Tensor | None = None) -> Segmentation:
         """types: [B, E, T, K] the posterior's type probabilities at each step (a segment's type is read at its
-        start), which the held type's prior reads; None: every type alike."""
+        start), which the held type's prior reads and the ``held_mode`` readout asks; None: every type alike."""
         b, e, t, _ = h_fwd.shape
         fixed, value = self.forced(t, h_fwd.device, present)
         fixed, value = fixed.expand(b, e, t), value.expand(b, e, t)
         feats = torch.cat([h_fwd, h_rev], -1)
         steps, width = self.prior.steps(h_fwd), self.prior.width  # [B, E, T, K']
-        held_types = types
+        interaction = self._holds_interaction(types)  # [B, E, T] bool or None: evaluation's end readout asks it
         if not self.prior.held or types is None:
             types = steps.new_full((b, e, t, width), 1.0 / width)
         every_start = h_fwd.is_cuda if self.sync_free is None else self.sync_free
         cut = self._every_start if every_start else self._segment_by_segment
-        ends, kl = cut(feats, steps, types.float(), fixed, value, self._holds_interaction(held_types))
+        ends, kl = cut(feats, steps, types.float(), fixed, value, interaction)
         gate = torch.where(fixed, value.to(ends.dtype), ends[..., :t])  # step 0 is fixed: the first segment's start
         n = e * t if present is None else present.flatten(1).sum(1).clamp_min(1)
         slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
