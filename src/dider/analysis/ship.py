@@ -50,6 +50,13 @@ def evaluate(name: str, overrides: list[str]) -> dict[str, float]:
         return json.loads((Path(folder) / "metrics.json").read_text())["metrics"]
 
 
+def write_catalog(entries: dict[str, Any]) -> None:
+    """The catalog with ``entries`` (atomically), read afresh by the next ``catalog()``."""
+    catalog.cache_clear()
+    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
+    catalog.cache_clear()
+
+
 def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any]:
     """Write the slim checkpoint and its catalog record (both atomically); -> the record."""
     source = find_checkpoint(run)
@@ -62,12 +69,9 @@ def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any
                          o for o in record_of_run.get("overrides", []) if not o.startswith(WHERE)),
                      "git_commit": record_of_run.get("provenance", {}).get("git_commit"),
                      "evaluate": overrides, "metrics": {}}
-    catalog.cache_clear()
-    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
-    catalog.cache_clear()
+    write_catalog(entries)
     entries[name]["metrics"] = evaluate(name, overrides)
-    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
-    catalog.cache_clear()
+    write_catalog(entries)
     return entries[name]
 
 
@@ -77,8 +81,7 @@ def rescore(name: str) -> dict[str, Any]:
     if name not in entries:
         raise SystemExit(f"--rescore: no shipped model {name!r} (shipped: {', '.join(sorted(entries))})")
     entries[name] = {**entries[name], "metrics": evaluate(name, entries[name]["evaluate"])}
-    atomic_write_text(HERE / "catalog.json", json.dumps(entries, indent=1, sort_keys=True) + "\n")
-    catalog.cache_clear()
+    write_catalog(entries)
     return entries[name]
 
 

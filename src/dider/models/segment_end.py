@@ -262,11 +262,12 @@ class SegmentEnd(HazardPrior):
                 break
             logits = self.posterior_logits(feats, at, start)
             log_q = end_log_probs(logits, start, fixed, value)
-            held = types.gather(2, start.clamp(max=t - 1)[..., None, None].expand(-1, -1, 1, types.shape[-1]))
+            first = start.clamp(max=t - 1)  # the segment's first step (a finished edge's start is t)
+            held = types.gather(2, first[..., None, None].expand(-1, -1, 1, types.shape[-1]))
             seg_kl = self._kl(log_q, self.prior.of_start(steps, start), held.squeeze(2), start, fixed, value)
             kl = kl + seg_kl * exists * running
-            held_on = None if interaction is None else interaction.gather(2, start.clamp(max=t - 1).unsqueeze(-1))
-            end, drawn = self._draw(log_q, logits, start, fixed, value, None if held_on is None else held_on.squeeze(2))
+            holds = None if interaction is None else interaction.gather(2, first.unsqueeze(-1)).squeeze(2)
+            end, drawn = self._draw(log_q, logits, start, fixed, value, holds)
             ends = ends + drawn * running.unsqueeze(-1)
             # the next segment's existence: forced where the end is a fixed boundary, else the drawn end's
             opens = drawn.gather(-1, end.unsqueeze(-1)).squeeze(-1)
