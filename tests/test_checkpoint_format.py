@@ -25,8 +25,8 @@ OLD_DIDER = {"nll_variance": 5e-5, "beta_edge": 1.0, "beta_duration": 1.0, "capa
 
 
 def today(make_cfg, *overrides: str) -> RelationalVAEModule:
-    return RelationalVAEModule.from_config(make_cfg(["model=dider", "model.net.objective.boundary_fit=null",
-                                                     *overrides]).model)
+    return RelationalVAEModule.from_config(make_cfg(["model=dider", "model/net/objective=dider",
+                                                     "model.net.objective.boundary_fit=null", *overrides]).model)
 
 
 def format_one(module: RelationalVAEModule, flat: bool = False) -> dict:
@@ -130,15 +130,19 @@ def test_a_fresh_build_passes_through_no_compatibility_code(make_cfg):
         RelationalVAE.from_config(net)
 
 
-def test_a_string_setting_that_fixes_shapes_is_compared_with_the_checkpoints(make_cfg):
+def test_a_string_setting_that_fixes_shapes_is_compared_with_the_checkpoints(make_cfg, tmp_path):
     """``ckpt_path=`` is refused before any work when a plugin setting its class names in ``SHAPES`` differs from
-    the checkpoint's, the checkpoint's value read at its constructor's default where it predates the setting (the
-    shipped DIDER was written before ``posterior_reads``); the old value is one override away."""
+    the checkpoint's, the checkpoint's value read at its constructor's default where it predates the setting (here
+    the shipped DIDER as a checkpoint written before ``posterior_reads`` would hold it); the old value is one
+    override away."""
     from omegaconf import OmegaConf
 
     from dider.shipped import HERE, catalog
 
-    path = str(HERE / catalog()["synth/dider"]["file"])
+    ckpt = torch.load(HERE / catalog()["synth/dider"]["file"], map_location="cpu", weights_only=True)
+    del ckpt["hyper_parameters"]["net"]["encoder"]["posterior_reads"]
+    path = str(tmp_path / "before_posterior_reads.ckpt")
+    torch.save(ckpt, path)
 
     def model(*overrides: str) -> dict:
         cfg = make_cfg(["model=dider", "experiment=synth_protocol", *overrides], tiny=False)

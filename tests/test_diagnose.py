@@ -17,7 +17,7 @@ def test_command_line_scores_each_segmentation_of_a_trained_run(make_cfg, tmp_pa
     result = json.loads(out.read_text())
     assert result["command"] == "python -m dider.analysis.diagnose " + " ".join(args)  # how to make it again
     rows, weights = result["rows"], result["weights"]
-    assert weights == {"kl_edge": 0.5, "kl_duration": 1.0, "sparsity": 0.5}  # model=dider's objective
+    assert weights == {"kl_edge": 0.5, "kl_duration": 1.0, "sparsity": 0.5, "indifference": 2.0}  # model=dider
     assert set(rows) == {"own (test)", "own (training)", "one-step", "posterior runs", "truth runs", "fixed 10"}
     for name, row in rows.items():  # the loss is the sum of its terms, the slots tile each edge's 49 steps
         assert row["loss"] == pytest.approx(row["nll"] + sum(w * row[k] for k, w in weights.items()), abs=1e-4), name

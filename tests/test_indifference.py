@@ -8,8 +8,9 @@ import torch
 
 from dider.graph import edge_index
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder, evidence_problem
+from dider.models.likelihood import GaussianNLL
 from dider.models.losses import gaussian_nll_each
-from dider.models.objective import Indifference
+from dider.models.objective import Indifference, Objective
 from dider.models.plugins import Progress
 from helpers.models import build, clip
 
@@ -51,10 +52,10 @@ def test_edge_evidence_needs_a_silent_type_0():
 
 
 def test_indifference_charges_marked_edge_steps_where_the_evidence_is_below_the_threshold(make_cfg):
-    net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
-                "model.net.objective.indifference.threshold=0.5")
-    term = net.objective.terms["indifference"]
-    assert (term.weight, term.threshold, term.after, term.weighting) == (2.0, 0.5, 0.0, "backed_share")
+    net = build(make_cfg, "model=dider", "model.net.objective.indifference.threshold=0.5",
+                "model.net.objective.indifference.weighting=backed_share")
+    term = net.objective.terms["indifference"]  # model=dider's objective
+    assert (term.weight, term.threshold, term.after, term.from_step) == (2.0, 0.5, 0.25, 1000)
     out = net.infer(clip(), hard=True)
     assert out.evidence is not None and out.evidence.shape == out.present.shape
     indifferent = (out.evidence < 0.5) & out.present
@@ -67,7 +68,7 @@ def test_indifference_charges_marked_edge_steps_where_the_evidence_is_below_the_
     # the evidence is computed without a gradient; the term's gradient reaches the posterior through probs
     out.terms["indifference"].sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in net.encoder.parameters())
-    assert "indifference" not in build(make_cfg, "model=dider").objective.terms
+    assert "indifference" not in build(make_cfg, "model=dider", "model/net/objective=dider").objective.terms
 
 
 def test_the_backed_share_by_hand():
@@ -88,13 +89,24 @@ def test_the_backed_share_by_hand():
 def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
     net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
                 "model.net.objective.indifference.weight=1.0", "model.net.objective.indifference.after=0.3",
-                "model.net.objective.indifference.weighting=fixed")
+                "model.net.objective.indifference.from_step=0")
     out = net.infer(clip(), hard=True)
     assert out.terms["indifference"].sum() > 0
     early, late = net.loss(out, Progress(29, total=100)), net.loss(out, Progress(30, total=100))
     assert net.schedule(Progress(29, total=100))["on/indifference"] == 0.0
     # weight 1, KL warm: the loss differs by the term (to float32 rounding of a loss near 3e4)
     assert torch.allclose(late["loss"] - early["loss"], out.terms["indifference"].mean(), atol=1e-2)
+
+
+def test_a_start_in_optimiser_steps_holds_at_any_length_of_training():
+    term = Indifference(weighting="fixed", from_step=600)
+    assert [term.start(Progress(0, total=n)) for n in (1000, 5000, None)] == [600, 600, 600]
+    both = Indifference(weighting="fixed", after=0.25, from_step=600)  # the later of the two
+    assert [both.start(Progress(0, total=n)) for n in (1000, 5000)] == [600, 1250]
+    objective = Objective(nll=GaussianNLL(), indifference=term)
+    assert [objective.schedule(Progress(s, total=5000))["on/indifference"] for s in (599, 600)] == [0.0, 1.0]
+    with pytest.raises(ValueError, match="from_step.*integer"):
+        Indifference(from_step=0.5)
 
 
 @pytest.mark.parametrize("override, why", [("model.net.decoder.skip_first=false", "skip_first=true"),
@@ -123,3 +135,20 @@ def test_an_absent_receiver_is_never_indifferent(make_cfg):
     out = net.infer(batch, hard=True)
     _, recv = edge_index(3)
     assert torch.isinf(out.evidence[:, recv == 0, 9:]).all() and torch.isfinite(out.evidence[:, recv != 0]).all()
+
+
+def test_a_training_pass_before_the_start_skips_the_evidence(make_cfg):
+    net = build(make_cfg, "model=dider", "model/net/objective=dider_indifference",
+                "model.net.objective.indifference.after=0", "model.net.objective.indifference.from_step=5")
+    before, after = Progress(4, total=100), Progress(5, total=100)
+    assert not net.objective.reads_evidence(before) and net.objective.reads_evidence(after)
+    assert net.objective.reads_evidence(Progress(4))  # validation (run length not asked): every term counts
+    torch.manual_seed(0)
+    skipped = net.infer(clip(), hard=True, progress=before)
+    assert skipped.evidence is None and (skipped.terms["indifference"] == 0).all()
+    assert (skipped.terms["indifference/backed"] == 0).all()
+    torch.manual_seed(0)
+    scored = net.infer(clip(), hard=True, progress=after)
+    assert scored.evidence is not None and (scored.terms["indifference"] > 0).any()
+    # the skipped term is not charged, so the loss is the same as with the evidence computed
+    assert torch.equal(net.loss(skipped, before)["loss"], net.loss(scored, before)["loss"])

@@ -17,7 +17,8 @@ from helpers.models import build, clip
 def test_each_model_reads_its_objective_from_the_config_group(make_cfg):
     terms = {m: list(build(make_cfg, f"model={m}").objective.terms) for m in ("dnri", "dider", "dider_paper", "nri")}
     assert terms == {"dnri": ["nll", "kl_edge", "kl_duration", "sparsity"],
-                     "dider": ["nll", "kl_edge", "kl_duration", "sparsity", "prior_fit", "boundary_fit"],
+                     "dider": ["nll", "kl_edge", "kl_duration", "sparsity", "prior_fit", "boundary_fit",
+                               "indifference"],
                      "dider_paper": ["nll", "kl_edge", "kl_duration", "sparsity"],
                      "nri": ["nll", "kl_edge", "kl_duration"]}
     dider = build(make_cfg, "model=dider").objective.terms
@@ -27,7 +28,7 @@ def test_each_model_reads_its_objective_from_the_config_group(make_cfg):
 def test_loss_is_the_weighted_sum_with_warm_up_and_capacities(make_cfg):
     """loss = NLL + sum_i weight_i w |term_i - C_i|: by hand at a quarter of training, with the KL warm-up over
     the first 30% (w = 25/30) and the edge KL's capacity 0.2 ramped over half of training (C = 0.2 * 25/50)."""
-    net = build(make_cfg, "model=dider", "model.net.objective.kl_warmup=0.3",
+    net = build(make_cfg, "model=dider", "model/net/objective=dider", "model.net.objective.kl_warmup=0.3",
                 "model.net.objective.kl_edge.capacity=0.2", "model.net.objective.prior_fit.weight=2")
     out = net.infer(clip(), hard=True)
     progress = Progress(25, total=100)

@@ -29,7 +29,8 @@ SCHEDULES = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=72
 # the graph; the evidence's pass and its backed share); the plain segment end's and the Gaussian's, about 30 s more
 # each: make test-all
 @pytest.mark.parametrize("model", [
-    ["model=dider", "model/net/objective=dider_indifference", "model.net.objective.indifference.after=0.5"],
+    ["model=dider", "model.net.objective.indifference.after=0.5", "model.net.objective.indifference.from_step=0",
+     "model.net.objective.indifference.weighting=backed_share"],
     pytest.param(["model=dider"], marks=pytest.mark.slow),
     pytest.param(["model=dider_paper"], marks=pytest.mark.slow)], ids=["indifference", "dider", "dider_paper"])
 def test_the_graphed_step_trains_as_lightnings_loop(make_cfg, tmp_path, model):

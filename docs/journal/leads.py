@@ -9,7 +9,8 @@ the true onset (a boundary there, the type forced to interaction) and the steps 
 at the free boundaries before it forced to none). A negative difference means the objective prefers the trimmed
 cut that the model did not find.
 
-python docs/journal/leads.py --model synth/dider --out docs/records/leads_protocol.json   (the shipped seed-1 model)
+python docs/journal/leads.py --model /tmp/whole_clip.ckpt --out docs/records/leads_protocol.json   (the whole-clip
+    seed-1 model, shipped as synth/dider up to commit e75a98d: git show e75a98d:src/dider/shipped/synth_dider.ckpt)
 python docs/journal/leads.py --model RUN/checkpoints/last.ckpt --out ...
 """
 

@@ -5,10 +5,12 @@ as the posterior holds them, in nats (> 0: the decoder prefers the interaction t
 and the truth say, and, for the over-held steps, by the pair's distance (the push acts within distance 1, growing
 linearly from 0 at the radius).
 
-The shipped protocol model (synth/dider: experiment=synth_protocol seed 1), its test clips regenerated (seed 1),
-the posterior's hard edges (argmax of each segment), fp32.
+The whole-clip protocol model (experiment=synth_protocol seed 1 model.net.encoder.posterior_reads=sequence, shipped
+as synth/dider up to commit e75a98d), its test clips regenerated (seed 1), the posterior's hard edges (argmax of
+each segment), fp32.
 
-python docs/journal/overheld.py --out docs/records/overheld_protocol.json   (docs/results.md)"""
+git show e75a98d:src/dider/shipped/synth_dider.ckpt > /tmp/whole_clip.ckpt
+python docs/journal/overheld.py --model /tmp/whole_clip.ckpt --out docs/records/overheld_protocol.json"""
 
 import argparse
 import json
@@ -25,10 +27,11 @@ BINS = (0.0, 0.8, 1.0, 1.1, 1.25, 1.5, float("inf"))
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", required=True)
+    parser.add_argument("--model", default="synth/dider", help="a shipped name, a run folder or a checkpoint")
     parser.add_argument("--clips", type=int, default=500)
     parser.add_argument("--cache", default="/tmp/overheld_cache")
     args = parser.parse_args()
-    model, net, batch = protocol_clips("synth/dider", args.clips, args.cache)
+    model, net, batch = protocol_clips(args.model, args.clips, args.cache)
     torch.manual_seed(0)
     with torch.no_grad():
         out = net.infer(batch, hard=True)

@@ -27,7 +27,7 @@ from dider.models.inference import Inference
 from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.plugins import Progress
 from dider.models.prior import fixed_log_probs
-from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, one_of, within_open
+from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, integer, one_of, within_open
 
 Batch = Mapping[str, torch.Tensor]
 
@@ -134,28 +134,40 @@ class Indifference(Term):
     does, nothing held has evidence and the term is off by itself, at any budget; charged at full weight from the
     first step it would hold every edge at "none", where the message network gets no gradient and never learns the
     interaction. As the term trims what has no evidence the share grows, and the term with it. ``fixed`` weighs it
-    fully from the step ``after`` (a share of training) on, which fails wherever that share of training ends before
-    the decoder has learned an interaction."""
+    fully once both ``after`` (a share of training) and ``from_step`` (optimiser steps) have passed. The decoder
+    learns an interaction after a number of optimiser steps set by the learning rate, not by the run's length, so
+    a start in steps serves short and long runs alike where one share of training does not (too early in a short
+    run, too late in a long one to recover the weak first and last steps of an interaction)."""
 
     needs_evidence: ClassVar[bool] = True
     STATS: ClassVar[tuple[str, ...]] = ("backed",)
     SETTINGS = {"weight": at_least(0), "threshold": above(0), "after": FRACTION_OF_TRAINING,
-                "weighting": one_of("backed_share", "fixed")}
+                "weighting": one_of("backed_share", "fixed"), "from_step": integer(0, " (optimiser steps)")}
 
     def __init__(self, weight: float = 1.0, threshold: float = 1.0, after: float = 0.0,
-                 weighting: str = "backed_share") -> None:
+                 weighting: str = "backed_share", from_step: int = 0) -> None:
         super().__init__(weight)
         check_settings(self, locals())
         self.threshold, self.after, self.weighting = float(threshold), float(after), weighting
+        self.from_step = int(from_step)
+
+    def start(self, progress: Progress) -> int:
+        """The optimiser step from which the term is charged: the later of ``after`` and ``from_step``."""
+        return max(progress.ramp_steps(self.after), self.from_step)
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
+        if out.evidence is None:  # a training pass before the start computes no evidence (Objective.reads_evidence)
+            return out.pred.new_zeros(out.pred.shape[0], dtype=torch.float32)
         marked, indifferent = self._held(out)
         cost = per_edge_step(marked * indifferent, out.present)
         return cost * self._backed(marked, indifferent, out) if self.weighting == "backed_share" else cost
 
     def stats(self, out: Inference) -> dict[str, torch.Tensor]:
         """``backed``: the share of the batch's held interaction mass whose evidence passes the threshold, over the
-        edge-steps whose receiver is present at the next step (0 where nothing is held), repeated per clip [B]."""
+        edge-steps whose receiver is present at the next step (0 where nothing is held, or no evidence was
+        computed), repeated per clip [B]."""
+        if out.evidence is None:
+            return {"backed": out.pred.new_zeros(out.pred.shape[0], dtype=torch.float32)}
         return {"backed": self._backed(*self._held(out), out).expand(out.pred.shape[0])}
 
     def _held(self, out: Inference) -> tuple[torch.Tensor, torch.Tensor]:
@@ -217,6 +229,16 @@ class Objective(nn.Module):
         # a term that reads the decoder's evidence for each edge (the pass computes it only then)
         self.needs_evidence = any(getattr(t, "needs_evidence", False) for t in self.terms.values())
 
+    def reads_evidence(self, progress: Progress) -> bool:
+        """Whether a pass at ``progress`` computes the decoder's edge evidence: wherever a term that reads it can
+        count. Only a training pass (the run's length known, the schedules computed here) before the start of every
+        such term skips it, a third of a step's time; validation (which counts every term in ``nelbo``), a graphed
+        step and a pass outside a Trainer always compute it."""
+        if not self.needs_evidence or progress.total is None or progress.values is not None:
+            return self.needs_evidence
+        return any(progress.step >= (t.start(progress) if hasattr(t, "start") else 0) for t in self.terms.values()
+                   if getattr(t, "needs_evidence", False))
+
     def values(self, out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
         """Every term's value per clip: name -> [B], and each term's logged figures (``<term>/<stat>``, its
         ``stats``; outside the loss)."""
@@ -235,8 +257,8 @@ class Objective(nn.Module):
         out = {"kl_weight": capacity(progress.step, 1.0, progress.ramp_steps(self.kl_warmup))}
         out |= {f"capacity/{k}": capacity(progress.step, t.capacity, ramp) for k, t in self.terms.items()
                 if t.capacity > 0}
-        out |= {f"on/{k}": float(progress.step >= progress.ramp_steps(t.after)) for k, t in self.terms.items()
-                if getattr(t, "after", 0.0) > 0}  # a term off for the first ``after`` of training
+        out |= {f"on/{k}": float(progress.step >= t.start(progress)) for k, t in self.terms.items()
+                if hasattr(t, "start")}  # a term off early in training (its ``start``)
         return {k: progress.value(k, v) for k, v in out.items()}
 
     def forward(self, values: Mapping[str, torch.Tensor], progress: Progress = Progress()) -> dict[str, torch.Tensor]:

@@ -89,7 +89,8 @@ class RelationalVAE(nn.Module):
             raise TypeError(f"model.net.objective: {type(objective).__name__} is not a "
                             f"dider.models.objective.Objective")
         if objective.needs_evidence and (why := evidence_problem(decoder)):
-            raise ValueError(f"model.net.objective: a term reads each edge's evidence, which {why}")
+            raise ValueError(f"model.net.objective: a term reads each edge's evidence, which {why}; "
+                             "DIDER's objective without the indifference prior reads none: model/net/objective=dider")
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
@@ -134,8 +135,8 @@ class RelationalVAE(nn.Module):
         (a segment starts at each true step; the fixed boundaries of :func:`forced_boundaries` are added) in
         place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.analysis.diagnose``)."""
         x, mask = batch["states"], batch["mask"]
-        # With every agent present (the synthetic sets) the plugins skip their masking passes. The batch says so
-        # where it was made (``everyone``); asking the mask would make the device wait for the host.
+        # With every agent present the plugins skip their masking passes; the batch says so (``everyone``): asking
+        # the mask would make the device wait for the host.
         everyone = batch.get("everyone")
         plugin_mask = None if (bool(mask.all()) if everyone is None else everyone) else mask
         enc = self.encoder(x, plugin_mask)
@@ -149,14 +150,13 @@ class RelationalVAE(nn.Module):
         else:
             seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
-        # The prior always reads a segment's first step, so it stays online.
-        p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]
+        p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]; read at a segment's first step, so it stays online
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         probs = seg.spread(F.softmax(q_seg, dim=-1))
         out = Inference(pred, q_seg, seg.gather(p_step), probs, enc.posterior_logits, p_step, seg, enc.h_fwd, present)
-        if self.objective.needs_evidence:
+        if self.objective.reads_evidence(progress):
             _, recv = edge_index(x.shape[2], x.device)
             evidence = self.decoder.edge_evidence(x[:, :-1], z.transpose(1, 2), x[:, 1:], None if plugin_mask is None
                                                   else mask[:, :-1], self.likelihood.each)  # [B, T-1, E]
