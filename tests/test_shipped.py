@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
+import torch
 
 import dider
 from dider.analysis.ship import evaluate
@@ -48,3 +49,29 @@ def test_a_setting_newer_than_a_checkpoint_reads_as_its_constructors_default():
     assert signature_default(flat, "decoder.prediction_steps") == 1
     assert signature_default(flat, "decoder.no_such_setting") is None
     assert signature_default({"decoder._target_": "no.such.Class"}, "decoder.hidden") is None
+
+
+def test_shipping_records_the_command_the_commit_and_how_long_training_ran(tmp_path, monkeypatch):
+    import functools
+    import json
+    import shutil
+
+    from dider.analysis import ship
+
+    run, package = tmp_path / "run", tmp_path / "shipped"
+    (run / "checkpoints").mkdir(parents=True)
+    package.mkdir()
+    shutil.copy(HERE / catalog()["synth/dnri"]["file"], run / "checkpoints" / "last.ckpt")
+    (run / "metrics.json").write_text(json.dumps({
+        "overrides": ["model=dnri", "seed=1", "hydra.run.dir=x", "logger=csv"],
+        "provenance": {"git_commit": "abc", "wall_s": 600.0, "device": "cpu"}}))
+    (package / "catalog.json").write_text("{}")
+    monkeypatch.setattr(ship, "HERE", package)
+    monkeypatch.setattr(ship, "catalog", functools.cache(lambda: json.loads((package / "catalog.json").read_text())))
+    monkeypatch.setattr(ship, "evaluate", lambda name, overrides: {"test/ade/h15": 0.5})
+    record = ship.ship(run, "mine/dnri", "DNRI of mine", ["model=dnri"])
+    assert record == {"file": "mine_dnri.ckpt", "what": "DNRI of mine", "trained_with": "python -m dider.run "
+                      "model=dnri seed=1", "git_commit": "abc", "evaluate": ["model=dnri"],
+                      "metrics": {"test/ade/h15": 0.5}, "trained_wall_s": 600.0, "trained_device": "cpu"}
+    assert json.loads((package / "catalog.json").read_text())["mine/dnri"] == record
+    assert "optimizer_states" not in torch.load(package / "mine_dnri.ckpt", weights_only=False)

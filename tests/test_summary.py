@@ -47,4 +47,7 @@ def test_a_run_that_loses_to_constant_velocity_is_told_what_a_longer_one_scores(
     assert "It does not beat constant velocity: this run is short; the shipped synth/dider was trained with " \
            "`python -m dider.run experiment=long`" in text
     assert "ckpt_path=synth/dider data.num_test=9" in text
+    record |= {"trained_wall_s": 1265.7, "trained_device": "cpu"}  # how long a run that beats it takes
+    assert "`python -m dider.run experiment=long`, 21 minutes on a CPU (" in summary.run_summary(
+        metrics, tmp_path, "dider", "synth", None)
     assert summary.run_summary(metrics, tmp_path, "dider", "ind", None).count("shipped") == 0

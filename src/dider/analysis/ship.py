@@ -69,6 +69,10 @@ def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any
                          o for o in record_of_run.get("overrides", []) if not o.startswith(WHERE)),
                      "git_commit": record_of_run.get("provenance", {}).get("git_commit"),
                      "evaluate": overrides, "metrics": {}}
+    # how long its training took, and where: what a user's run that should match it will take
+    provenance = record_of_run.get("provenance", {})
+    entries[name] |= {k: provenance[v] for k, v in (("trained_wall_s", "wall_s"), ("trained_device", "device"))
+                      if v in provenance}
     write_catalog(entries)
     entries[name]["metrics"] = evaluate(name, overrides)
     write_catalog(entries)

@@ -92,7 +92,7 @@ def plain_summary(metrics: Mapping[str, float], horizons: Sequence[int], run: Pa
         profile = profile_array(dict(metrics), "test")
         lines += [f"  type {i}: {note}" for i, note in enumerate(profile_notes(profile))]
     if timelines := example_edges(run / "clips.npz"):
-        lines += ["", "Three edges, a step per character (. no interaction, 1-9 a type):", *timelines]
+        lines += ["", "Example edges, a step per character (. no interaction, 1-9 a type):", *timelines]
     lines += ["", "Where to look next:", f"  python -m dider.analysis.explore {run}   (paths, edges by type, forecast)",
               f"  tensorboard --logdir {run}"]
     return "\n".join(lines)
@@ -108,7 +108,9 @@ def shipped_reference(model: str, data: str | None) -> tuple[dict[str, float] | 
     if record is None:
         return None, "", None
     how = f"{name} (trained with `{record['trained_with']}`, on its own test clips)"
-    note = (f"this run is short; the shipped {name} was trained with `{record['trained_with']}` "
+    took = record.get("trained_wall_s")
+    took = f", {took / 60:.0f} minutes on a {record.get('trained_device', 'cpu').upper()}" if took else ""
+    note = (f"this run is short; the shipped {name} was trained with `{record['trained_with']}`{took} "
             f"(`python -m dider.run mode=eval ckpt_path={name} {' '.join(record['evaluate'])}` scores it).")
     return record["metrics"], how, note
 

@@ -19,7 +19,8 @@ HERE = Path(__file__).resolve().parent
 @cache
 def catalog() -> dict[str, dict[str, Any]]:
     """name -> its record: ``file`` (beside this module), ``what``, ``trained_with`` (the command),
-    ``git_commit``, ``evaluate`` (the command that scores it) and ``metrics`` (what that command gives)."""
+    ``git_commit``, ``evaluate`` (the command that scores it), ``metrics`` (what that command gives) and, where
+    known, ``trained_wall_s`` and ``trained_device`` (how long its training ran, and on what)."""
     return json.loads((HERE / "catalog.json").read_text())
 
 
