@@ -50,6 +50,18 @@ def test_one_future_of_argmax_edges_is_the_forecast(make_cfg):
     assert four.shape == (3, 4, 15, 3, 4) and not torch.equal(four[:, 0], four[:, 1])
 
 
+def test_nris_sampled_futures_draw_the_burn_ins_edges(make_cfg):
+    """NRI holds the burn-in posterior's edges for the whole roll-out: its sampled futures draw them from that
+    posterior (one draw per future), where its own roll-out reads the argmax."""
+    net = build(make_cfg, "model=nri", "model.net.rollout_edges=argmax").eval()
+    batch = clip(b=3, t=20)
+    alike = net.sample_futures(batch["states"], batch["mask"], 5, 15, samples=4, draw=False)
+    assert all(torch.equal(alike[:, 0], alike[:, k]) for k in range(1, 4))
+    torch.manual_seed(0)
+    drawn = net.sample_futures(batch["states"], batch["mask"], 5, 15, samples=4)
+    assert not all(torch.equal(drawn[:, 0], drawn[:, k]) for k in range(1, 4))
+
+
 def test_a_test_pass_scores_the_sampled_futures(make_cfg, tmp_path):
     from dider.run import train
 

@@ -51,3 +51,21 @@ def test_a_run_that_loses_to_constant_velocity_is_told_what_a_longer_one_scores(
     assert "`python -m dider.run experiment=long`, 21 minutes on a CPU (" in summary.run_summary(
         metrics, tmp_path, "dider", "synth", None)
     assert summary.run_summary(metrics, tmp_path, "dider", "ind", None).count("shipped") == 0
+
+
+def test_the_summary_says_what_each_type_means_and_whether_it_is_about_the_pair(tmp_path):
+    features = ("distance", "closing_speed", "relative_heading_deg", "receiver_accel")
+    metrics = {"test/ade/h15": 0.5, "test/cv/ade/h15": 1.0, "test/ade_vs_cv/h15": 0.5}
+    for k, (share, dist, gap) in enumerate([(0.9, 3.0, 0.0), (0.1, 0.5, -1.0)]):
+        metrics[f"test/type{k}/share"] = share
+        for i, name in enumerate(features):
+            metrics[f"test/type{k}/{name}"] = dist if i == 0 else 0.25
+            metrics[f"test/type{k}/others/{name}"] = 1.0
+        metrics[f"test/type{k}/beyond_shuffled/distance"] = gap
+        metrics[f"test/type{k}/beyond_shuffled/closing_speed"] = 0.0
+    lines = summary.plain_summary(metrics, [15], tmp_path).splitlines()
+    cards = lines[lines.index("What each edge type means (while it holds; others: the other edge-steps):") + 1:][:2]
+    assert cards[0].startswith("  type 0: 90.0% of edge-steps · distance 3 (others 1)")
+    assert cards[0].endswith("than the same type on shuffled pairs (a state of the agents' own motion?)")
+    assert cards[1].startswith("  type 1: 10.0% of edge-steps · distance 0.5 (others 1)")
+    assert cards[1].endswith("about the pair: nearer than the same type on shuffled pairs")

@@ -277,10 +277,10 @@ class RelationalVAE(nn.Module):
         return torch.stack(types, dim=2)
 
     @torch.no_grad()
-    def burn_in_edges(self, x_obs: torch.Tensor, mask_obs: torch.Tensor, end: int) -> torch.Tensor:
+    def burn_in_edges(self, x_obs: torch.Tensor, mask_obs: torch.Tensor, end: int, draw: bool = False) -> torch.Tensor:
         """NRI's forecast edges: the posterior of the observed frames alone, one type per edge (the readout
         of the segment that holds the last observed transition: NRI's one segment, or where agents come and
-        go the edge's last stretch of presence), held for all ``end`` transitions.
+        go the edge's last stretch of presence; drawn from it with ``draw``), held for all ``end`` transitions.
         x_obs [B, T_obs, N, D], mask_obs [B, T_obs, N] -> [B, E, end]."""
         if x_obs.shape[1] < 2:
             raise ValueError("forecast_edges=burn_in: the burn-in needs at least 2 frames (one transition)")
@@ -289,7 +289,7 @@ class RelationalVAE(nn.Module):
         present = None if everyone else edge_mask(mask_obs[:, :-1]).transpose(1, 2)
         seg = self.duration.segment(enc.h_fwd, enc.h_rev, x_obs, present=present)
         logits = seg.spread(self.segment_posterior(enc.posterior_logits, seg))[:, :, -1]  # [B, E, K]
-        return pick_types(logits, self.rollout_edges == "sample").unsqueeze(-1).expand(-1, -1, end)
+        return pick_types(logits, self.rollout_edges == "sample" or draw).unsqueeze(-1).expand(-1, -1, end)
 
     @torch.no_grad()
     def sample_futures(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int,
@@ -336,7 +336,7 @@ class RelationalVAE(nn.Module):
         sample = self.rollout_edges == "sample"
         fed, t_obs, x_obs = observed_inputs(x, mask, burn_in, end, mode)
         if edges is None and self.forecast_edges == "burn_in":
-            edges = self.burn_in_edges(x_obs, mask[:, :t_obs], end)
+            edges = self.burn_in_edges(x_obs, mask[:, :t_obs], end, draw)
         online = edges is None  # the prior picks the edges as the roll-out goes
         if online:
             h_past, enc_state = self.encoder.past(x_obs, mask[:, :t_obs])
