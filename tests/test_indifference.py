@@ -100,7 +100,8 @@ def test_indifference_is_off_for_the_first_part_of_training(make_cfg):
 
 def test_a_start_in_optimiser_steps_holds_at_any_length_of_training():
     term = Indifference(weighting="fixed", from_step=600)
-    assert [term.start(Progress(0, total=n)) for n in (1000, 5000, None)] == [600, 600, 600]
+    assert [term.start(Progress(0, total=n)) for n in (1000, 5000)] == [600, 600]
+    assert term.start(Progress(0)) == 0  # the run's length unknown (a trained model): charged, as every schedule ends
     both = Indifference(weighting="fixed", after=0.25, from_step=600)  # the later of the two
     assert [both.start(Progress(0, total=n)) for n in (1000, 5000)] == [600, 1250]
     objective = Objective(nll=GaussianNLL(), indifference=term)
@@ -152,3 +153,21 @@ def test_a_training_pass_before_the_start_skips_the_evidence(make_cfg):
     assert scored.evidence is not None and (scored.terms["indifference"] > 0).any()
     # the skipped term is not charged, so the loss is the same as with the evidence computed
     assert torch.equal(net.loss(skipped, before)["loss"], net.loss(scored, before)["loss"])
+
+
+def test_validation_scores_the_term_before_its_start(make_cfg):
+    """A validation (or test) pass asks the network at the step count alone, so the evidence is computed and the
+    term counts in ``nelbo`` (what selects checkpoints) however early in training: only its charge waits."""
+    from dider.training.module import RelationalVAEModule
+
+    module = RelationalVAEModule.from_config(make_cfg(["model=dider"]).model)
+    module.model.eval()
+    with torch.no_grad():
+        out = module._infer(clip(), hard=True)  # global_step 0, before the start (1000 steps)
+    assert out.evidence is not None and (out.terms["indifference"] > 0).any()
+    objective, early = module.model.objective, Progress(0, total=5000)
+    without = dict(out.terms) | {"indifference": torch.zeros_like(out.terms["indifference"])}
+    counted, charged = objective(out.terms, early), objective(without, early)
+    # float32 rounding of a NELBO near 3e4
+    assert torch.allclose(counted["nelbo"] - charged["nelbo"], 2.0 * out.terms["indifference"].mean(), atol=1e-2)
+    assert torch.equal(counted["loss"], charged["loss"])  # not charged before its start

@@ -48,7 +48,10 @@ def test_a_run_that_loses_to_constant_velocity_is_told_what_a_longer_one_scores(
            "`python -m dider.run experiment=long`" in text
     assert "ckpt_path=synth/dider data.num_test=9" in text
     record |= {"trained_wall_s": 1265.7, "trained_device": "cpu"}  # how long a run that beats it takes
-    assert "`python -m dider.run experiment=long`, 21 minutes on a CPU (" in summary.run_summary(
+    assert "`python -m dider.run experiment=long`, 21 minute(s) on a CPU (" in summary.run_summary(
+        metrics, tmp_path, "dider", "synth", None)
+    record |= {"trained_wall_s": 20.0, "trained_device": None}  # a quick one, the device not recorded
+    assert "`python -m dider.run experiment=long`, 1 minute(s) (" in summary.run_summary(
         metrics, tmp_path, "dider", "synth", None)
     assert summary.run_summary(metrics, tmp_path, "dider", "ind", None).count("shipped") == 0
 

@@ -15,9 +15,11 @@ from dider.graph import edge_index
 from dider.models.plugins import Progress
 
 
-def step_waits(overrides: list[str], masked: bool, progress: Progress = Progress(3, 100)) -> dict[str, int]:
+def step_waits(overrides: list[str], masked: bool, progress: Progress = Progress(3, 100),
+               evidence: bool = False) -> dict[str, int]:
     torch.manual_seed(0)
     model, _ = build_model(overrides)
+    assert model.objective.reads_evidence(progress) == evidence  # the step checked is the one meant
     model.train()
     if hasattr(model.duration, "sync_free"):
         model.duration.sync_free = True  # the GPU's path
@@ -47,7 +49,7 @@ def test_the_recurrent_decoder_step_never_waits_for_the_host():
 @pytest.mark.parametrize("masked", [False, True])
 def test_the_indifference_priors_step_never_waits_for_the_host(decoder, masked):  # past its start: evidence scored
     overrides = ["model=dider", f"model/net/decoder={decoder}", "model/net/objective=dider_indifference"]
-    assert step_waits(overrides, masked, Progress(700, 1000)) == {}
+    assert step_waits(overrides, masked, Progress(1000, 1000), evidence=True) == {}
 
 
 def test_the_check_sees_a_wait():

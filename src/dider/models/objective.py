@@ -152,8 +152,9 @@ class Indifference(Term):
         self.from_step = int(from_step)
 
     def start(self, progress: Progress) -> int:
-        """The optimiser step from which the term is charged: the later of ``after`` and ``from_step``."""
-        return max(progress.ramp_steps(self.after), self.from_step)
+        """The optimiser step from which the term is charged: the later of ``after`` and ``from_step``; 0 where the
+        run's length is unknown (a trained model, a pass outside a Trainer: every schedule at its end value)."""
+        return max(progress.ramp_steps(self.after), self.from_step) if progress.total else 0
 
     def forward(self, out: Inference, batch: Batch) -> torch.Tensor:
         if out.evidence is None:  # a training pass before the start computes no evidence (Objective.reads_evidence)

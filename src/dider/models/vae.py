@@ -295,8 +295,8 @@ class RelationalVAE(nn.Module):
     def sample_futures(self, x: torch.Tensor, mask: torch.Tensor, burn_in: int, num_pred: int,
                        mode: str = "global", samples: int = 6, draw: bool = True) -> torch.Tensor:
         """``samples`` forecasts of every clip, [B, K, P, N, D]: one roll-out of the batch repeated K times, whose
-        online edges are drawn from the prior (the types, and where the duration has them the segments' ends),
-        under :meth:`rollout`'s protocol; ``draw=False``: the model's own roll-out, K times."""
+        edges are drawn from the prior (the types, and the segments' ends where the duration has them; NRI's from
+        the burn-in posterior), under :meth:`rollout`'s protocol; ``draw=False``: the model's own roll-out, K times."""
         b = x.shape[0]
         pred, _ = self.rollout(x.repeat_interleave(samples, 0), mask.repeat_interleave(samples, 0), burn_in,
                                num_pred, mode, draw=draw)
@@ -325,7 +325,7 @@ class RelationalVAE(nn.Module):
         agent's frame t is predicted from its input at t-1) and the edge types used at each transition
         [B, E, burn_in+P-1]. ``decoder``: another decoder to roll out under the same protocol and masks (the
         constant-velocity forecast that test scores beside the model's), else the model's own. ``draw``: the online
-        edges drawn from the prior, types and segment ends (a sampled future, :meth:`sample_futures`).
+        edges drawn from the prior, types and segment ends, or NRI's from the burn-in posterior (a sampled future).
         ``edges_off``: the decoder gets no edge at all, whatever type 0 means to it (its own dynamics alone).
         """
         decoder = self.decoder if decoder is None else decoder

@@ -108,8 +108,8 @@ def shipped_reference(model: str, data: str | None) -> tuple[dict[str, float] | 
     if record is None:
         return None, "", None
     how = f"{name} (trained with `{record['trained_with']}`, on its own test clips)"
-    took = record.get("trained_wall_s")
-    took = f", {took / 60:.0f} minutes on a {record.get('trained_device', 'cpu').upper()}" if took else ""
+    took, device = record.get("trained_wall_s"), record.get("trained_device")
+    took = f", {max(1, round(took / 60))} minute(s)" + (f" on a {device.upper()}" if device else "") if took else ""
     note = (f"this run is short; the shipped {name} was trained with `{record['trained_with']}`{took} "
             f"(`python -m dider.run mode=eval ckpt_path={name} {' '.join(record['evaluate'])}` scores it).")
     return record["metrics"], how, note
