@@ -231,14 +231,14 @@ class Objective(nn.Module):
         self.needs_evidence = any(getattr(t, "needs_evidence", False) for t in self.terms.values())
 
     def reads_evidence(self, progress: Progress) -> bool:
-        """Whether a pass at ``progress`` computes the decoder's edge evidence: wherever a term that reads it can
-        count. Only a training pass (the run's length known, the schedules computed here) before the start of every
-        such term skips it, a third of a step's time; validation (which counts every term in ``nelbo``), a graphed
-        step and a pass outside a Trainer always compute it."""
-        if not self.needs_evidence or progress.total is None or progress.values is not None:
+        """Whether a pass at ``progress`` computes the decoder's edge evidence: from the ``start`` of a term that
+        reads it. So only a training pass before that start skips it; validation and a pass outside a Trainer
+        (the run's length unknown: every start is 0, and ``nelbo`` counts every term) and a graphed step (one
+        captured graph for the whole run) always compute it."""
+        if progress.values is not None:
             return self.needs_evidence
-        return any(progress.step >= (t.start(progress) if hasattr(t, "start") else 0) for t in self.terms.values()
-                   if getattr(t, "needs_evidence", False))
+        readers = [t for t in self.terms.values() if getattr(t, "needs_evidence", False)]  # each has a ``start``
+        return any(progress.step >= t.start(progress) for t in readers)
 
     def values(self, out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
         """Every term's value per clip: name -> [B], and each term's logged figures (``<term>/<stat>``, its
