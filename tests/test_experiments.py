@@ -25,15 +25,17 @@ SMALL_SYNTH = ["data.num_train=32", "data.num_val=8", "data.num_test=8", "data.l
 def fake_data(data: str, tmp: Path) -> list[str]:
     """Overrides that point the experiment's data set at a small fake of its format."""
     if data == "ind":
-        return [f"data.root={write_ind_root(tmp / 'inD', num_recordings=3, num_frames=600)}", "data.split=[1,1,1]"]
+        return [f"data.source.root={write_ind_root(tmp / 'inD', num_recordings=3, num_frames=600)}",
+                "data.split=[1,1,1]"]
     if data == "ind200":  # 200-step windows at 2.5 Hz: 80 s recordings
-        return [f"data.root={write_ind_root(tmp / 'inD', num_recordings=3, num_frames=2100)}", "data.split=[1,1,1]"]
+        return [f"data.source.root={write_ind_root(tmp / 'inD', num_recordings=3, num_frames=2100)}",
+                "data.split=[1,1,1]"]
     if data == "basketball":
         write_zhan(tmp / "bball")
         return [f"data.root={tmp / 'bball'}"]
     if data == "soccer":  # kloppy's own sample files, which the experiment names: the first 3000 frames
         pytest.importorskip("kloppy")
-        return ["+data.options={limit:3000}", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
+        return ["data.source.options={limit:3000}", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]
     return SMALL_SYNTH
 
 
@@ -41,7 +43,9 @@ def fake_data(data: str, tmp: Path) -> list[str]:
 def test_experiment_runs(experiment, make_cfg, tmp_path):
     cfg = make_cfg([f"experiment={experiment}"], tiny=False)
     data = Path(cfg.data._target_.split(".")[-2]).name  # ind, basketball, synth, ...
-    if data == "ind" and cfg.data.seq_len == 200:
+    if data == "table" and cfg.data.source.reader == "kloppy":
+        data = "soccer"
+    if data == "ind" and cfg.data.windows.seq_len == 200:
         data = "ind200"
     cfg = make_cfg([f"experiment={experiment}", "debug=fdr", *fake_data(data, tmp_path), "protocol.samples=0",
                     "trainer.enable_progress_bar=false"], tiny=False, out=tmp_path / "run")

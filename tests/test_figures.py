@@ -69,7 +69,8 @@ def test_a_crowded_run_writes_results_before_figures(make_cfg, tmp_path, monkeyp
         raise RuntimeError("a figure failed")
 
     monkeypatch.setattr(TimelineFigures, "_draw", draw)
-    cfg = make_cfg(["data=table", f"data.path={crowd(tmp_path / 'crowd.csv')}", "data.seq_len=12", "data.stride=12",
+    cfg = make_cfg(["data=table", f"data.source.path={crowd(tmp_path / 'crowd.csv')}", "data.windows.seq_len=12",
+                    "data.windows.stride=12",
                     "protocol.burn_in=4", "protocol.horizons=[1,4]", "data.loader.batch_size=2",
                     "data.loader.eval_batch_size=2", "model=dnri", "model.num_edges=2", "logger=none"], out=out)
     with caplog.at_level(logging.WARNING, logger="dider.outputs.viz"):

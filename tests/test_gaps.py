@@ -49,7 +49,8 @@ def straight_tracks_with_gaps(path: Path, scenes: int = 40, frames: int = 16) ->
 @pytest.mark.parametrize("mode", ["per_agent", "global"])
 def test_constant_velocity_scores_zero_on_straight_tracks_with_gaps(make_cfg, tmp_path, mode):
     path = straight_tracks_with_gaps(tmp_path / "vessels.csv")
-    data = ["data=table", f"data.path={path}", "data.frame_rate=1", "data.seq_len=15", "protocol.burn_in=5",
+    data = ["data=table", f"data.source.path={path}", "data.source.frame_rate=1", "data.windows.seq_len=15",
+            "protocol.burn_in=5",
             "protocol.horizons=[1,5,8]", f"protocol.burn_in_mode={mode}"]
     run = tmp_path / "run"
     metrics = train(make_cfg(["experiment=smoke", *data, "logger=none", "callbacks.timelines.num_clips=0"],

@@ -13,6 +13,7 @@ from dider.bench.data import benchmark_preprocess
 from dider.bench.fake_levelx import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data import ind as ind_mod
 from dider.data.ind import InDDataModule
+from dider.data.legacy import LEVELX, nest_track_args
 from dider.data.levelx.recordings import discover_recordings, split_counts
 from dider.protocol import burn_in_mask
 from helpers.fixtures import edit_csv, write_background, write_ind_root
@@ -26,8 +27,13 @@ def root(tmp_path: Path) -> Path:
     return write_ind_root(tmp_path / "inD")
 
 
+def levelx(**flat) -> InDDataModule:
+    """The module with its settings given flat (nested as the config nests them)."""
+    return InDDataModule(**nest_track_args(LEVELX, flat)[1])
+
+
 def make_dm(root: Path, cache: Path, setup: bool = True, **kw) -> InDDataModule:
-    dm = InDDataModule(root=None if root is None else str(root), cache_dir=str(cache), **{**SMALL, **kw})
+    dm = levelx(root=None if root is None else str(root), cache_dir=str(cache), **{**SMALL, **kw})
     if setup:
         dm.prepare_data()
         dm.setup()
@@ -84,7 +90,7 @@ def test_batches_are_padded_masked_and_finite(root, tmp_path):
     # where each window came from: its recording (00 or 01 in train), its first frame, its track ids
     source = batch["source"]
     assert set(source) == {"clip", "scene", "frame", "agent"} and source["agent"].shape == (b, n)
-    assert set(source["scene"].tolist()) <= {0, 1} and (source["frame"] % dm.hparams.downsample == 0).all()
+    assert set(source["scene"].tolist()) <= {0, 1} and (source["frame"] % dm.windows.downsample == 0).all()
     assert ((source["agent"] >= 0) == batch["mask"].any(1)).all()  # padded agents: id -1
     assert (b, t, f) == (4, 20, 4) and batch["mask"].shape == (b, t, n) and batch["mask"].dtype == torch.bool
     assert torch.isfinite(batch["states"]).all()
@@ -183,7 +189,7 @@ def test_splits_and_recording_selection(root, tmp_path):
     with pytest.raises(ValueError, match="asks for 33 recordings but only 4"):
         make_dm(root, tmp_path / "c", split=(19, 7, 7))
     with pytest.raises(ValueError, match="data.split"):
-        InDDataModule(split=(2, 0.5, 1))
+        levelx(split=(2, 0.5, 1))
     dm = make_dm(root, tmp_path / "c", split=(0.5, 0.25, 0.25))
     assert [dm.datasets[s].recordings for s in ("train", "val", "test")] == [["00", "01"], ["02"], ["03"]]
     recs = discover_recordings(root, recordings=[3, "01", 2])
@@ -194,10 +200,9 @@ def test_splits_and_recording_selection(root, tmp_path):
 
 def test_default_is_dnri_protocol():
     dm = InDDataModule()
-    h = dm.hparams
-    assert list(h.split) == [19, 7, 7] and h.downsample == 10 and h.seq_len == 50
-    assert list(h.features) == ["xCenter", "yCenter", "xVelocity", "yVelocity"] and h.classes is None
-    assert h.min_agents == 2
+    assert list(dm.hparams.split) == [19, 7, 7] and dm.windows.downsample == 10 and dm.windows.seq_len == 50
+    assert list(dm.source.columns.features) == ["xCenter", "yCenter", "xVelocity", "yVelocity"]
+    assert dm.source.classes is None and dm.windows.min_agents == 2
 
 
 def test_cache_is_shared_keyed_and_invalidated(root, tmp_path, monkeypatch):
@@ -242,7 +247,7 @@ def test_extra_columns_ignored_and_custom_patterns(root, tmp_path):
 
 
 def test_hydra_config_instantiates(root, make_cfg):
-    cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
+    cfg = make_cfg(["data=ind", f"data.source.root={root}", "data.split=[2,1,1]", "data.windows.seq_len=20",
                     "protocol.horizons=[1,5,15]"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.prepare_data()
@@ -305,7 +310,7 @@ def test_bad_input_names_file_and_column(root, tmp_path, name, fn, exc, match):
 
 
 def test_missing_files_and_paths(root, tmp_path):
-    with pytest.raises(ValueError, match="data.root is not set"):
+    with pytest.raises(ValueError, match="data.source.root is not set"):
         make_dm(None, tmp_path / "c")  # type: ignore[arg-type]
     with pytest.raises(FileNotFoundError, match="no such folder"):
         make_dm(tmp_path / "nowhere", tmp_path / "c")
@@ -326,16 +331,18 @@ def test_empty_metadata_file(root, tmp_path):
 
 
 def test_too_short_and_bad_config(root, tmp_path):
-    with pytest.raises(ValueError, match=r"no window of data.seq_len=70 .* too short"):
+    with pytest.raises(ValueError, match=r"no window of data.windows.seq_len=70 .* too short"):
         make_dm(root, tmp_path / "c", seq_len=70)
-    with pytest.raises(ValueError, match=r"data.classes=\['tram'\] left too few tracks"):
+    with pytest.raises(ValueError, match=r"data.source.classes=\['tram'\] left too few tracks"):
         make_dm(root, tmp_path / "c", classes=["tram"])
-    for kw, key in [({"seq_len": 1}, "data.seq_len"), ({"downsample": 0}, "data.downsample"),
-                    ({"max_agents": 0}, "data.max_agents"), ({"features": ["xCenter"]}, "data.features"),
-                    ({"tracks_pattern": "tracks.csv"}, "data.tracks_pattern"),
+    for kw, key in [({"seq_len": 1}, "data.windows.seq_len"), ({"downsample": 0}, "data.windows.downsample"),
+                    ({"max_agents": 0}, "data.windows.max_agents"),
+                    ({"features": ["xCenter"]}, "data.source.columns.features"),
+                    ({"tracks_pattern": "tracks.csv"}, "data.source.files.tracks"),
+                    ({"max_speed": 30.0}, "data.windows.max_speed=30.0: levelX tracks"),
                     ({"split": (1, 1)}, "data.split")]:
         with pytest.raises(ValueError, match=key):
-            InDDataModule(**{**SMALL, **kw})
+            levelx(**{**SMALL, **kw})
 
 
 def test_background_image_and_extent(root, tmp_path):

@@ -75,8 +75,8 @@ def test_pair_consistency_metric():
 def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     # The fixture's tracks 0 and 1 are parked cars present in every window; the other tracks move.
     root = write_ind_root(tmp_path / "inD")
-    dm = InDDataModule(root=str(root), cache_dir=str(tmp_path / "cache"), split=(2, 1, 1), seq_len=20,
-                       loader={"batch_size": 4, "eval_batch_size": 4})
+    dm = InDDataModule(source={"root": str(root)}, windows={"seq_len": 20}, cache_dir=str(tmp_path / "cache"),
+                       split=(2, 1, 1), loader={"batch_size": 4, "eval_batch_size": 4})
     dm.prepare_data()
     dm.setup()
     batch = next(iter(dm.test_dataloader()))
@@ -86,6 +86,6 @@ def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     assert not (batch["pair_kind"][:, (send >= 2) | (recv >= 2)] == PARKED).any()
     assert "pair_kind" not in next(iter(dm.train_dataloader()))
     with pytest.raises(ValueError, match="data.pairs"):
-        InDDataModule(root=str(root), pairs={"parked_speed": 0.0})
+        InDDataModule(source={"root": str(root)}, pairs={"parked_speed": 0.0})
     with pytest.raises(ValueError, match="data.pairs.*fields"):
-        InDDataModule(root=str(root), pairs={"parked_sped": 1.0})
+        InDDataModule(source={"root": str(root)}, pairs={"parked_sped": 1.0})

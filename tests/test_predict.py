@@ -189,6 +189,13 @@ def test_training_settings_take_the_checkpoints_unless_set():
     assert training_settings(SimpleNamespace(data={}, path="m.ckpt"), given, set()) == {}  # nothing recorded
     jumps = SimpleNamespace(data={"max_speed": 12.0}, path="m.ckpt")  # which steps count as tracking jumps
     assert training_settings(jumps, {"max_speed": None}, set()) == {"max_speed": 12.0}
+    # a data config with nodes: each key read where it lives, the paths returned; the checkpoint's flat record
+    nested = {"source": {"frame_rate": 1.0}, "windows": {"downsample": 2, "max_speed": None}}
+    assert training_settings(trained, nested, set()) == {"source.frame_rate": 10.0}
+    with pytest.raises(ValueError, match=r"data.windows.downsample=3: the checkpoint m.ckpt was trained with "
+                                         r"data.windows.downsample=2"):
+        training_settings(trained, {"windows": {"downsample": 3}}, {"data.windows.downsample"})
+    assert training_settings(jumps, nested, set()) == {"windows.max_speed": 12.0}
 
 
 def test_older_and_foreign_checkpoints_are_named(run, tmp_path):

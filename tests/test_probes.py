@@ -74,7 +74,8 @@ def crowd_table(tmp: Path) -> list[str]:
     walk = rng.normal(0, 0.3, (4, 40, 26, 2)).cumsum(2) + rng.uniform(0, 50, (4, 40, 1, 2))
     pd.DataFrame({"scene": [f"s{i}" for i in s.ravel()], "agent": [f"p{i}" for i in a.ravel()], "frame": f.ravel(),
                   "x": walk[..., 0].ravel(), "y": walk[..., 1].ravel()}).to_csv(tmp / "crowd.csv", index=False)
-    return ["data=table", f"data.path={tmp / 'crowd.csv'}", "data.seq_len=12", "data.stride=12", "protocol.burn_in=4",
+    return ["data=table", f"data.source.path={tmp / 'crowd.csv'}", "data.windows.seq_len=12", "data.windows.stride=12",
+            "protocol.burn_in=4",
             "protocol.horizons=[1,4]", "data.loader.batch_size=2", "data.loader.eval_batch_size=2",
             "model.num_edges=2"]
 
@@ -152,12 +153,12 @@ CLI = {
                           for a in _predict(tmp, run, _npz(tmp))], True, r"predictions: .*segments\.csv"),
     "predict-ind-short-clips": Row(
         lambda tmp, run: [*_predict(tmp, run, _npz(tmp))[:3], "data=ind",
-                          f"data.root={write_ind_root(tmp / 'inD', num_recordings=1, num_frames=200)}",
-                          "data.seq_len=10", "data.recordings=[0]", *_predict(tmp, run, _npz(tmp))[5:]],
+                          f"data.source.root={write_ind_root(tmp / 'inD', num_recordings=1, num_frames=200)}",
+                          "data.windows.seq_len=10", "data.source.recordings=[0]", *_predict(tmp, run, _npz(tmp))[5:]],
         True, r"predictions: .*segments\.csv"),
     "predict-forecast-names-agents": Row(
-        lambda tmp, run: ["mode=predict", f"ckpt_path={run}", *crowd_table(tmp)[:2], "data.seq_len=12",
-                          "data.stride=12", "predict.forecast_steps=3", "logger=none",
+        lambda tmp, run: ["mode=predict", f"ckpt_path={run}", *crowd_table(tmp)[:2], "data.windows.seq_len=12",
+                          "data.windows.stride=12", "predict.forecast_steps=3", "logger=none",
                           "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp / 'out'}"],
         True, r"predictions: .*forecast\.csv", names_in_forecast),
     "refused-run-leaves-the-folder": Row(finished_run_refused, False,

@@ -202,7 +202,8 @@ def test_levelx_reader_fails_cleanly_and_caches_atomically(ops, seed):
                                      num_parked=1, seed=seed), Path(tmp) / "cache"
         for op in ops:
             corrupt(root, op)
-        dm = InDDataModule(root=str(root), cache_dir=str(cache), split=(1, 1, 1), seq_len=10)
+        dm = InDDataModule(source={"root": str(root)}, windows={"seq_len": 10}, cache_dir=str(cache),
+                           split=(1, 1, 1))
         params = dm.window_params("train")
         try:
             files = discover_recordings(root)[0]

@@ -29,7 +29,8 @@ def scenes_of_three_and_four(path: Path, scenes: int = 80, frames: int = 13) -> 
 
 def test_batches_of_different_agent_counts_are_tested_and_predicted(make_cfg, tmp_path):
     path = scenes_of_three_and_four(tmp_path / "tracks.csv")
-    table = ["experiment=smoke", "data=table", f"data.path={path}", "data.seq_len=12", "protocol.horizons=[1,5]",
+    table = ["experiment=smoke", "data=table", f"data.source.path={path}", "data.windows.seq_len=12",
+             "protocol.horizons=[1,5]",
              "data.loader.eval_batch_size=2", "logger=none", "callbacks.timelines.num_clips=0"]
     run = tmp_path / "run"
     train(make_cfg(table, tiny=False, out=run))
@@ -41,8 +42,8 @@ def test_batches_of_different_agent_counts_are_tested_and_predicted(make_cfg, tm
     assert test > 2 and "test/ade/h05" in json.loads((run / "metrics.json").read_text())["metrics"]
 
     out = tmp_path / "predicted"
-    written = predict(make_cfg(["mode=predict", f"ckpt_path={run}", "data=table", f"data.path={path}",
-                                "data.seq_len=12", "data.loader.eval_batch_size=2", "predict.forecast_steps=5"],
+    written = predict(make_cfg(["mode=predict", f"ckpt_path={run}", "data=table", f"data.source.path={path}",
+                                "data.windows.seq_len=12", "data.loader.eval_batch_size=2", "predict.forecast_steps=5"],
                                tiny=False, out=out))
     assert {p.name for p in written} >= {"clips.npz", "forecast.csv", "segments.csv"}
     with np.load(out / "predictions" / "clips.npz") as arrays:

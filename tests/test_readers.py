@@ -55,13 +55,13 @@ def test_missing_input_and_unknown_readers_are_named(tmp_path):
         read_tracks("eth_ucy", tmp_path)
     with pytest.raises(FileNotFoundError, match="no such file or folder"):
         read_tracks("eth_ucy", tmp_path / "nowhere")
-    with pytest.raises(ValueError, match="data.reader='sdd': unknown; known: table .* eth_ucy"):
+    with pytest.raises(ValueError, match="data.source.reader='sdd': unknown; known: table .* eth_ucy"):
         read_tracks("sdd", tmp_path)
 
 
 def test_a_short_training_on_pedestrian_files(make_cfg, tmp_path):
     folder = write_scenes(tmp_path / "eth")
-    cfg = make_cfg(["data=eth_ucy", f"data.path={folder}", "logger=none", "data.num_train=null",
+    cfg = make_cfg(["data=eth_ucy", f"data.source.path={folder}", "logger=none", "data.num_train=null",
                     "data.num_val=null", "data.num_test=null", "protocol.samples=0"], out=tmp_path / "run")
     assert cfg.protocol.burn_in == 8 and list(cfg.protocol.horizons) == [1, 6, 12]
     metrics = train(cfg)
@@ -70,7 +70,7 @@ def test_a_short_training_on_pedestrian_files(make_cfg, tmp_path):
 
 def test_a_new_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
     """A module beside the readers that says TRACKS = True is a reader under its own name, with no list to edit:
-    ``data.reader`` accepts it and ``read_tracks`` reads with it."""
+    ``data.source.reader`` accepts it and ``read_tracks`` reads with it."""
     import dider.data.readers as readers
 
     package = tmp_path / "extra"

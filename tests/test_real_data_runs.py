@@ -30,7 +30,7 @@ def roots(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 def data_overrides(name: str, roots: dict[str, Path]) -> list[str]:
     return {
-        "ind": ["data=ind", f"data.root={roots['ind']}", "data.split=[1,1,1]", "data.num_train=8",
+        "ind": ["data=ind", f"data.source.root={roots['ind']}", "data.split=[1,1,1]", "data.num_train=8",
                 "data.num_val=4", "data.num_test=4"],
         "basketball": ["data=basketball", f"data.root={roots['bball']}", "data.num_train=16", "data.num_val=4",
                        "data.num_test=4"],
@@ -56,7 +56,7 @@ def test_short_run(make_cfg, roots, tmp_path, data, model):
 def test_ind_command_line(roots, tmp_path, cache_dir, make_cfg):
     """The README's inD usage line (model=dider data=ind model.num_edges=6), on the inD fixture."""
     cmd = [sys.executable, "-m", "dider.run", "model=dider", "data=ind", "model.num_edges=6",
-           f"data.root={roots['ind']}", f"hydra.run.dir={tmp_path}", f"data.cache_dir={cache_dir}",
+           f"data.source.root={roots['ind']}", f"hydra.run.dir={tmp_path}", f"data.cache_dir={cache_dir}",
            "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4", "data.num_test=4", "trainer.max_epochs=1",
            "trainer.enable_progress_bar=false", "model.net.encoder.hidden=32", "model.net.decoder.hidden=32"]
     proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
@@ -93,7 +93,7 @@ def test_ind_command_line(roots, tmp_path, cache_dir, make_cfg):
 
     # mode=predict on every recording of the folder: rows name the recording, the tracks and their frames
     cfg = make_cfg(["mode=predict", f"ckpt_path={tmp_path / 'checkpoints' / 'last.ckpt'}", "data=ind",
-                    f"data.root={roots['ind']}", "data.split=[1,1,1]", "logger=none"], tiny=False,
+                    f"data.source.root={roots['ind']}", "data.split=[1,1,1]", "logger=none"], tiny=False,
                    out=tmp_path / "predict")
     predict(cfg)
     table = pd.read_csv(tmp_path / "predict" / "predictions" / "segments.csv")

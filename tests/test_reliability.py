@@ -226,8 +226,8 @@ def test_the_gpus_deferred_check_names_the_first_bad_step(make_cfg, tmp_path, mo
 def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypatch):
     real = RelationalVAE.infer
 
-    def infer(self, batch, hard, progress=Progress()):
-        out = real(self, batch, hard, progress)
+    def infer(self, batch, hard, progress=Progress(), **protocol):
+        out = real(self, batch, hard, progress, **protocol)
         if self.training and progress.step >= 1:
             # finite value (0), NaN gradient (d sqrt(u)/du at 0 is inf, times du/dw = 0)
             w = next(self.decoder.parameters())
@@ -282,9 +282,10 @@ BAD_CONFIGS = [
     (["model=dider", "model.net.duration.rate=1.5"], r"model.net.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
     (["model.net.objective.kl_edge.capacity=-0.5"], r"model.net.objective.kl_edge.capacity=-0.5: must be >= 0"),
     (["model.net.objective.kl_duration.weight=-1"], r"model.net.objective.kl_duration.weight=-1: must be >= 0"),
-    (["data=ind", "data.root=/no/such/inD"], r"data.root=/no/such/inD: no such folder"),
+    (["data=ind", "data.source.root=/no/such/inD"], r"data.source.root=/no/such/inD: no such folder"),
     (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
-    (["data=ind", "data.seq_len=20", "protocol.burn_in=20"], r"protocol.burn_in=20: must be shorter .*data.seq_len=20"),
+    (["data=ind", "data.windows.seq_len=20", "protocol.burn_in=20"],
+     r"protocol.burn_in=20: must be shorter .*data.windows.seq_len=20"),
     (["data=springs", "data.simulate.num_frames=20", "protocol.burn_in=20"],
      r"protocol.burn_in=20: must be shorter .*data.simulate.num_frames=20"),
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
@@ -333,7 +334,7 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
 
 def test_valid_configs_pass(make_cfg, tmp_path):
     for overrides in ([], ["model=dnri"], ["model=nri"], ["data=ind"], ["data=basketball"], ["data=trajectories"],
-                      ["data=ind", f"data.root={tmp_path}"], ["model.net.duration.rate=0.1"]):
+                      ["data=ind", f"data.source.root={tmp_path}"], ["model.net.duration.rate=0.1"]):
         validate_config(make_cfg(overrides))
     npz = tmp_path / "t.npz"
     npz.write_bytes(b"")
@@ -454,8 +455,9 @@ def test_a_corrupt_background_image_costs_no_results(make_cfg, tmp_path, caplog)
     root = write_ind_root(tmp_path / "inD", num_recordings=3, num_frames=600, num_tracks=5)
     (root / "02_background.png").write_bytes(b"garbage, not a PNG")
     with caplog.at_level("WARNING"):
-        train(make_cfg(["data=ind", f"data.root={root}", "data.split=[1,1,1]", "data.num_train=8", "data.num_val=4",
-                        "data.num_test=4", "logger=none", "model=dnri", *NO_SPARSITY], out=tmp_path / "run"))
+        train(make_cfg(["data=ind", f"data.source.root={root}", "data.split=[1,1,1]", "data.num_train=8",
+                        "data.num_val=4", "data.num_test=4", "logger=none", "model=dnri", *NO_SPARSITY],
+                       out=tmp_path / "run"))
     assert (tmp_path / "run" / "metrics.json").exists() and (tmp_path / "run" / "segments.json").exists()
     assert "02_background.png: cannot read the background image" in caplog.text
 
@@ -492,7 +494,7 @@ def _bad_csv(tmp: Path) -> list[str]:
         return df
 
     edit_csv(root / "01_tracks.csv", pad)
-    return ["data=ind", f"data.root={root}", "data.split=[1,1,1]"]
+    return ["data=ind", f"data.source.root={root}", "data.split=[1,1,1]"]
 
 
 PROBES = [  # (what the command line gets, what the error must name)

@@ -198,7 +198,7 @@ def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):
         return original(self, pred, target, mask, horizon)
 
     monkeypatch.setattr(Metric, "update", spy)
-    cfg = make_cfg(["data=ind", f"data.root={root}", "data.split=[2,1,1]", "data.seq_len=20",
+    cfg = make_cfg(["data=ind", f"data.source.root={root}", "data.split=[2,1,1]", "data.windows.seq_len=20",
                     "protocol.horizons=[1,5,15]", "data.loader.batch_size=4", "data.loader.eval_batch_size=4",
                     "model=dnri",
                     "model/net/decoder=recurrent", *NO_SPARSITY, "logger=none", "callbacks=none"],

@@ -12,7 +12,7 @@ import torch
 kloppy = pytest.importorskip("kloppy")
 
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows  # noqa: E402
-from dider.data.soccer import SoccerDataModule  # noqa: E402
+from dider.data.table import TableDataModule  # noqa: E402
 
 FILES = Path(kloppy.__file__).parent / "tests" / "files"
 HAWKEYE = {"ball_feeds": str(FILES / "hawkeye_1_1.football.samples.ball"),
@@ -52,11 +52,17 @@ def test_every_provider_reads_into_metres(provider):
     assert (np.lexsort(key.T[::-1]) == np.arange(len(key))).all()  # ... sorted by them
 
 
+def soccer(files: dict, **windows) -> TableDataModule:
+    """``data=soccer``'s module on Hawk-Eye's files (its window defaults: max_speed 12 m/s)."""
+    return TableDataModule(source={"reader": "kloppy", "provider": "hawkeye", "files": files},
+                           windows={"max_speed": 12.0, **windows})
+
+
 def test_hawkeye_windows_velocities_and_rate():
     """Downsampling 50 Hz by 8 gives 6.25 Hz steps; a velocity is the step's displacement x 6.25 (m/s)."""
-    dm = SoccerDataModule(provider="hawkeye", files=HAWKEYE, downsample=8, seq_len=12, stride=12)
+    dm = soccer(HAWKEYE, downsample=8, seq_len=12, stride=12)
     dm.setup("fit")
-    assert dm.hparams.frame_rate == 50.0 and dm.dt == pytest.approx(0.16)
+    assert dm.hparams.source["frame_rate"] == 50.0 and dm.dt == pytest.approx(0.16)
     ds = dm.datasets["train"]
     raw = dm.normalizer.denormalize(ds.states)  # [P, T, 4] packed rows
     mask = ds.mask
@@ -69,33 +75,36 @@ def test_hawkeye_windows_velocities_and_rate():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    ({"provider": "statsbomb"}, r"data.provider='statsbomb': expected one of"),
-    ({"files": {"ball_feeds": "x"}}, r"data.files: data.provider=hawkeye needs \['player_centroid_feeds'\]"),
-    ({"files": {**HAWKEYE, "raw_data": "r.dat"}}, r"data.files: unknown key\(s\) \['raw_data'\] for "
-                                                 r"data.provider=hawkeye .*optionally \['meta_data'\]"),
-    ({"files": {**HAWKEYE, "ball_feeds": "/no/such.ball"}}, r"data.files.ball_feeds=/no/such.ball: no such file"),
-    ({"files": HAWKEYE, "frame_rate": 25.0}, r"data.frame_rate=25.0 \(given, or a checkpoint's in prediction\): "
-                                              r"the tracking data run at 50.0 frames per second"),
-    ({"files": HAWKEYE, "frame_rate": float("nan")}, r"data.frame_rate=nan: must be null \(the provider's\)"),
-    ({"files": "/data/match.xml"}, r"data.files='/data/match.xml': expected the reader's files by its argument "
-                                   r"names, e.g. data.files=\{ball_feeds:PATH,player_centroid_feeds:PATH\}"),
-    ({"files": HAWKEYE, "options": {"sample_rat": 2}}, r"data.options: kloppy.hawkeye.load takes no \['sample_rat'\]"),
+    ({"provider": "statsbomb"}, r"data.source.provider='statsbomb': expected one of"),
+    ({"files": {"ball_feeds": "x"}},
+     r"data.source.files: data.source.provider=hawkeye needs \['player_centroid_feeds'\]"),
+    ({"files": {**HAWKEYE, "raw_data": "r.dat"}}, r"data.source.files: unknown key\(s\) \['raw_data'\] for "
+                                                 r"data.source.provider=hawkeye .*optionally \['meta_data'\]"),
+    ({"files": {**HAWKEYE, "ball_feeds": "/no/such.ball"}},
+     r"data.source.files.ball_feeds=/no/such.ball: no such file"),
+    ({"files": HAWKEYE, "frame_rate": 25.0},
+     r"data.source.frame_rate=25.0 \(given, or a checkpoint's in prediction\): the tracking data run at 50.0 frames"),
+    ({"files": HAWKEYE, "frame_rate": float("nan")}, r"data.source.frame_rate=nan: must be null \(the provider's\)"),
+    ({"files": "/data/match.xml"}, r"data.source.files='/data/match.xml': expected the reader's files by its "
+                                   r"argument names, e.g. data.source.files=\{ball_feeds:PATH,player_centroid_feeds:"),
+    ({"files": HAWKEYE, "options": {"sample_rat": 2}},
+     r"data.source.options: kloppy.hawkeye.load takes no \['sample_rat'\]"),
 ])
 def test_bad_input_is_named(kwargs, match):
     with pytest.raises((ValueError, FileNotFoundError), match=match):
-        settings = {"provider": "hawkeye", "files": HAWKEYE, "seq_len": 12} | kwargs
-        SoccerDataModule(**settings).setup("fit")
+        TableDataModule(source={"reader": "kloppy", "files": HAWKEYE} | kwargs, windows={"seq_len": 12}).setup("fit")
 
 
 def test_a_file_kloppy_cannot_read_is_named(tmp_path):
     bad = tmp_path / "garbage.xml"
     bad.write_text("not tracking data")
     files = {"meta_data": str(bad), "raw_data": str(FILES / "tracab_raw.dat")}
-    with pytest.raises(ValueError, match=r"data.files: kloppy.tracab.load could not read .* as data.provider=tracab"):
+    with pytest.raises(ValueError,
+                       match=r"data.source.files: kloppy.tracab.load could not read .* as data.source.provider=tracab"):
         kloppy_tracking("tracab", files)
     empty = tmp_path / "empty.dat"
     empty.write_text("")
-    with pytest.raises(ValueError, match=r"data.files.raw_data=.*empty.dat: the file is empty"):
+    with pytest.raises(ValueError, match=r"data.source.files.raw_data=.*empty.dat: the file is empty"):
         kloppy_tracking("tracab", {"meta_data": str(FILES / "tracab_meta.xml"), "raw_data": str(empty)})
 
 
@@ -105,7 +114,7 @@ def test_every_provider_has_a_sample_here():
 
 
 def files_override(files: dict[str, str]) -> str:
-    return "data.files={" + ",".join(f"{k}:'{v}'" for k, v in files.items()) + "}"
+    return "data.source.files={" + ",".join(f"{k}:'{v}'" for k, v in files.items()) + "}"
 
 
 @pytest.mark.slow  # 15 s; the soccer recipe's training runs in the default set (test_experiments)
@@ -114,7 +123,8 @@ def test_train_then_predict_on_another_half(make_cfg, tmp_path):
     metres; mode=predict reads the other sample at the rate the checkpoint carries (never given here)."""
     from dider.run import predict, train
 
-    common = ["experiment=smoke", "data=soccer", "data.downsample=8", "data.seq_len=12", "data.stride=6",
+    common = ["experiment=smoke", "data=soccer", "data.windows.downsample=8", "data.windows.seq_len=12",
+              "data.windows.stride=6",
               "protocol.burn_in=5", "protocol.horizons=[1,5]", "logger=none",
               "trainer.enable_progress_bar=false", "callbacks.timelines.num_clips=0"]
     metrics = train(make_cfg([*common, files_override(HAWKEYE)], tiny=False, out=tmp_path / "run"))

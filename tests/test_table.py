@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.legacy import TABLE, nest_track_args
 from dider.data.table import SPLITS, TableDataModule
 
 # The hand fixture. Scene 'east' (first in the file and by name): frames 0..5, agents amy and dan. Scene 'north':
@@ -54,7 +55,9 @@ def table(tmp_path: Path) -> Path:
 
 
 def make_dm(path: Path | None, columns: dict | None = None, **kw) -> TableDataModule:
-    return TableDataModule(path=None if path is None else str(path), columns=columns or COLUMNS, **{**SMALL, **kw})
+    """The module of the table at ``path``, its settings given flat (nested as the config nests them)."""
+    flat = {"path": None if path is None else str(path), "columns": columns or COLUMNS, **SMALL, **kw}
+    return TableDataModule(**nest_track_args(TABLE, flat)[1])
 
 
 def windows(path: Path, normalizer: Normalizer = IDENTITY, **kw) -> tuple[TableDataModule, object]:
@@ -134,8 +137,8 @@ def test_steps_faster_than_max_speed_are_absent(tmp_path, caplog):
     # steps are frames 1..8 (differences drop frame 0): bob's step at frame 5 moved 31 m in 0.5 s
     assert ds.mask.int().tolist() == [[1] * 8, [1, 1, 1, 1, 0, 1, 1, 1]]
     assert ds.states[1, 4].abs().sum() == 0 and ds.states[ds.mask][:, 2].tolist() == pytest.approx([2.0] * 15)
-    assert "1 of 16 agent-steps (6.25%) move faster than data.max_speed=10.0" in caplog.text
-    with pytest.raises(ValueError, match="data.max_speed=0"):
+    assert "1 of 16 agent-steps (6.25%) move faster than data.windows.max_speed=10.0" in caplog.text
+    with pytest.raises(ValueError, match="data.windows.max_speed=0"):
         make_dm(path, columns={"agent": "agent"}, max_speed=0)
 
 
@@ -177,7 +180,7 @@ def test_integer_ids_and_one_scene(tmp_path):
 
 
 def test_a_column_called_scene_is_read_as_the_scene(tmp_path, table, caplog):
-    """data.columns.scene unset and a column named "scene": it splits the scenes, and the log says so."""
+    """data.source.columns.scene unset and a column named "scene": it splits the scenes, and the log says so."""
     hand_table().rename(columns={"place": "scene"}).to_csv(tmp_path / "t.csv", index=False)
     _, named = windows(table)
     with caplog.at_level("INFO", logger="dider.data.table_reading"):
@@ -276,7 +279,7 @@ def write(path: Path, edit) -> Path:
 
 def test_bad_input(tmp_path, table):
     p = tmp_path / "bad.csv"
-    with pytest.raises(ValueError, match="data.path is not set"):
+    with pytest.raises(ValueError, match="data.source.path is not set"):
         windows(None)
     with pytest.raises(FileNotFoundError, match=r"bad.csv: no such file"):
         windows(p)
@@ -308,15 +311,16 @@ def test_bad_input(tmp_path, table):
     df.to_csv(p, index=False)
     with pytest.raises(ValueError, match=r"more than one 'kind' for \('place', 'who', 't'\) = \('north', 'bob'"):
         windows(p, columns={**COLUMNS, "agent_class": "kind"})
-    with pytest.raises(ValueError, match=r"too few frames for one window of data.seq_len=9 steps: a window needs 9 "
-                                         r"step\(s\) \+ 1 for the finite-difference velocities of data.downsample=1 "
-                                         r"frame\(s\), i.e. a scene spanning >= 10 frames, and the longest scene has "
-                                         r"8 step\(s\): set data.seq_len <= 7$"):
+    with pytest.raises(ValueError, match=r"too few frames for one window of data.windows.seq_len=9 steps: a window "
+                                         r"needs 9 step\(s\) \+ 1 for the finite-difference velocities of "
+                                         r"data.windows.downsample=1 frame\(s\), i.e. a scene spanning >= 10 frames, "
+                                         r"and the longest scene has 8 step\(s\): set data.windows.seq_len <= 7$"):
         windows(table, seq_len=9)
-    with pytest.raises(ValueError, match=r"no window of data.seq_len=4 steps has >= data.min_agents=4"):
+    with pytest.raises(ValueError,
+                       match=r"no window of data.windows.seq_len=4 steps has >= data.windows.min_agents=4"):
         windows(table, min_agents=4)
     df[df.t % 2 == 0].to_csv(p, index=False)  # frames 0, 2, 4, ...: no two consecutive steps for a velocity
-    with pytest.raises(ValueError, match=r"no window .* \(frames step by 2: set data.downsample=2\?\)"):
+    with pytest.raises(ValueError, match=r"no window .* \(frames step by 2: set data.windows.downsample=2\?\)"):
         windows(p, seq_len=2)
     p.write_bytes(b"\x00\xff\xfe garbage")
     with pytest.raises(ValueError, match="bad.csv"):
@@ -324,16 +328,20 @@ def test_bad_input(tmp_path, table):
 
 
 @pytest.mark.parametrize("kw, key", [
-    ({"seq_len": 1}, "data.seq_len"), ({"seq_len": 2.5}, r"data.seq_len=2.5: must be an integer"),
-    ({"stride": 0}, "data.stride"), ({"frame_rate": 0}, "data.frame_rate"), ({"downsample": 0}, "data.downsample"),
-    ({"min_agent_steps": 5}, "data.min_agent_steps=5: must be <= data.seq_len=4"), ({"min_agents": 0}, "min_agents"),
-    ({"split": (0.5, 0.5)}, "data.split"), ({"columns": {"speed": "v"}}, r"data.columns: unknown key\(s\) \['speed'\]"),
-    ({"columns": {"x": None}}, "data.columns.x is null"), ({"columns": {"vx": "vx"}}, "give both velocity columns"),
+    ({"seq_len": 1}, "data.windows.seq_len"), ({"seq_len": 2.5}, r"data.windows.seq_len=2.5: must be an integer"),
+    ({"stride": 0}, "data.windows.stride"), ({"frame_rate": 0}, "data.source.frame_rate"),
+    ({"downsample": 0}, "data.windows.downsample"),
+    ({"min_agent_steps": 5}, "data.windows.min_agent_steps=5: must be <= data.windows.seq_len=4"),
+    ({"min_agents": 0}, "min_agents"), ({"eval_stride": 2}, "data.windows.eval_stride=2: a table is cut before"),
+    ({"split": (0.5, 0.5)}, "data.split"),
+    ({"columns": {"speed": "v"}}, r"data.source.columns: unknown key\(s\) \['speed'\]"),
+    ({"columns": {"x": None}}, "data.source.columns.x is null"),
+    ({"columns": {"vx": "vx"}}, "give both velocity columns"),
     ({"columns": {"x": "p", "y": "p"}}, r"column\(s\) \['p'\] named for more than one key"),
 ])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        TableDataModule(**{**SMALL, **kw})
+        TableDataModule(**nest_track_args(TABLE, {**SMALL, **kw})[1])
 
 
 def test_command_line_run(tmp_path):
@@ -341,11 +349,11 @@ def test_command_line_run(tmp_path):
     path = table_of_scenes(tmp_path / "t.csv", scenes=4, frames=25)
     df = pd.read_csv(path)
     df.assign(place="scene_" + df.place.astype(str)).to_csv(path, index=False)
-    cmd = [sys.executable, "-m", "dider.run", "data=table", f"data.path={path}", "experiment=smoke",
+    cmd = [sys.executable, "-m", "dider.run", "data=table", f"data.source.path={path}", "experiment=smoke",
            "trainer.max_epochs=1", f"hydra.run.dir={tmp_path / 'run'}", "logger=none",
-           "trainer.enable_progress_bar=false", "data.columns.scene=place", "data.columns.agent=who",
-           "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=12",
-           "protocol.horizons=[1,5]"]
+           "trainer.enable_progress_bar=false", "data.source.columns.scene=place", "data.source.columns.agent=who",
+           "data.source.columns.frame=t", "data.source.columns.x=px", "data.source.columns.y=py",
+           "data.windows.seq_len=12", "protocol.horizons=[1,5]"]
     proc = subprocess.run(cmd, env={**os.environ, "HYDRA_FULL_ERROR": "1"}, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -356,7 +364,7 @@ def test_command_line_run(tmp_path):
 
 
 def test_a_window_too_long_fails_before_the_trainer_starts(make_cfg, tmp_path, monkeypatch):
-    """13 frames a scene, velocities from differences: 12 steps. data.seq_len=13 is named, with the arithmetic,
+    """13 frames a scene, velocities from differences: 12 steps. data.windows.seq_len=13 is named, with the arithmetic,
     before any training step (the trainer's fit is never entered)."""
     import lightning as L
 
@@ -368,11 +376,12 @@ def test_a_window_too_long_fails_before_the_trainer_starts(make_cfg, tmp_path, m
         raise AssertionError("the trainer started before the data were checked")
 
     monkeypatch.setattr(L.Trainer, "fit", started)
-    cfg = make_cfg(["data=table", f"data.path={path}", "data.columns.scene=place", "data.columns.agent=who",
-                    "data.columns.frame=t", "data.columns.x=px", "data.columns.y=py", "data.seq_len=13",
-                    "protocol.burn_in=4", "protocol.horizons=[1,5]"])
+    cfg = make_cfg(["data=table", f"data.source.path={path}", "data.source.columns.scene=place",
+                    "data.source.columns.agent=who", "data.source.columns.frame=t", "data.source.columns.x=px",
+                    "data.source.columns.y=py", "data.windows.seq_len=13", "protocol.burn_in=4",
+                    "protocol.horizons=[1,5]"])
     with pytest.raises(ValueError, match=r"a scene spanning >= 14 frames, and the longest scene has 13 step\(s\): "
-                                         r"set data.seq_len <= 12"):
+                                         r"set data.windows.seq_len <= 12"):
         train(cfg)
 
 

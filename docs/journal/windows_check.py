@@ -58,7 +58,7 @@ def inputs(root: Path) -> dict[str, str]:
 def cases(p: dict[str, str]) -> dict[str, list[str]]:
     """name -> overrides: every data config, then every experiment's data node on the same inputs."""
     small = ["data.num_train=300", "data.num_val=50", "data.num_test=100"]  # the generated sets' defaults are 40k
-    levelx = [f"data.root={p['ind']}", "data.split=[3,1,1]"]
+    levelx = [f"data.source.root={p['ind']}", "data.split=[3,1,1]"]
     out = {
         "synth": ["data=synth", *small], "synth_step": ["data=synth", "data.push=step", *small],
         "springs": ["data=springs", *small], "charged": ["data=charged", *small],
@@ -67,10 +67,12 @@ def cases(p: dict[str, str]) -> dict[str, list[str]]:
         "basketball_zhan": ["data=basketball", f"data.root={p['zhan']}"],
         "basketball_dnri": ["data=basketball", f"data.root={p['dnri_bball']}"],
         "trajectories": ["data=trajectories", f"data.path={p['traj.npz']}"],
-        "table": ["data=table", f"data.path={p['table.csv']}", "data.frame_rate=10", "data.downsample=2"],
-        "eth_ucy": ["data=eth_ucy", f"data.path={p['eth']}"],
+        "table": ["data=table", f"data.source.path={p['table.csv']}", "data.source.frame_rate=10",
+                  "data.windows.downsample=2"],
+        "eth_ucy": ["data=eth_ucy", f"data.source.path={p['eth']}"],
         "soccer": ["experiment=soccer", "hydra.mode=RUN"],
-        "ind": ["data=ind", *levelx], "ind200": ["data=ind200", *levelx, "data.seq_len=60", "protocol.horizons=[1,20]"],
+        "ind": ["data=ind", *levelx], "ind200": ["data=ind200", *levelx, "data.windows.seq_len=60",
+                                              "protocol.horizons=[1,20]"],
         "round": ["data=round", *levelx], "unid": ["data=unid", *levelx],
     }
     for exp in ("demo", "smoke", "synth_cpu_table", "synth_claims", "synth_protocol", "synth_long", "synth_table",

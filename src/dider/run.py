@@ -116,7 +116,8 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     datamodule.prepare_data()  # the clips are read and checked before the trainer starts
     datamodule.setup("predict")
     clips = datamodule.datasets["predict"]
-    where = " ".join(f"data.{k}={cfg.data[k]}" for k in ("path", "root", "provider") if cfg.data.get(k)) or "data"
+    where = " ".join(f"data.{k}={v}" for k in ("path", "root", "source.path", "source.root", "source.provider")
+                     if (v := OmegaConf.select(cfg.data, k))) or "data"
     if problem := clip_problem(clips.states.shape[1], where, burn_in, cfg.predict.forecast_steps):
         raise ConfigError(problem)
     for warning in input_warnings(clips.states, clips.mask, trained.normalizer, where):
@@ -160,7 +161,8 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
     checkpoint's normaliser."""
     take = _checkpoint_features(cfg, trained, "predict.force")
     with open_dict(cfg):
-        cfg.data.update(take)
+        for path, value in take.items():
+            OmegaConf.update(cfg.data, path, value)
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
         raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
@@ -193,7 +195,8 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
         trained = load(ckpt)  # named errors for a damaged or older checkpoint, before the data are read
         with open_dict(cfg):  # every path of the run (checkpoints, logs, figures, exports) follows output_dir
             cfg.output_dir = str(out_dir)
-            cfg.data.update(_checkpoint_features(cfg, trained, "eval.force"))
+            for path, value in _checkpoint_features(cfg, trained, "eval.force").items():
+                OmegaConf.update(cfg.data, path, value)
         out_dir.mkdir(parents=True, exist_ok=True)
     with RunLock(out_dir):  # first: the folder checks below and the run never race another process
         if ckpt is None and is_rank_zero():
@@ -234,9 +237,9 @@ def _checkpoint_features(cfg: DictConfig, trained: TrainedModel, force_key: str)
                                  force_key=force_key)
     except ValueError as e:
         raise ConfigError(str(e)) from None
-    for key, value in take.items():
+    for path, value in take.items():
         log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
-                 key, value, key, cfg.data[key])
+                 path, value, path, OmegaConf.select(cfg.data, path))
     return take
 
 

@@ -42,8 +42,8 @@ class EvalSettings:
     # An evaluation never writes over a training run: in a folder that holds one (ckpt_path=last, or hydra.run.dir
     # set to the run) it writes to eval/NAME there; null: the data config's name (eval/synth, eval/table, ...).
     name: Any = None
-    # data.frame_rate and data.downsample shape the features: left out, the checkpoint's are used; set to another
-    # value, evaluation stops naming both, unless force is true.
+    # the data's frame rate and downsampling (data.source.frame_rate, data.windows.downsample) shape the features:
+    # left out, the checkpoint's are used; set to another value, evaluation stops naming both, unless force is true.
     force: Any = False
 
     SETTINGS: ClassVar[dict[str, Rule]] = {"name": optional(folder_name), "force": boolean}
@@ -59,8 +59,8 @@ class PredictSettings:
     samples: Any = 0
     burn_in: Any = None  # frames observed before the forecast (null: the model's burn_in)
     progress_s: Any = 30  # a progress line (clips done, time left) every this many seconds
-    # data.frame_rate and data.downsample shape the features: left out, the checkpoint's are used; set to another
-    # value, prediction stops naming both, unless force is true.
+    # the data's frame rate and downsampling (data.source.frame_rate, data.windows.downsample) shape the features:
+    # left out, the checkpoint's are used; set to another value, prediction stops naming both, unless force is true.
     force: Any = False
 
     SETTINGS: ClassVar[dict[str, Rule]] = {

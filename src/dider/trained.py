@@ -204,22 +204,37 @@ FEATURE_SETTINGS = ("frame_rate", "downsample", "max_speed")
 def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_user: Collection[str],
                       force: bool = False, where: str = "data", force_key: str = "predict.force") -> dict[str, Any]:
     """The values of :data:`FEATURE_SETTINGS` that reading new data for ``trained`` needs, for the keys that
-    both ``given`` (the data config) and the checkpoint have: the checkpoint's where the user did not set the
-    key (``set_by_user`` holds ``where.key`` names), the user's where set and equal or ``force``. A value set
-    and different raises a ValueError naming both (and ``force_key``, the setting that forces it). Returns the
-    keys whose value changes, with it."""
+    both ``given`` (the data config; a key read in its ``source`` or ``windows`` node where it has one there) and the
+    checkpoint have: the checkpoint's where the user did not set the key (``set_by_user`` holds ``where.path``
+    names), the user's where set and equal or ``force``. A value set and different raises a ValueError naming both
+    (and ``force_key``, the setting that forces it). Returns the paths (``windows.downsample``) whose value changes,
+    with it."""
     take: dict[str, Any] = {}
     for key in FEATURE_SETTINGS:
-        if key not in given or key not in trained.data or given[key] == trained.data[key]:
+        path = next((p for p in (f"source.{key}", f"windows.{key}", key) if _has(given, p)), None)
+        if path is None or key not in trained.data or _get(given, path) == trained.data[key]:
             continue
-        name, theirs = f"{where}.{key}", trained.data[key]
+        name, theirs = f"{where}.{path}", trained.data[key]
         if name not in set_by_user:
-            take[key] = theirs
+            take[path] = theirs
         elif not force:
-            raise ValueError(f"{name}={given[key]}: the checkpoint {trained.path} was trained with {name}={theirs}, "
-                             f"which shapes the features it reads (velocities); leave {name} out to use "
-                             f"{theirs}, or set {force_key}=true to read the data with {given[key]} anyway")
+            raise ValueError(f"{name}={_get(given, path)}: the checkpoint {trained.path} was trained with "
+                             f"{name}={theirs}, which shapes the features it reads (velocities); leave {name} out to "
+                             f"use {theirs}, or set {force_key}=true to read the data with {_get(given, path)} anyway")
     return take
+
+
+def _has(node: Mapping[str, Any], path: str) -> bool:
+    *parents, leaf = path.split(".")
+    for parent in parents:
+        node = node.get(parent) if isinstance(node, Mapping) else None
+    return isinstance(node, Mapping) and leaf in node
+
+
+def _get(node: Mapping[str, Any], path: str) -> Any:
+    for part in path.split("."):
+        node = node[part]
+    return node
 
 
 def _numpy(value: ArrayLike, name: str) -> np.ndarray:

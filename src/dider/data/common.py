@@ -25,6 +25,7 @@ from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from dider.data.batch import Batch, Normalizer
+from dider.data.legacy import flat_view
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
 from dider.validation import Rule, integer, optional
@@ -196,13 +197,14 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
 
 
 def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:
-    """What a checkpoint records of the data it was trained on: the data module's class and arguments, the
+    """What a checkpoint records of the data it was trained on: the data module's class and arguments (flat: the
+    settings of its ``source`` and ``windows`` nodes beside its own, :func:`~dider.data.legacy.flat_view`), the
     feature layout, its ``state_dict`` (the normaliser) and the input frames per step; {} without one."""
     if dm is None:
         return {}
     cls = type(dm)
-    args = {k: v for k, v in dict(getattr(dm, "hparams", {})).items() if isinstance(v, (int, float, str, bool,
-                                                                                   list, tuple, type(None)))}
+    args = {k: v for k, v in flat_view(dict(getattr(dm, "hparams", {}))).items()
+            if isinstance(v, (int, float, str, bool, list, tuple, type(None)))}
     return {"target": f"{cls.__module__}.{cls.__qualname__}", "args": args, "features": list(FEATURES),
             "frame_step": int(getattr(dm, "frame_step", 1)), "state": dm.state_dict()}
 

@@ -60,8 +60,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
     table = example_tracks(args.scenes, seed=args.seed)
     atomic_write_bytes(args.path, table.to_csv(index=False).encode())
     print(f"{args.path}: {len(table)} rows, {args.scenes} scenes, {table.groupby('scene').agent.nunique().sum()} "
-          f"walkers, {FRAME_RATE:g} frames a second (python -m dider.run data=table data.path={args.path} "
-          f"data.frame_rate={FRAME_RATE:g} ...)")
+          f"walkers, {FRAME_RATE:g} frames a second (python -m dider.run data=table data.source.path={args.path} "
+          f"data.source.frame_rate={FRAME_RATE:g} ...)")
     return args.path
 
 

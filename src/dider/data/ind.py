@@ -38,13 +38,15 @@ from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
 from dider.data.columns import csv_header, read_columns
 from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, pad_collate, spread_indices
-from dider.data.levelx.reading import DEFAULT_FEATURES, WindowParams
-from dider.data.levelx.recordings import RecordingFiles, discover_recordings, pattern_regex, split_counts
+from dider.data.levelx.reading import WindowParams
+from dider.data.levelx.recordings import RecordingFiles, discover_recordings, split_counts
+from dider.data.levelx.source import LevelXSource
 from dider.data.levelx.windows import concat_windows, preprocess_recording, select_windows
 from dider.data.loader import Loader
 from dider.data.pairs import PairRules, find_pairs
+from dider.data.windowing import Windows
 from dider.protocol import fill_absent
-from dider.validation import Rule, check_settings, integer, optional
+from dider.validation import Rule, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -65,66 +67,38 @@ class InDDataModule(ClipDataModule):
 
     collate_fn = staticmethod(pad_collate)
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "downsample": integer(1), "seq_len": integer(2), "stride": optional(integer(1)),
-        "eval_stride": optional(integer(1)), "min_agent_steps": integer(1), "min_agents": integer(1),
-        "max_agents": optional(integer(1)),
-    }
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"source": LevelXSource,
+                                                                             "windows": Windows}
+    SOURCE = LevelXSource()  # inD's; data.source overrides it key by key
+    WINDOWS = Windows(seq_len=50, downsample=10)  # DNRI's inD windows: 50 steps of 2.5 Hz
+    UNUSED = {"max_speed": "levelX tracks come from a drone's view: no tracking jumps to drop"}
     LOADER = Loader(batch_size=8, eval_batch_size=8)  # DNRI's inD batch
     PAIRS = PairRules()  # the consistency check's rules; data.pairs overrides them key by key
 
     def __init__(
         self,
-        root: str | None = None,
-        name: str = "ind",
-        recordings: Sequence[int | str] | None = None,
+        source: Mapping[str, Any] | None = None,
+        windows: Mapping[str, Any] | None = None,
         split: Sequence[float] = (19, 7, 7),
-        tracks_pattern: str = "{id}_tracks.csv",
-        tracks_meta_pattern: str = "{id}_tracksMeta.csv",
-        recording_meta_pattern: str = "{id}_recordingMeta.csv",
-        track_id_column: str = "trackId",
-        frame_column: str = "frame",
-        class_column: str = "class",
-        frame_rate_column: str = "frameRate",
-        features: Sequence[str] = DEFAULT_FEATURES,
-        classes: Sequence[str] | None = None,
-        downsample: int = 10,
-        seq_len: int = 50,
-        stride: int | None = None,
-        eval_stride: int | None = None,
-        min_agent_steps: int = 1,
-        min_agents: int = 2,
-        max_agents: int | None = None,
+        pairs: dict[str, Any] | None = None,
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        pairs: dict[str, Any] | None = None,
-        background_pattern: str = "{id}_background.png",
-        background_scale: float = 12.0,
     ) -> None:
-        """root: the folder with each recording's ``{id}_tracks.csv``, ``_tracksMeta.csv`` and ``_recordingMeta.csv``.
-        name: the data set's name: the cache files' prefix and the log messages.
-        recordings: the recording ids used, e.g. [0, 1, 7]; null: every recording found, in order.
+        """source: the recordings (:class:`~dider.data.levelx.source.LevelXSource`): ``root``, the folder with each
+        recording's ``{id}_tracks.csv``, ``_tracksMeta.csv`` and ``_recordingMeta.csv``; ``name``; ``recordings``;
+        ``files`` and ``columns`` (their names); ``classes`` (the road users kept; null: all).
+        windows: how recordings are cut (:class:`~dider.data.windowing.Windows`): ``downsample`` (10: 25 Hz ->
+        2.5 Hz), ``seq_len`` steps (200 for the long-horizon table: ``data=ind200``), train windows every
+        ``stride`` steps and val / test windows every ``eval_stride`` (null: seq_len, no overlap),
+        ``min_agent_steps``, ``min_agents``, ``max_agents`` (the longest present kept; null: no cap).
         split: recordings for train / val / test in recording order (DNRI: 00-18 / 19-25 / 26-32), or fractions,
         e.g. [0.6, 0.2, 0.2].
-        class_column: a column of tracksMeta.
-        frame_rate_column: a column of recordingMeta.
-        features: x, y (m), x and y velocity (m/s); the files' other columns are ignored.
-        classes: the road-user classes kept, e.g. [car, truck_bus]; null: all (DNRI).
-        downsample: keep every k-th frame (10: 25 Hz -> 2.5 Hz).
-        seq_len: the window length in downsampled steps (200 for the long-horizon table: ``data=ind200``).
-        stride: train windows start every ``stride`` steps; null: seq_len (no overlap).
-        eval_stride: the same for val / test windows; null: seq_len.
-        min_agent_steps: keep the agents present for at least this many steps of a window.
-        min_agents: drop windows with fewer agents (relations need two).
-        max_agents: cap on the agents per window (the longest present kept); null: no cap.
         pairs: the consistency check on the test split (test/consistency/*: agent pairs whose edge type should stay
         the same all along): :class:`dider.data.pairs.PairRules` fields over ``PAIRS``; test batches carry
-        ``pair_kind``.
-        background_pattern: the image drawn under the trajectory figures, where present.
-        background_scale: metres per background pixel = orthoPxToMeter x this (inD's images are downscaled 12x)."""
+        ``pair_kind``."""
         super().__init__()
         check_settings(self, locals(), key="data")
         try:
@@ -132,58 +106,52 @@ class InDDataModule(ClipDataModule):
                                                      for k, v in dict(pairs or {}).items()})
         except TypeError as e:
             raise ValueError(f"data.pairs: {e} (fields: {list(PairRules.__dataclass_fields__)})") from None
-        if max_agents is not None and max_agents < min_agents:
-            raise ValueError(f"data.max_agents={max_agents}: must be >= data.min_agents={min_agents}")
-        if min_agent_steps > seq_len:
-            raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
-        if len(features) != 4:
-            raise ValueError(f"data.features={list(features)}: need 4 columns (x, y, x velocity, y velocity)")
+        self.source = LevelXSource.of(source)
+        self.windows = Windows.of(self.WINDOWS, windows, self.UNUSED)
         self.save_hyperparameters(logger=False)
+        self.hparams["source"], self.hparams["windows"] = asdict(self.source), asdict(self.windows)  # as read
         self.init_shared()
-        for key, pattern in [("tracks_pattern", tracks_pattern), ("tracks_meta_pattern", tracks_meta_pattern),
-                             ("recording_meta_pattern", recording_meta_pattern)]:
-            try:
-                pattern_regex(pattern)
-            except ValueError as e:
-                raise ValueError(f"data.{key}: {e}") from None
         split_counts(split, available=10**9)  # form only; the recording count is known in prepare_data
         self.dt: float | None = None
 
     # -- files and cache
 
     def _root(self) -> Path:
-        if self.hparams.root is None:
-            raise ValueError(f"data.root is not set: point it at the folder with the {self.hparams.name} "
-                             f"recordings ({self.hparams.tracks_pattern.format(id='XX')}, ...)")
-        return Path(self.hparams.root).expanduser()
+        if self.source.root is None:
+            raise ValueError(f"data.source.root is not set: point it at the folder with the {self.source.name} "
+                             f"recordings ({self.source.files.tracks.format(id='XX')}, ...)")
+        return Path(self.source.root).expanduser()
+
+    def _discover(self) -> list[RecordingFiles]:
+        f = self.source.files
+        return discover_recordings(self._root(), f.tracks, f.tracks_meta, f.recording_meta, self.source.recordings)
 
     def split_recordings(self) -> dict[str, list[RecordingFiles]]:
         """Recordings of each split, in recording order: the first counts[0] train, then val, then test."""
-        h = self.hparams
-        recs = discover_recordings(self._root(), h.tracks_pattern, h.tracks_meta_pattern,
-                                   h.recording_meta_pattern, h.recordings)
-        counts = split_counts(h.split, len(recs))
+        recs = self._discover()
+        counts = split_counts(self.hparams.split, len(recs))
         if sum(counts) < len(recs):
-            log.info("%s: using %d of %d recordings (data.split=%s)", h.name, sum(counts), len(recs),
-                     list(h.split))
+            log.info("%s: using %d of %d recordings (data.split=%s)", self.source.name, sum(counts), len(recs),
+                     list(self.hparams.split))
         bounds = np.cumsum([0, *counts])
         return {s: recs[bounds[i]:bounds[i + 1]] for i, s in enumerate(SPLITS)}
 
     def window_params(self, split: str) -> WindowParams:
-        h = self.hparams
-        stride = h.stride if split == "train" else h.eval_stride
+        """What changes the windows of ``split``'s recordings (their cache key: the field names are the cache's)."""
+        c, w = self.source.columns, self.windows
+        stride = w.stride if split == "train" else w.eval_stride
         return WindowParams(
-            track_id_column=h.track_id_column, frame_column=h.frame_column, class_column=h.class_column,
-            frame_rate_column=h.frame_rate_column, features=tuple(h.features),
-            classes=None if h.classes is None else tuple(sorted(h.classes)), downsample=h.downsample,
-            seq_len=h.seq_len, stride=stride or h.seq_len, min_agent_steps=h.min_agent_steps,
-            min_agents=h.min_agents, max_agents=h.max_agents,
+            track_id_column=c.track_id, frame_column=c.frame, class_column=c.agent_class,
+            frame_rate_column=c.frame_rate, features=tuple(c.features),
+            classes=None if self.source.classes is None else tuple(sorted(self.source.classes)),
+            downsample=w.downsample, seq_len=w.seq_len, stride=stride or w.seq_len,
+            min_agent_steps=w.min_agent_steps, min_agents=w.min_agents, max_agents=w.max_agents,
         )
 
     def cache_path(self, files: RecordingFiles, params: WindowParams) -> Path:
         key = cache_key({"version": CACHE_VERSION, "recording": files.id, "files": files.signature(),
                          "params": asdict(params)})
-        return self.cache_dir / "levelx" / f"{self.hparams.name}_{files.id}_{key}.pt"
+        return self.cache_dir / "levelx" / f"{self.source.name}_{files.id}_{key}.pt"
 
     def _load_or_build(self, files: RecordingFiles, params: WindowParams) -> dict[str, Any]:
         path = self.cache_path(files, params)
@@ -191,7 +159,7 @@ class InDDataModule(ClipDataModule):
         def build() -> dict[str, Any]:
             t0 = time.perf_counter()
             blob = preprocess_recording(files, params)
-            log.info("%s recording %s: %d windows from %d tracks in %.1f s -> %s", self.hparams.name, files.id,
+            log.info("%s recording %s: %d windows from %d tracks in %.1f s -> %s", self.source.name, files.id,
                      len(blob["window_start"]), blob["num_tracks"], time.perf_counter() - t0, path)
             return blob
 
@@ -210,24 +178,22 @@ class InDDataModule(ClipDataModule):
     def recordings_of(self, split: str) -> list[RecordingFiles]:
         """The recordings of a split; ``predict``: every recording found (``data.recordings``), no split."""
         if split == "predict":
-            h = self.hparams
-            return discover_recordings(self._root(), h.tracks_pattern, h.tracks_meta_pattern,
-                                       h.recording_meta_pattern, h.recordings)
+            return self._discover()
         return self.split_recordings()[split]
 
     def _windows(self, split: str, recs: list[RecordingFiles], rates: dict[str, float]) -> dict[str, Any]:
         """The packed windows of ``recs`` (cached per recording), capped for train / val / test."""
-        h = self.hparams
+        h, w, classes = self.hparams, self.windows, self.source.classes
         blobs = [self._load_or_build(f, self.window_params(split)) for f in recs]
         rates.update({b["recording"]: b["frame_rate"] for b in blobs})
         data = concat_windows(blobs)
         if len(data["window_start"]) == 0:
             raise ValueError(
-                f"{h.name} {split} split (recordings {[f.id for f in recs]}): no window of data.seq_len="
-                f"{h.seq_len} steps (x data.downsample={h.downsample} = "
-                f"{h.seq_len * h.downsample} frames) with >= data.min_agents={h.min_agents} agents: "
+                f"{self.source.name} {split} split (recordings {[f.id for f in recs]}): no window of "
+                f"data.windows.seq_len={w.seq_len} steps (x data.windows.downsample={w.downsample} = "
+                f"{w.seq_len * w.downsample} frames) with >= data.windows.min_agents={w.min_agents} agents: "
                 f"recordings too short or empty"
-                + (f", or data.classes={list(h.classes)} left too few tracks" if h.classes else ""))
+                + (f", or data.source.classes={list(classes)} left too few tracks" if classes else ""))
         cap = {"train": h.num_train, "val": h.num_val, "test": h.num_test}.get(split)
         if cap is not None and cap < len(data["window_start"]):
             data = select_windows(data, spread_indices(len(data["window_start"]), cap))
@@ -236,30 +202,31 @@ class InDDataModule(ClipDataModule):
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        h = self.hparams
+        name, classes, downsample = self.source.name, self.source.classes, self.windows.downsample
         # predict: every recording, no split, the trained model's normalisation
         splits = ("predict",) if stage == "predict" else SPLITS
         rates: dict[str, float] = {}
         raw = {split: self._windows(split, self.recordings_of(split), rates) for split in splits}
-        if h.classes is not None:  # a misspelt class silently selects nothing: say so
+        if classes is not None:  # a misspelt class silently selects nothing: say so
             seen = set().union(*(d["class_names"] for d in raw.values()))
-            if unknown := sorted(set(h.classes) - seen):
-                log.warning("data.classes: %s never occur in %s (classes present: %s)", unknown, h.name,
+            if unknown := sorted(set(classes) - seen):
+                log.warning("data.source.classes: %s never occur in %s (classes present: %s)", unknown, name,
                             sorted(seen))
         # One downsample factor means one time step only if every recording has the same frame rate.
         if len(set(rates.values())) > 1:
-            raise ValueError(f"{h.name}: recordings have different frame rates {rates} (recordingMeta "
-                             f"{h.frame_rate_column}); select recordings of one rate with data.recordings")
-        self.dt = h.downsample / next(iter(rates.values()))
-        self.frame_step = h.downsample
+            raise ValueError(f"{name}: recordings have different frame rates {rates} (recordingMeta "
+                             f"{self.source.columns.frame_rate}); select recordings of one rate with "
+                             f"data.source.recordings")
+        self.dt = downsample / next(iter(rates.values()))
+        self.frame_step = downsample
         if stage == "predict":
-            self.predict_normalizer(f"data.root={h.root}")
+            self.predict_normalizer(f"data.source.root={self.source.root}")
         else:
             try:
                 train = raw["train"]
                 self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"]))
             except ValueError as e:  # e.g. only parked vehicles left: a zero velocity range
-                raise ValueError(f"{h.name} train split (recordings {raw['train']['recordings']}): cannot "
+                raise ValueError(f"{name} train split (recordings {raw['train']['recordings']}): cannot "
                                  f"fit the normalisation: {e}") from None
         for split, data in raw.items():
             states = fill_absent(self.normalizer.normalize(data["states"]), data["mask"])
@@ -272,13 +239,13 @@ class InDDataModule(ClipDataModule):
             # indexes this split's recordings), the recording's frame of its first step, the track ids.
             sources = {"clip": torch.arange(len(data["window_start"])),
                        "scene": self._recording_codes(data["recordings"])[data["window_recording"]],
-                       "frame": data["window_start"] * h.downsample}
+                       "frame": data["window_start"] * downsample}
             ds = PackedClipDataset(states, data["mask"], data["offsets"], pairs, sources, data["track_id"])
             for key in ("track_id", "agent_class", "class_names", "window_start", "window_recording",
                         "recordings"):
                 setattr(ds, key, data[key])
             self.datasets[split] = ds
-        log.info("%s windows: %s", h.name, {s: len(d) for s, d in self.datasets.items()})
+        log.info("%s windows: %s", name, {s: len(d) for s, d in self.datasets.items()})
 
     def _recording_codes(self, recordings: list[str]) -> torch.Tensor:
         """Recording ids as source scene ids: the number itself for numeric ids ("07" -> 7), else a code
@@ -297,12 +264,13 @@ class InDDataModule(ClipDataModule):
 
         A pixel is orthoPxToMeter * background_scale metres (the released images are downscaled) and the
         image's y axis points down while the tracks' points up."""
-        h, ds = self.hparams, self.datasets[split]
+        ds = self.datasets[split]
         files = self.recordings_of(split)[int(ds.window_recording[index])]
-        image = files.tracks.parent / h.background_pattern.format(id=files.id)
+        image = files.tracks.parent / self.source.files.background.format(id=files.id)
         if not image.is_file() or "orthoPxToMeter" not in csv_header(files.recording_meta):
             return None
-        meters = float(read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * h.background_scale
+        scale = self.source.background_scale
+        meters = float(read_columns(files.recording_meta, ["orthoPxToMeter"]).iloc[0, 0]) * scale
         if not (np.isfinite(meters) and meters > 0):
             return None
         try:

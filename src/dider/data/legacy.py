@@ -1,5 +1,6 @@
-"""Older data configs read as today's: a run folder's saved config (``.hydra/config.yaml``) written by an earlier
-version, for the tools that rebuild its data module (``dider.analysis.diagnose``)."""
+"""Older data configs read as today's: a run folder's saved config (``.hydra/config.yaml``) or a checkpoint's data
+arguments written by an earlier version, for the tools that rebuild its data module (``dider.analysis.diagnose``),
+and a checkpoint's data settings as one flat view (:func:`flat_view`) whatever its version."""
 
 from __future__ import annotations
 
@@ -8,17 +9,71 @@ from dataclasses import fields
 from typing import Any
 
 from dider.data.loader import Loader
+from dider.data.windowing import Windows
 
 # The forecast protocol's keys, which data configs once carried beside the model (today the model's alone).
 PROTOCOL_KEYS = ("burn_in", "horizons", "burn_in_mode")
+TABLE = "dider.data.table.TableDataModule"
+LEVELX = "dider.data.ind.InDDataModule"
+# The track data modules whose settings were flat, by their old target: (today's target, the source's keys (old
+# name -> today's path under ``source``), the reader they read with where the source names it).
+FLAT_TRACKS: dict[str, tuple[str, dict[str, str], str | None]] = {
+    TABLE: (TABLE, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
+    "dider.data.soccer.SoccerDataModule": (
+        TABLE, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
+    LEVELX: (LEVELX, {
+        **{k: k for k in ("root", "name", "recordings", "classes", "background_scale")},
+        **{f"{k}_pattern": f"files.{k}" for k in ("tracks", "tracks_meta", "recording_meta", "background")},
+        "track_id_column": "columns.track_id", "frame_column": "columns.frame", "class_column": "columns.agent_class",
+        "frame_rate_column": "columns.frame_rate", "features": "columns.features"}, None),
+}
+WINDOW_KEYS = tuple(f.name for f in fields(Windows))
+
+
+def nest_track_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
+    """A track data module's flat arguments (an older version's) as today's target and nested arguments: the
+    source's keys under ``source``, the cut's under ``windows``; arguments already nested are kept."""
+    new_target, source_keys, reader = FLAT_TRACKS[target]
+    out: dict[str, Any] = {}
+    source: dict[str, Any] = {"reader": reader} if reader else {}
+    windows: dict[str, Any] = {}
+    for key, value in args.items():
+        if key in source_keys:
+            *parents, leaf = source_keys[key].split(".")
+            node = source
+            for parent in parents:
+                node = node.setdefault(parent, {})
+            node[leaf] = value
+        elif key in WINDOW_KEYS:
+            windows[key] = value
+        else:
+            out[key] = value
+    if source:
+        out["source"] = {**source, **dict(out.get("source") or {})}
+    if windows:
+        out["windows"] = {**windows, **dict(out.get("windows") or {})}
+    return new_target, out
 
 
 def upgrade_data_node(data: Mapping[str, Any]) -> dict[str, Any]:
     """A data config (plain) in today's layout: the loader's settings in its ``loader`` node where an older config
-    has them at the top (``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory``), and without the
-    forecast protocol's keys (``burn_in``, ``horizons``, ``burn_in_mode``: the model's)."""
+    has them at the top (``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory``), without the
+    forecast protocol's keys (``burn_in``, ``horizons``, ``burn_in_mode``: the model's), and a track data set's
+    flat settings nested (:func:`nest_track_args`)."""
     names = [f.name for f in fields(Loader)]
     node = {k: v for k, v in data.items() if k not in names and k not in PROTOCOL_KEYS}
     if older := {k: data[k] for k in names if k in data}:
         node["loader"] = {**older, **dict(data.get("loader") or {})}
+    if (target := node.get("_target_")) in FLAT_TRACKS:
+        node["_target_"], nested = nest_track_args(target, {k: v for k, v in node.items() if k != "_target_"})
+        node = {"_target_": node["_target_"], **nested}
     return node
+
+
+def flat_view(args: Mapping[str, Any]) -> dict[str, Any]:
+    """A data module's arguments as one flat mapping (the layout of older checkpoints): the settings of its
+    ``source`` and ``windows`` nodes at the top, beside its own."""
+    flat = {k: v for k, v in args.items() if k not in ("source", "windows")}
+    for node in ("source", "windows"):
+        flat |= {k: v for k, v in dict(args.get(node) or {}).items() if k not in flat}
+    return flat

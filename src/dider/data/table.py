@@ -1,12 +1,15 @@
-"""Long-format trajectory tables: one ``.csv`` or ``.parquet`` file (``data.path``), one row per agent per frame.
+"""Data sets of long tracks: a ``.csv`` or ``.parquet`` table (``data.source.path``), one row per agent per frame, or
+what a reader reads into the same rows (``data.source.reader``: :mod:`dider.data.track_sources`, e.g. ETH/UCY text
+files, a soccer provider's tracking data through kloppy).
 
-Columns are named in ``data.columns``: ``agent``, ``frame`` (integer frame numbers), ``x``, ``y`` (required),
-``scene`` (null: a column called ``scene`` if the file has one, else the whole file is one scene), ``vx``/``vy``
-(null: finite differences, both or neither), ``agent_class`` (optional, one class per agent). Extra columns are
-ignored. Scene and agent ids may be integers (kept as they are) or strings (coded; the names are in
+A table's columns are named in ``data.source.columns``: ``agent``, ``frame`` (integer frame numbers), ``x``, ``y``
+(required), ``scene`` (null: a column called ``scene`` if the file has one, else the whole file is one scene),
+``vx``/``vy`` (null: finite differences, both or neither), ``agent_class`` (optional, one class per agent). Extra
+columns are ignored. Scene and agent ids may be integers (kept as they are) or strings (coded; the names are in
 ``source_names``); an agent is a (scene, agent id) pair.
 
-Each scene is downsampled to every ``downsample``-th frame counted from the scene's first frame, and laid
+Cutting (the ``data.windows`` node, :class:`~dider.data.windowing.Windows`): each scene is downsampled to every
+``downsample``-th frame counted from the scene's first frame, and laid
 on a grid of steps x agents: a frame missing inside an agent's span is an absent step (mask False).
 Without velocity columns, v[t] = (pos[t] - pos[t-1]) * frame_rate / downsample needs the agent at both
 steps, and the scene's first step is dropped (as the npz reader does). A step whose speed exceeds
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -43,12 +47,12 @@ from dider.data.common import (
     ragged_rows,
     spread_indices,
 )
-from dider.data.readers import reader_problem
-from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, id_name, read_table
+from dider.data.table_reading import id_name
+from dider.data.track_sources import track_source
 from dider.data.trajectories import split_indices
-from dider.data.windowing import MAX_GRID_CELLS, grid_windows
+from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows
 from dider.protocol import fill_absent
-from dider.validation import Rule, above, check_settings, finite, integer, optional
+from dider.validation import Rule, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -90,16 +94,16 @@ def drop_jumps(grid: np.ndarray, present: np.ndarray, max_speed: float | None) -
 def _too_few_frames(path: Path | str, seq_len: int, downsample: int, drop: int, longest: int) -> str:
     """The arithmetic of a window that no scene is long enough for (``drop``: the step finite differences use)."""
     need = (seq_len + drop - 1) * downsample + 1
-    return (f"{path}: too few frames for one window of data.seq_len={seq_len} steps: a window needs "
+    return (f"{path}: too few frames for one window of data.windows.seq_len={seq_len} steps: a window needs "
             f"{seq_len} step(s){' + 1 for the finite-difference velocities' if drop else ''} of "
-            f"data.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
-            f"scene has {longest + drop} step(s): set data.seq_len <= {longest}"
-            + (", or lower data.downsample" if downsample > 1 else ""))
+            f"data.windows.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
+            f"scene has {longest + drop} step(s): set data.windows.seq_len <= {longest}"
+            + (", or lower data.windows.downsample" if downsample > 1 else ""))
 
 
 def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsample: int, seq_len: int,
-                  stride: int, min_agent_steps: int, min_agents: int, max_speed: float | None = None
-                  ) -> dict[str, Any]:
+                  stride: int, min_agent_steps: int, min_agents: int, max_speed: float | None = None,
+                  max_agents: int | None = None) -> dict[str, Any]:
     """Cut every scene of a read table (:func:`~dider.data.table_reading.read_table`'s dict; ``path`` names
     it in messages) into packed windows (raw units), in reading order; steps faster than ``max_speed`` are
     absent (a warning counts them).
@@ -119,28 +123,29 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, downsa
         if (int(step[rows].max()) + 1) * ids.size > MAX_GRID_CELLS:
             scene, span = id_name(t, "scene", t["scene_ids"][z]), int(step[rows].max()) + 1
             raise ValueError(f"{path}: scene {scene} spans {span} steps x {ids.size} agents: implausibly large (is "
-                             f"data.downsample={downsample} right?)")
+                             f"data.windows.downsample={downsample} right?)")
         grid, present = scene_grid(t["xy"][rows], None if drop else t["vel"][rows], step[rows], local,
                                    frame_rate / downsample)
         grid, present, fast = drop_jumps(grid, present, max_speed)
         steps_kept, steps_fast = steps_kept + int(present.sum()), steps_fast + fast
         longest = max(longest, present.shape[0])
         states, mask, counts, starts, agent = grid_windows(grid, present, seq_len, stride, min_agent_steps,
-                                                           min_agents)
+                                                           min_agents, max_agents)
         parts.append({
             "states": states, "mask": mask, "counts": counts, "agent": ids[agent],
             "agent_class": None if t["agent_class"] is None else t["agent_class"][rows][first][agent],
             "scene_index": np.full(len(starts), z), "frame": first_frame[z] + (starts + drop) * downsample,
         })
     if steps_fast:
-        log.warning("%s: %d of %d agent-steps (%.2f%%) move faster than data.max_speed=%s per second: tracking "
-                    "jumps, marked absent", path, steps_fast, steps_kept + steps_fast,
+        log.warning("%s: %d of %d agent-steps (%.2f%%) move faster than data.windows.max_speed=%s per second: "
+                    "tracking jumps, marked absent", path, steps_fast, steps_kept + steps_fast,
                     100 * steps_fast / (steps_kept + steps_fast), max_speed)
     if longest < seq_len:
         raise ValueError(_too_few_frames(path, seq_len, downsample, drop, longest))
     if not sum(len(p["frame"]) for p in parts):
-        raise ValueError(f"{path}: no window of data.seq_len={seq_len} steps has >= data.min_agents={min_agents} "
-                         f"agents present in >= data.min_agent_steps={min_agent_steps} of its steps{hint}")
+        raise ValueError(f"{path}: no window of data.windows.seq_len={seq_len} steps has >= "
+                         f"data.windows.min_agents={min_agents} agents present in >= "
+                         f"data.windows.min_agent_steps={min_agent_steps} of its steps{hint}")
     return _packed(parts, t)
 
 
@@ -156,7 +161,7 @@ def _scene_steps(t: dict[str, Any], path: Path | str, downsample: int
     step = offset // downsample
     hint = ""
     if (gap := int(np.gcd.reduce(step[keep]))) > 1:  # e.g. frames numbered 0, 10, 20 with downsample=1
-        hint = f" (frames step by {gap * downsample}: set data.downsample={gap * downsample}?)"
+        hint = f" (frames step by {gap * downsample}: set data.windows.downsample={gap * downsample}?)"
         log.warning("%s: %d of every %d steps are absent%s", path, gap - 1, gap, hint)
     return lo_hi, first_frame, keep, step, hint
 
@@ -176,7 +181,7 @@ def _packed(parts: list[dict[str, np.ndarray]], t: dict[str, Any]) -> dict[str, 
 
 
 class TableDataModule(ClipDataModule):
-    """Windows of a long-format trajectory table (see the module docstring).
+    """Windows of a data set of long tracks: a table, or what a reader reads (see the module docstring).
 
     Batches: states [B, T, N, 4] (normalised; zeros for absent agents), mask [B, T, N] bool and source
     (clip, scene, frame [B], agent [B, N]); N is the largest agent count in the batch. After ``setup``:
@@ -188,24 +193,16 @@ class TableDataModule(ClipDataModule):
     predicts = True
 
     collate_fn = staticmethod(pad_collate)
-    COLUMNS = DEFAULT_COLUMNS  # the table's column names; data.columns overrides them key by key
+    WINDOWS = Windows()  # this data set's window defaults; data.windows overrides them key by key
+    # the window settings the table's cut does not read
+    UNUSED = {"eval_stride": "a table is cut before its split: data.windows.stride serves every split"}
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "frame_rate": lambda value: above(0)(value) or finite(value), "downsample": integer(1),
-        "seq_len": integer(2), "stride": optional(integer(1)), "min_agent_steps": integer(1),
-        "min_agents": integer(1), "max_speed": optional(above(0)), "reader": reader_problem,
-    }
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"windows": Windows}
 
     def __init__(
         self,
-        path: str | None = None,
-        columns: Mapping[str, str | None] | None = None,
-        frame_rate: float = 1.0,
-        downsample: int = 1,
-        seq_len: int = 20,
-        stride: int | None = None,
-        min_agent_steps: int = 1,
-        min_agents: int = 2,
+        source: Mapping[str, Any] | None = None,
+        windows: Mapping[str, Any] | None = None,
         split: Sequence[float] = (0.8, 0.1, 0.1),
         seed: int = 1,
         num_train: int | None = None,
@@ -213,49 +210,50 @@ class TableDataModule(ClipDataModule):
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
-        max_speed: float | None = None,
-        reader: str = "table",
     ) -> None:
-        """path: the .csv or .parquet file (required; parquet needs pyarrow), or what ``reader`` reads.
-        reader: ``table`` (the file's columns named in ``columns``) or a format's reader, which reads its own files
-        (:mod:`dider.data.readers`: ``eth_ucy``, a folder of ETH/UCY text files).
-        columns: the table's column names (module docstring), key by key over ``COLUMNS``.
-        frame_rate: frames per second of the frame column: differenced velocities are per second.
-        seq_len: the window length in (downsampled) steps.
-        stride: a window starts every ``stride`` steps of a scene; null: seq_len (windows do not overlap).
-        max_speed: a step faster than this (data units per second) is a tracking jump, the agent absent there;
-        null keeps every step.
+        """source: what is read (:mod:`dider.data.track_sources`): ``reader`` (``table``: the file's columns named
+        in ``columns``; ``kloppy``: a soccer provider's files; or a format's reader of :mod:`dider.data.readers`,
+        e.g. ``eth_ucy``, a folder of ETH/UCY text files), ``path`` and ``frame_rate`` (frames per second of the
+        frame column: differenced velocities are per second).
+        windows: how scenes are cut (:class:`~dider.data.windowing.Windows`): ``seq_len`` steps, a window every
+        ``stride`` steps of a scene (null: seq_len, no overlap), ``downsample``, ``min_agent_steps``,
+        ``min_agents``; ``max_speed``: a step faster than this (data units per second) is a tracking jump, the
+        agent absent there (null keeps every step).
         split: train / val / test fractions: of the scenes with >= 3 scenes, else of the windows.
         seed: the split seed."""
         super().__init__()
         check_settings(self, locals(), key="data")
-        self.columns = check_columns(columns)
-        if min_agent_steps > seq_len:
-            raise ValueError(f"data.min_agent_steps={min_agent_steps}: must be <= data.seq_len={seq_len}")
+        self.source = track_source(source)
+        self.windows = Windows.of(self.WINDOWS, windows, self.UNUSED)
         split_indices(10**4, split, seed)  # checks the form of split early; the window count comes later
         self.save_hyperparameters(logger=False)
+        self.hparams["source"], self.hparams["windows"] = asdict(self.source), asdict(self.windows)  # as read
         self.init_shared()
-        self.frame_step = downsample
-        self.dt = downsample / frame_rate
+        self.units = self.source.UNITS
+        self.frame_step = self.windows.downsample
+        self.dt = None if self.source.frame_rate is None else self.windows.downsample / self.source.frame_rate
+        self._rows: tuple[dict[str, Any], float] | None = None
 
     def _read(self) -> dict[str, Any]:
-        """The rows (:func:`~dider.data.table_reading.read_table`'s dict); other sources override it."""
-        return read_table(self._path(), self.columns, self.hparams.reader)
+        """The source's rows (:func:`~dider.data.table_reading.read_table`'s dict), read once; a source that
+        finds its own frame rate (a soccer provider's) records it, so that the checkpoint carries it."""
+        if self._rows is None:
+            self._rows = self.source.rows()
+            rate = self._rows[1]
+            if self.source.frame_rate is None:
+                self.source = replace(self.source, frame_rate=rate)
+                self.hparams["source"] = asdict(self.source)
+                self.dt = self.windows.downsample / rate
+        return self._rows[0]
 
     def _source(self) -> str:
         """What messages name as the data's origin."""
-        return str(self._path())
-
-    def _path(self) -> Path:
-        if self.hparams.path is None:
-            raise ValueError("data.path is not set: point it at a .csv or .parquet table with one row per agent "
-                             "per frame (columns named in data.columns)")
-        return Path(self.hparams.path).expanduser()
+        return self.source.where()
 
     def _windows(self) -> dict[str, Any]:
-        h = self.hparams
-        data = table_windows(self._read(), self._source(), h.frame_rate, h.downsample, h.seq_len,
-                             h.stride or h.seq_len, h.min_agent_steps, h.min_agents, h.max_speed)
+        rows, w = self._read(), self.windows  # first: reading may fix the frame rate the velocities use
+        data = table_windows(rows, self._source(), self.source.frame_rate, w.downsample, w.seq_len,
+                             w.stride or w.seq_len, w.min_agent_steps, w.min_agents, w.max_speed, w.max_agents)
         self.source_names = {k: v for k, v in data["names"].items() if k in ("scene", "agent")}
         return data
 
@@ -286,7 +284,6 @@ class TableDataModule(ClipDataModule):
         return {s: idx[spread_indices(len(idx), caps[s])] for s, idx in parts.items()}, by
 
     def setup(self, stage: str | None = None) -> None:
-        h = self.hparams
         if stage == "predict":  # every window, no split, the trained model's normalisation
             if "predict" not in self.datasets:
                 normalizer = self.predict_normalizer(self._source())
@@ -306,6 +303,6 @@ class TableDataModule(ClipDataModule):
             self.datasets[split] = self._dataset(data, idx, self.normalizer)
         log.info("%s: %d windows from %d scenes, split by %s: %s", self._source(), len(data["clip"]),
                  len(torch.unique(data["scene_index"])), by, {s: len(d) for s, d in self.datasets.items()})
-        if by == "window" and (h.stride or h.seq_len) < h.seq_len:
-            log.warning("data.stride=%d < data.seq_len=%d with a split by window: val / test windows share steps "
-                        "with training windows", h.stride, h.seq_len)
+        if by == "window" and (self.windows.stride or self.windows.seq_len) < self.windows.seq_len:
+            log.warning("data.windows.stride=%d < data.windows.seq_len=%d with a split by window: val / test windows "
+                        "share steps with training windows", self.windows.stride, self.windows.seq_len)

@@ -1,5 +1,5 @@
 """Reading a long-format trajectory table (``data=table``): one ``.csv`` or ``.parquet`` file, one row per agent
-per frame, columns named in ``data.columns``; every problem is named with the file, the column and the CSV line
+per frame, columns named in ``data.source.columns``; every problem is named with the file, the column and the CSV line
 (parquet: the row) before any windowing. :mod:`dider.data.table` cuts the result into windows.
 """
 
@@ -26,22 +26,23 @@ SUFFIXES = (".csv", ".parquet")
 
 
 def check_columns(columns: Mapping[str, Any] | None) -> dict[str, str | None]:
-    """``data.columns`` merged over the defaults; raises naming the key of an unknown, missing or clashing entry."""
+    """``data.source.columns`` merged over the defaults; raises naming the key of an unknown, missing or clashing
+    entry."""
     given = dict(columns or {})
     if unknown := sorted(set(given) - set(DEFAULT_COLUMNS)):
-        raise ValueError(f"data.columns: unknown key(s) {unknown} (known: {list(DEFAULT_COLUMNS)})")
+        raise ValueError(f"data.source.columns: unknown key(s) {unknown} (known: {list(DEFAULT_COLUMNS)})")
     cols = {**DEFAULT_COLUMNS, **given}
     for key, name in cols.items():
         if name is None and key in REQUIRED:
-            raise ValueError(f"data.columns.{key} is null: the {key} column is required")
+            raise ValueError(f"data.source.columns.{key} is null: the {key} column is required")
         if name is not None and not (isinstance(name, str) and name):
-            raise ValueError(f"data.columns.{key}={name!r}: expected a column name or null")
+            raise ValueError(f"data.source.columns.{key}={name!r}: expected a column name or null")
     if (cols["vx"] is None) != (cols["vy"] is None):
-        raise ValueError(f"data.columns: vx={cols['vx']!r}, vy={cols['vy']!r}: give both velocity columns or "
+        raise ValueError(f"data.source.columns: vx={cols['vx']!r}, vy={cols['vy']!r}: give both velocity columns or "
                          f"neither (null: finite differences)")
     named = [n for n in cols.values() if n is not None]
     if clash := sorted({n for n in named if named.count(n) > 1}):
-        raise ValueError(f"data.columns: column(s) {clash} named for more than one key")
+        raise ValueError(f"data.source.columns: column(s) {clash} named for more than one key")
     return cols
 
 
@@ -57,16 +58,17 @@ def _read_frame(path: Path, names: list[str], optional: Sequence[str] = ()) -> p
     """The named columns of the file, and those of ``optional`` it has (types inferred; checked by the
     callers)."""
     if path.suffix.lower() not in SUFFIXES:
-        raise ValueError(f"data.path={path}: unknown extension {path.suffix!r}; expected one of {list(SUFFIXES)}")
+        raise ValueError(f"data.source.path={path}: unknown extension {path.suffix!r}; expected one of "
+                         f"{list(SUFFIXES)}")
     if not path.is_file():
-        raise FileNotFoundError(f"data.path={path}: no such file")
+        raise FileNotFoundError(f"data.source.path={path}: no such file")
     csv = path.suffix.lower() == ".csv"
     # CSV: the header first, so a missing column is named before the rows are read. Parquet: every column
     # (reading the schema alone needs engine-specific code).
     whole = None if csv else _read_parquet(path)
     found = csv_header(path) if whole is None else [str(c) for c in whole.columns]
     if missing := [n for n in names if n not in found]:
-        raise ValueError(f"{path}: missing column(s) {missing} (found {found}); name them in data.columns")
+        raise ValueError(f"{path}: missing column(s) {missing} (found {found}); name them in data.source.columns")
     names = names + [n for n in optional if n in found and n not in names]
     try:
         df = pd.read_csv(path, usecols=names, low_memory=False) if whole is None else whole[names]
@@ -81,8 +83,8 @@ def _read_parquet(path: Path) -> pd.DataFrame:
     try:
         return pd.read_parquet(path)
     except ImportError as e:
-        raise ImportError(f"data.path={path}: reading .parquet needs pyarrow (pip install pyarrow) or fastparquet; "
-                          f"or save the table as .csv ({e})") from None
+        raise ImportError(f"data.source.path={path}: reading .parquet needs pyarrow (pip install pyarrow) or "
+                          f"fastparquet; or save the table as .csv ({e})") from None
     except (ValueError, OSError) as e:
         raise ValueError(f"{path}: not a readable parquet file ({type(e).__name__}: {e})") from e
 
@@ -141,12 +143,13 @@ def read_table(path: Path, columns: Mapping[str, str | None], reader: str = "tab
         named, auto_scene = {k: k for k in df.columns}, False
     else:
         named = {k: v for k, v in columns.items() if v is not None}
-        # A column called "scene" is the scene id unless data.columns names one (or uses "scene" for another key).
+        # A column called "scene" is the scene id unless data.source.columns names one (or uses "scene" for another
+        # key).
         auto_scene = "scene" not in named and "scene" not in named.values()
         df = _read_frame(path, list(named.values()), optional=["scene"] if auto_scene else [])
     if auto_scene and "scene" in df.columns:
         named["scene"] = "scene"
-        log.info("%s: column 'scene' read as the scene id (data.columns.scene is null); to read the file as one "
+        log.info("%s: column 'scene' read as the scene id (data.source.columns.scene is null); to read the file as one "
                  "scene, rename that column", path)
     nums = {k: _numbers(path, df[named[k]]) for k in NUMERIC if k in named}
     frame = nums["frame"]

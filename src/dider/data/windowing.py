@@ -7,10 +7,58 @@ than ``min_agents`` (a relation needs two).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, ClassVar
+
 import numpy as np
+
+from dider.validation import ConfigError, Rule, above, check_settings, integer, optional
 
 # Cap on the dense (steps x agents) grid of one scene: a real inD recording has ~4k steps x ~400 tracks.
 MAX_GRID_CELLS = 2**28
+
+
+@dataclass(frozen=True)
+class Windows:
+    """How a data set of long tracks is cut into clips: the data config's ``windows`` node. A data module's class
+    holds its data set's defaults (``WINDOWS``); the node overrides them key by key."""
+
+    seq_len: int = 20  # steps per window
+    stride: int | None = None  # a (training) window starts every ``stride`` steps; null: seq_len (no overlap)
+    eval_stride: int | None = None  # the same for val / test where recordings are split before the cut (levelX)
+    downsample: int = 1  # keep every k-th frame: a step is ``downsample`` frames
+    min_agent_steps: int = 1  # a window keeps the agents present in at least this many of its steps
+    min_agents: int = 2  # a window with fewer agents kept is dropped (a relation needs two)
+    max_agents: int | None = None  # at most this many agents per window, those present longest (levelX)
+    max_speed: float | None = None  # a faster step (data units per second) is a tracking jump: absent (tables)
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "seq_len": integer(2), "stride": optional(integer(1)), "eval_stride": optional(integer(1)),
+        "downsample": integer(1), "min_agent_steps": integer(1), "min_agents": integer(1),
+        "max_agents": optional(integer(1)), "max_speed": optional(above(0)),
+    }
+
+    def __post_init__(self) -> None:
+        check_settings(self, asdict(self), key="data.windows")
+        if self.min_agent_steps > self.seq_len:
+            raise ConfigError(f"data.windows.min_agent_steps={self.min_agent_steps}: must be <= "
+                              f"data.windows.seq_len={self.seq_len}")
+        if self.max_agents is not None and self.max_agents < self.min_agents:
+            raise ConfigError(f"data.windows.max_agents={self.max_agents}: must be >= "
+                              f"data.windows.min_agents={self.min_agents}")
+
+    @classmethod
+    def of(cls, defaults: Windows, given: Mapping[str, Any] | None, unused: Mapping[str, str]) -> Windows:
+        """``defaults`` overridden by the config's node key by key; a key of ``unused`` (name -> why this data set
+        does not read it) may not be set."""
+        given = dict(given or {})
+        names = [f.name for f in fields(cls)]
+        if unknown := sorted(set(given) - set(names)):
+            raise ConfigError(f"data.windows: no such setting(s) {unknown} (expected some of {names})")
+        if wrong := [f"data.windows.{k}={given[k]!r}: {why}" for k, why in unused.items() if given.get(k) is not None]:
+            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(wrong))
+        return replace(defaults, **given)
 
 
 def cut_windows(present: np.ndarray, seq_len: int, stride: int, min_agent_steps: int, min_agents: int,

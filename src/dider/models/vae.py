@@ -25,7 +25,7 @@ from torch import nn
 from dider.graph import edge_index, edge_mask
 from dider.models.checkpoint_format import network_config, read
 from dider.models.decoders import evidence_problem
-from dider.models.hazard import hold_assignment
+from dider.models.given_cut import cut_segmentation
 from dider.models.inference import Inference, pick_types, plain_config  # noqa: F401 (re-exported)
 from dider.models.likelihood import GaussianNLL
 from dider.models.objective import Objective
@@ -39,9 +39,10 @@ from dider.models.plugins import (
     Progress,
     missing_members,
 )
-from dider.models.segments import Segmentation, entries, forced_boundaries
+from dider.models.prior_rollout import prior_features, rollout_share
+from dider.models.segments import Segmentation, entries
 from dider.protocol import fill_absent, observed_inputs
-from dider.validation import Rule, above, boolean, check_settings, integer, one_of
+from dider.validation import Rule, above, boolean, check_settings, integer, one_of, optional, within
 
 
 class RelationalVAE(nn.Module):
@@ -52,7 +53,7 @@ class RelationalVAE(nn.Module):
         "num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
         "gumbel_tau": above(0), "posterior_readout": one_of("start", "mean"),
         "rollout_edges": one_of("sample", "argmax"), "forecast_edges": one_of("prior", "burn_in"),
-        "decoder_edges": boolean,
+        "decoder_edges": boolean, "prior_rollout": optional(within(0.0, 1.0)),
     }
 
     def __init__(
@@ -68,6 +69,7 @@ class RelationalVAE(nn.Module):
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
         decoder_edges: bool = True,
+        prior_rollout: float | None = None,
         name: str = "model",
     ) -> None:
         """num_edges: the number of edge types K (type 0 is "no interaction"). gumbel_tau: the Gumbel-softmax
@@ -76,7 +78,9 @@ class RelationalVAE(nn.Module):
         the paper) or pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from:
         ``prior`` (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in
         alone, one type per edge held for the whole roll-out: NRI). decoder_edges: False switches every edge off
-        for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
+        for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone). prior_rollout: from
+        this share of training on, a rising share of clips gives the online prior, past the burn-in, the decoder's own
+        roll-out to read, as online (scheduled sampling, :mod:`dider.models.prior_rollout`); None: the true frames."""
         super().__init__()
         check_settings(self, locals())
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
@@ -94,7 +98,7 @@ class RelationalVAE(nn.Module):
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
-        self.forecast_edges, self.decoder_edges = forecast_edges, decoder_edges
+        self.forecast_edges, self.decoder_edges, self.prior_rollout = forecast_edges, decoder_edges, prior_rollout
         self.capabilities = DurationCapabilities.of(duration)  # the duration's optional members, read once
         # a decoder with a kinematic step to fit before training (not kept as a module here: one state-dict key)
         self.fits_kinematics = not missing_members(decoder, KinematicDecoder) and decoder.kinematic is not None
@@ -127,13 +131,14 @@ class RelationalVAE(nn.Module):
 
     # ------------------------------------------------------------------ inference and loss
     def infer(self, batch: Mapping[str, torch.Tensor], hard: bool, progress: Progress = Progress(),
-              cut: torch.Tensor | None = None) -> Inference:
+              cut: torch.Tensor | None = None, burn_in: int | None = None, mode: str = "global") -> Inference:
         """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame.
 
         batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool, optionally ``everyone`` (a bool: every agent
         present; without it the mask is read on the host). cut: [B, E, T-1] bool, a given segmentation
-        (a segment starts at each true step; the fixed boundaries of :func:`forced_boundaries` are added) in
-        place of the duration plugin's, scored with :meth:`cut_segmentation` (``dider.analysis.diagnose``)."""
+        (a segment starts at each true step; the fixed boundaries of ``forced_boundaries`` are added) in place of
+        the duration plugin's, scored with :func:`~dider.models.given_cut.cut_segmentation` (``analysis.diagnose``).
+        burn_in, mode: the forecast protocol's, where a training pass's ``prior_rollout`` starts its roll-out."""
         x, mask = batch["states"], batch["mask"]
         # With every agent present the plugins skip their masking passes; the batch says so (``everyone``): asking
         # the mask would make the device wait for the host.
@@ -143,15 +148,17 @@ class RelationalVAE(nn.Module):
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         given = None if plugin_mask is None else present
         if cut is not None:
-            seg: Segmentation = self.cut_segmentation(enc.h_fwd, enc.h_rev, cut, present, enc.posterior_logits)
+            seg: Segmentation = cut_segmentation(self, enc.h_fwd, enc.h_rev, cut, present, enc.posterior_logits)
         elif self.capabilities.held_type:  # the end's prior reads each segment's type: the posterior's at each start
             seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given,
                                         types=F.softmax(enc.posterior_logits.float(), -1))
         else:
             seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
-        p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]; read at a segment's first step, so it stays online
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
+        h_prior = prior_features(self, x, mask, plugin_mask, enc.h_fwd, z.detach().argmax(-1),
+                                 rollout_share(self.prior_rollout, progress), burn_in, mode)
+        p_step = self.prior(h_prior)  # [B, E, T-1, K]; read at a segment's first step, so it stays online
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         probs = seg.spread(F.softmax(q_seg, dim=-1))
@@ -162,30 +169,9 @@ class RelationalVAE(nn.Module):
                                                   else mask[:, :-1], self.likelihood.each)  # [B, T-1, E]
             out.evidence = evidence.masked_fill(~mask[:, 1:].index_select(2, recv), float("inf")).transpose(1, 2)
         if self.capabilities.held_type:  # the online boundary model, fitted at every step to the held type's changes
-            out.boundary_fit = self.duration.boundary_fit(enc.h_fwd, out.posterior_types().detach(), present)
+            out.boundary_fit = self.duration.boundary_fit(h_prior, out.posterior_types().detach(), present)
         out.terms = self.objective.values(out, batch)
         return out
-
-    def cut_segmentation(self, h_fwd: torch.Tensor, h_rev: torch.Tensor, cut: torch.Tensor,
-                         present: torch.Tensor, step_logits: torch.Tensor | None = None) -> Segmentation:
-        """A given cut as a segmentation of held types: cut, present [B, E, T] bool -> slots starting at each cut
-        step and at the fixed boundaries (the clip's start, the burn-in's end where the plugin has one, entries),
-        with the duration KL of a posterior certain of the cut (the plugin's ``cut_kl``; 0 for a plugin without
-        a duration latent)."""
-        b, e, t, _ = h_fwd.shape
-        fixed, value = forced_boundaries(t, self.capabilities.observed, h_fwd.device, present)
-        gate = torch.where(fixed, value, cut)
-        steps = present.flatten(1).sum(1).clamp_min(1)
-        if self.capabilities.cut_kl and self.capabilities.held_type and step_logits is not None:
-            held = hold_assignment(gate.float()).argmax(-1)  # each step's segment; its type read at its start
-            held = step_logits.argmax(-1).gather(-1, held)
-            kl = self.duration.cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps, held)
-        elif self.capabilities.cut_kl:
-            kl = self.duration.cut_kl(h_fwd, h_rev, gate, present & ~fixed, steps)
-        else:
-            kl = h_fwd.new_zeros(b, dtype=torch.float32)
-        slots = torch.arange(t, device=h_fwd.device).expand(b, e, t)
-        return Segmentation(slots, gate, hold_assignment(gate.float().detach()), kl, fixed=fixed.expand(b, e, t))
 
     def segment_posterior(self, step_logits: torch.Tensor, seg: Segmentation) -> torch.Tensor:
         """A segment's posterior logits: read at its first step (the paper) or pooled over its steps.
@@ -198,6 +184,8 @@ class RelationalVAE(nn.Module):
         out = self.objective.schedule(progress)
         if self.capabilities.tau:
             out["tau"] = self.duration.tau(progress)
+        if self.prior_rollout is not None:
+            out["prior_rollout"] = rollout_share(self.prior_rollout, progress)
         return out
 
     def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:

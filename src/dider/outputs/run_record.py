@@ -77,13 +77,13 @@ def overrides() -> list[str]:
 
 
 def overridden_keys() -> set[str]:
-    """The config keys set on the command line (``+`` and ``~`` stripped), e.g. ``{"data.frame_rate"}``."""
+    """The config keys set on the command line (``+`` and ``~`` stripped), e.g. ``{"data.source.frame_rate"}``."""
     return {o.split("=", 1)[0].lstrip("+~") for o in overrides()}
 
 
 # Settings that name no run (where it writes, what it logs to, how it shows progress) or that the name holds anyway.
 UNNAMED = {"model", "seed", "experiment", "ckpt_path", "threads", "logger", "callbacks", "trainer.enable_progress_bar",
-           "data.cache_dir", "data.root", "data.path"}
+           "data.cache_dir", "data.root", "data.path", "data.source.root", "data.source.path"}
 
 
 def run_label(cfg: DictConfig) -> str:

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 MODES = ("train", "eval", "predict")
 
 # The key holding the clip length of each data module that knows it from its config alone.
-CLIP_LENGTH_KEYS = ("data.num_steps", "data.seq_len", "data.simulate.num_frames")
+CLIP_LENGTH_KEYS = ("data.num_steps", "data.windows.seq_len", "data.simulate.num_frames")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -141,9 +141,10 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
 def _path_problems(get: Callable[[str], Any]) -> list[str]:
     """The data's input folder or file, where the config names one: it must exist."""
     problems = []
-    # a format's reader (data.reader) may read a folder of files
-    path_kind = "file" if get("data.reader") in (None, "table") else "file or folder"
-    for key, kind in (("data.root", "folder"), ("data.path", path_kind)):
+    # a format's reader (data.source.reader) may read a folder of files
+    path_kind = "file" if get("data.source.reader") in (None, "table") else "file or folder"
+    for key, kind in (("data.root", "folder"), ("data.path", "file"), ("data.source.root", "folder"),
+                      ("data.source.path", path_kind)):
         value = get(key)
         if value is None:
             continue

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 from collections.abc import Iterable, Mapping
+from dataclasses import MISSING as MISSING_FIELD
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -24,9 +25,9 @@ from dider.data.basketball import BasketballDataModule
 from dider.data.dnri_files import DNRIFilesDataModule
 from dider.data.ind import InDDataModule
 from dider.data.nri import NRIDataModule
-from dider.data.soccer import SoccerDataModule
 from dider.data.synth import SynthDataModule
 from dider.data.table import TableDataModule
+from dider.data.track_sources import FileSource, KloppySource
 from dider.data.trajectories import TrajectoryDataModule
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
 from dider.models.durations import LearnedDuration, PerStepDuration, StaticDuration
@@ -47,7 +48,9 @@ PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDura
            HoldGate, MarkovDecoder, RecurrentDecoder)
 TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, BoundaryFit)
 DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
-        SoccerDataModule, TrajectoryDataModule, NRIDataModule)
+        TrajectoryDataModule, NRIDataModule)
+# The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``).
+SOURCES = (FileSource, KloppySource)
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
@@ -61,6 +64,8 @@ def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
         if name == "self" or name in exclude or p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
             continue
         default = MISSING if p.default is p.empty else p.default
+        if dataclasses.is_dataclass(cls) and (f := cls.__dataclass_fields__[name]).default_factory is not MISSING_FIELD:
+            default = f.default_factory()  # a settings node's field with a mutable default
         if default is None and hasattr(cls, name.upper()):
             default = getattr(cls, name.upper())
         fields.append((name, Any, _field(default)))
@@ -101,5 +106,7 @@ def register_schemas() -> None:
     for cls in (*PLUGINS, RelationalVAE, *TERMS, *DATA):
         store.store(group="schema", name=cls.__name__, node=schema(cls))
     store.store(group="schema", name=RelationalVAEModule.__name__, node=module_schema())
+    for cls in SOURCES:
+        store.store(group="schema", name=cls.__name__, node=schema(cls, target=False))
     for cls in NODES.values():  # the app's own nodes (protocol, eval, predict): dataclasses already
         store.store(group="schema", name=cls.__name__, node=cls)

@@ -3,7 +3,7 @@
 A track reader turns its files into one long track table, a DataFrame with the columns agent, frame (integer steps),
 x, y and optionally scene, vx, vy and agent_class, naming the file and line of any problem; ``data=table``'s
 windows, split and normaliser then take it (:func:`dider.data.table_reading.read_table`). A new format is one module
-here that says ``TRACKS = True`` and defines ``read(path) -> DataFrame``, found by its name (``data.reader``: the
+here that says ``TRACKS = True`` and defines ``read(path) -> DataFrame``, found by its name (``data.source.reader``: the
 module's), and one YAML in ``conf/data`` that names it. ``kloppy`` reads a soccer provider's files into the same rows
 (``data=soccer``).
 
@@ -37,7 +37,7 @@ def track_readers() -> dict[str, ModuleType]:
 
 
 def reader_problem(reader: object) -> str | None:
-    """The setting rule of ``data.reader``: ``table`` or a track reader's name."""
+    """The setting rule of ``data.source.reader``: ``table`` or a track reader's name."""
     known = ["table", *sorted(track_readers())]
     return None if reader in known else f"expected one of {known}"
 
@@ -45,13 +45,14 @@ def reader_problem(reader: object) -> str | None:
 def read_tracks(reader: str, path: Path) -> pd.DataFrame:
     """The track table of ``path`` by the track reader named ``reader`` (:func:`track_readers`)."""
     if (module := track_readers().get(reader)) is None:
-        raise ValueError(f"data.reader={reader!r}: unknown; known: table (data.columns over a .csv or .parquet), "
+        raise ValueError(f"data.source.reader={reader!r}: unknown; known: table (data.source.columns over a .csv or "
+                         f".parquet), "
                          f"{', '.join(sorted(track_readers()))}")
     if not path.exists():
-        raise FileNotFoundError(f"data.path={path}: no such file or folder")
+        raise FileNotFoundError(f"data.source.path={path}: no such file or folder")
     df = module.read(path)
     if missing := [k for k in ("agent", "frame", "x", "y") if k not in df.columns]:
-        raise ValueError(f"data.reader={reader}: its table lacks the column(s) {missing}")
+        raise ValueError(f"data.source.reader={reader}: its table lacks the column(s) {missing}")
     if len(df) == 0:
         raise ValueError(f"{path}: no rows (expected one row per agent per frame)")
     return df[[k for k in COLUMNS if k in df.columns]]

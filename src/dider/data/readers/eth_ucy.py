@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-TRACKS = True  # a track reader: data.reader=eth_ucy
+TRACKS = True  # a track reader: data.source.reader=eth_ucy
 FIELDS = ("frame", "agent", "x", "y")
 
 
 def read(path: Path) -> pd.DataFrame:
     files = sorted(path.glob("*.txt")) if path.is_dir() else [path]
     if not files:
-        raise FileNotFoundError(f"data.path={path}: no .txt files in the folder")
+        raise FileNotFoundError(f"data.source.path={path}: no .txt files in the folder")
     return pd.concat([_scene(f) for f in files], ignore_index=True)
 
 

@@ -1,7 +1,7 @@
 """kloppy's tracking data as track rows (``data=soccer``): a provider's files read in metres, each period a scene,
 every player (and optionally the ball) an agent of class ``home`` / ``away`` / ``ball``, present where the provider
-has a position. kloppy is optional (``pip install 'dider[soccer]'``); errors name ``data.provider``,
-``data.files`` or ``data.options``.
+has a position. kloppy is optional (``pip install 'dider[soccer]'``); errors name ``data.source.provider``,
+``data.source.files`` or ``data.source.options``.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-# data.provider -> (kloppy module, loader, the loader's file arguments: required, optional).
+# data.source.provider -> (kloppy module, loader, the loader's file arguments: required, optional).
 PROVIDERS: dict[str, tuple[str, str, tuple[str, ...], tuple[str, ...]]] = {
     "hawkeye": ("hawkeye", "load", ("ball_feeds", "player_centroid_feeds"), ("meta_data",)),
     "skillcorner": ("skillcorner", "load", ("meta_data", "raw_data"), ()),
@@ -44,45 +44,48 @@ def kloppy_sample(name: str) -> str:
 def kloppy_tracking(provider: str, files: Mapping[str, Any], options: Mapping[str, Any] | None = None) -> Any:
     """The provider's tracking data set, in metres (kloppy's TrackingDataset); errors name the setting."""
     if provider not in PROVIDERS:
-        raise ValueError(f"data.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
+        raise ValueError(f"data.source.provider={provider!r}: expected one of {sorted(PROVIDERS)}")
     module, loader, arguments, optional = PROVIDERS[provider]
     if files is not None and not isinstance(files, Mapping):
-        raise ValueError(f"data.files={files!r}: expected the reader's files by its argument names, e.g. "
-                         f"data.files={{{arguments[0]}:PATH,{arguments[-1]}:PATH}} for data.provider={provider}")
+        raise ValueError(f"data.source.files={files!r}: expected the reader's files by its argument names, e.g. "
+                         f"data.source.files={{{arguments[0]}:PATH,{arguments[-1]}:PATH}} for "
+                         f"data.source.provider={provider}")
     if options is not None and not isinstance(options, Mapping):
-        raise ValueError(f"data.options={options!r}: expected keyword arguments of kloppy's loader, e.g. "
-                         f"data.options={{limit:1000}}")
+        raise ValueError(f"data.source.options={options!r}: expected keyword arguments of kloppy's loader, e.g. "
+                         f"data.source.options={{limit:1000}}")
     given = dict(files or {})
     if unknown := sorted(set(given) - set(arguments) - set(optional)):
-        raise ValueError(f"data.files: unknown key(s) {unknown} for data.provider={provider} (its loader reads "
-                         f"{list(arguments)}" + (f", optionally {list(optional)}" if optional else "") + ")")
+        raise ValueError(f"data.source.files: unknown key(s) {unknown} for data.source.provider={provider} (its "
+                         f"loader reads {list(arguments)}"
+                         + (f", optionally {list(optional)}" if optional else "") + ")")
     if needed := [a for a in arguments if a not in given]:
-        raise ValueError(f"data.files: data.provider={provider} needs {needed} (kloppy.{module}.{loader}'s files)")
+        raise ValueError(f"data.source.files: data.source.provider={provider} needs {needed} "
+                         f"(kloppy.{module}.{loader}'s files)")
     for key, value in given.items():
         for path in value if isinstance(value, (list, tuple)) else [value]:
             where = Path(str(path)).expanduser()
             if not where.exists():
-                raise FileNotFoundError(f"data.files.{key}={path}: no such file or folder")
+                raise FileNotFoundError(f"data.source.files.{key}={path}: no such file or folder")
             if where.is_file() and where.stat().st_size == 0:
-                raise ValueError(f"data.files.{key}={path}: the file is empty")
+                raise ValueError(f"data.source.files.{key}={path}: the file is empty")
     try:
         kloppy = importlib.import_module(f"kloppy.{module}")
     except ImportError as e:
         raise ImportError(f"data=soccer reads tracking data with kloppy >= 3.19, which is not installed (or too "
-                          f"old for data.provider={provider}): pip install 'dider[soccer]' ({e})") from None
+                          f"old for data.source.provider={provider}): pip install 'dider[soccer]' ({e})") from None
     read = getattr(kloppy, loader)
     takes = inspect.signature(read).parameters
     if not any(p.kind is p.VAR_KEYWORD for p in takes.values()):
         if unknown := sorted(set(options or {}) - set(takes)):
-            raise ValueError(f"data.options: kloppy.{module}.{loader} takes no {unknown} (it takes "
+            raise ValueError(f"data.source.options: kloppy.{module}.{loader} takes no {unknown} (it takes "
                              f"{sorted(k for k in takes if k not in arguments and k not in optional)})")
     paths = {k: [str(Path(str(p)).expanduser()) for p in v] if isinstance(v, (list, tuple))
              else str(Path(str(v)).expanduser()) for k, v in given.items()}
     try:
         return read(**paths, coordinates="secondspectrum", **dict(options or {}))
     except Exception as e:  # kloppy raises many types for a file it cannot parse
-        blame = "data.options" if options and any(str(k) in str(e) for k in options) else "data.files"
-        raise ValueError(f"{blame}: kloppy.{module}.{loader} could not read {paths} as data.provider={provider} "
+        blame = "data.source.options" if options and any(str(k) in str(e) for k in options) else "data.source.files"
+        raise ValueError(f"{blame}: kloppy.{module}.{loader} could not read {paths} as data.source.provider={provider} "
                          f"with options {dict(options or {})} ({type(e).__name__}: {e})") from e
 
 

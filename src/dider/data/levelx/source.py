@@ -1,0 +1,78 @@
+"""The ``source`` node of the levelX data sets (``data=ind``, ``round``, ``unid``): where the recordings are, which of
+them, what their files and columns are called and which road users are kept."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from dider.data.levelx.reading import DEFAULT_FEATURES
+from dider.data.levelx.recordings import pattern_regex
+from dider.validation import ConfigError, Rule, above, node_problems
+
+
+def _pattern(value: Any) -> str | None:
+    try:
+        pattern_regex(str(value))
+    except ValueError as e:
+        return str(e)
+    return None
+
+
+@dataclass(frozen=True)
+class LevelXFiles:
+    """Each recording's files, as patterns with one ``{id}`` placeholder."""
+
+    tracks: str = "{id}_tracks.csv"
+    tracks_meta: str = "{id}_tracksMeta.csv"
+    recording_meta: str = "{id}_recordingMeta.csv"
+    background: str = "{id}_background.png"  # the image drawn under the trajectory figures, where present
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {k: _pattern for k in ("tracks", "tracks_meta", "recording_meta")}
+
+
+@dataclass(frozen=True)
+class LevelXColumns:
+    """The columns read: tracks' track id, frame and features, tracksMeta's class, recordingMeta's frame rate."""
+
+    track_id: str = "trackId"
+    frame: str = "frame"
+    agent_class: str = "class"
+    frame_rate: str = "frameRate"
+    features: tuple[str, ...] = DEFAULT_FEATURES  # x, y (m), x and y velocity (m/s)
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "features": lambda v: None if isinstance(v, (list, tuple)) and len(v) == 4
+        else "need 4 columns (x, y, x velocity, y velocity)"}
+
+
+@dataclass(frozen=True)
+class LevelXSource:
+    """A levelX data set's recordings."""
+
+    root: str | None = None  # the folder with each recording's files
+    name: str = "ind"  # the data set's name: the cache files' prefix and the log messages
+    recordings: tuple[int | str, ...] | None = None  # the recording ids used, e.g. [0, 1, 7]; null: every one found
+    files: LevelXFiles = LevelXFiles()
+    columns: LevelXColumns = LevelXColumns()
+    classes: tuple[str, ...] | None = None  # the road-user classes kept, e.g. [car, truck_bus]; null: all (DNRI)
+    # metres per background pixel = recordingMeta's orthoPxToMeter x this (inD's images are downscaled 12x)
+    background_scale: float = 12.0
+
+    SETTINGS: ClassVar[dict[str, Rule | type]] = {"files": LevelXFiles, "columns": LevelXColumns,
+                                                  "background_scale": above(0)}
+
+    @classmethod
+    def of(cls, given: Mapping[str, Any] | None) -> LevelXSource:
+        """The ``data.source`` node over the defaults, key by key (``files`` and ``columns`` too), checked: unknown
+        keys and bad values raise naming them."""
+        given = dict(given or {})
+        if problems := node_problems(cls, given, "data.source"):
+            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+        nested = {k: dataclasses.replace(getattr(cls(), k), **{f: tuple(v) if isinstance(v, list) else v
+                                                                for f, v in dict(given[k] or {}).items()})
+                  for k in ("files", "columns") if k in given}
+        listed = {k: tuple(given[k]) for k in ("recordings", "classes") if given.get(k) is not None}
+        return cls(**{**given, **nested, **listed})

@@ -1,0 +1,65 @@
+"""The nested settings of the data sets of long tracks (``data.source``, ``data.windows``): their checks, what a
+checkpoint records of them, and older flat configs read as today's."""
+
+import pytest
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from dider.data.common import data_description
+from dider.data.ind import InDDataModule
+from dider.data.legacy import flat_view, upgrade_data_node
+from dider.data.table import TableDataModule
+from dider.data.windowing import Windows
+from dider.validation import ConfigError
+
+
+def test_windows_override_the_data_sets_defaults_key_by_key_and_name_a_wrong_key():
+    assert InDDataModule().windows == Windows(seq_len=50, downsample=10)
+    assert InDDataModule(windows={"stride": 5}).windows == Windows(seq_len=50, downsample=10, stride=5)
+    with pytest.raises(ConfigError, match=r"data.windows.seq_length: no such setting"):
+        TableDataModule(windows={"seq_length": 5})
+    with pytest.raises(ConfigError, match=r"data.windows.max_agents=1: must be >= data.windows.min_agents=2"):
+        Windows(max_agents=1)
+    with pytest.raises(ConfigError, match=r"data.source: no such setting\(s\) \['provider'\] for "
+                                          r"data.source.reader=table"):
+        TableDataModule(source={"provider": "hawkeye"})
+    with pytest.raises(ConfigError, match=r"data.source.files.trax: no such setting"):
+        InDDataModule(source={"files": {"trax": "{id}.csv"}})
+
+
+def test_a_checkpoint_records_the_settings_flat(tmp_path):
+    dm = TableDataModule(source={"path": str(tmp_path / "t.csv"), "frame_rate": 10.0},
+                         windows={"downsample": 2, "max_speed": 12.0})
+    args = data_description(dm)["args"]
+    assert (args["frame_rate"], args["downsample"], args["max_speed"], args["seq_len"]) == (10.0, 2, 12.0, 20)
+    assert args["path"] == str(tmp_path / "t.csv") and args["split"] == (0.8, 0.1, 0.1)
+    assert flat_view({"source": {"root": "r"}, "windows": {"seq_len": 5}, "split": [1]}) == {
+        "root": "r", "seq_len": 5, "split": [1]}
+
+
+OLD = {
+    "table": ({"_target_": "dider.data.table.TableDataModule", "path": "t.csv", "reader": "eth_ucy", "frame_rate": 2.5,
+               "seq_len": 20, "stride": 4, "min_agent_steps": 8, "batch_size": 4},
+              {"_target_": "dider.data.table.TableDataModule", "source": {"path": "t.csv", "reader": "eth_ucy",
+               "frame_rate": 2.5}, "windows": {"seq_len": 20, "stride": 4, "min_agent_steps": 8},
+               "loader": {"batch_size": 4}}),
+    "soccer": ({"_target_": "dider.data.soccer.SoccerDataModule", "provider": "tracab", "files": {"raw_data": "r"},
+                "ball": True, "frame_rate": None, "downsample": 2, "max_speed": 40.0, "split": [0.5, 0.25, 0.25]},
+               {"_target_": "dider.data.table.TableDataModule", "source": {"reader": "kloppy", "provider": "tracab",
+                "files": {"raw_data": "r"}, "ball": True, "frame_rate": None},
+                "windows": {"downsample": 2, "max_speed": 40.0}, "split": [0.5, 0.25, 0.25]}),
+    "ind": ({"_target_": "dider.data.ind.InDDataModule", "root": "d", "name": "round", "tracks_pattern": "{id}_t.csv",
+             "class_column": "kind", "features": ["a", "b", "c", "d"], "seq_len": 30, "eval_stride": 10,
+             "burn_in": 5, "horizons": [1, 5]},
+            {"_target_": "dider.data.ind.InDDataModule", "source": {"root": "d", "name": "round",
+             "files": {"tracks": "{id}_t.csv"}, "columns": {"agent_class": "kind", "features": ["a", "b", "c", "d"]}},
+             "windows": {"seq_len": 30, "eval_stride": 10}}),
+}
+
+
+@pytest.mark.parametrize("name", OLD)
+def test_an_older_flat_config_reads_as_todays(name):
+    old, new = OLD[name]
+    assert upgrade_data_node(old) == new
+    built = instantiate(OmegaConf.create(new), _convert_="all")  # and it builds
+    assert built.windows == Windows.of(type(built).WINDOWS, new["windows"], {})
