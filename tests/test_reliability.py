@@ -226,8 +226,8 @@ def test_the_gpus_deferred_check_names_the_first_bad_step(make_cfg, tmp_path, mo
 def test_non_finite_gradient_stops_naming_the_term(make_cfg, tmp_path, monkeypatch):
     real = RelationalVAE.infer
 
-    def infer(self, batch, hard, progress=Progress(), **protocol):
-        out = real(self, batch, hard, progress, **protocol)
+    def infer(self, batch, hard, progress=Progress()):
+        out = real(self, batch, hard, progress)
         if self.training and progress.step >= 1:
             # finite value (0), NaN gradient (d sqrt(u)/du at 0 is inf, times du/dw = 0)
             w = next(self.decoder.parameters())

@@ -39,10 +39,9 @@ from dider.models.plugins import (
     Progress,
     missing_members,
 )
-from dider.models.prior_rollout import prior_features, rollout_share
 from dider.models.segments import Segmentation, entries
 from dider.protocol import fill_absent, observed_inputs
-from dider.validation import Rule, above, boolean, check_settings, integer, one_of, optional, within
+from dider.validation import Rule, above, boolean, check_settings, integer, one_of
 
 
 class RelationalVAE(nn.Module):
@@ -53,7 +52,7 @@ class RelationalVAE(nn.Module):
         "num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
         "gumbel_tau": above(0), "posterior_readout": one_of("start", "mean"),
         "rollout_edges": one_of("sample", "argmax"), "forecast_edges": one_of("prior", "burn_in"),
-        "decoder_edges": boolean, "prior_rollout": optional(within(0.0, 1.0)),
+        "decoder_edges": boolean,
     }
 
     def __init__(
@@ -69,7 +68,6 @@ class RelationalVAE(nn.Module):
         posterior_readout: str = "start",
         forecast_edges: str = "prior",
         decoder_edges: bool = True,
-        prior_rollout: float | None = None,
         name: str = "model",
     ) -> None:
         """num_edges: the number of edge types K (type 0 is "no interaction"). gumbel_tau: the Gumbel-softmax
@@ -78,9 +76,7 @@ class RelationalVAE(nn.Module):
         the paper) or pooled over its steps (``mean``). forecast_edges: where roll-outs take their edges from:
         ``prior`` (the online prior and duration, DNRI and DIDER) or ``burn_in`` (the posterior of the burn-in
         alone, one type per edge held for the whole roll-out: NRI). decoder_edges: False switches every edge off
-        for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone). prior_rollout: from
-        this share of training on, a rising share of clips gives the online prior, past the burn-in, the decoder's own
-        roll-out to read, as online (scheduled sampling, :mod:`dider.models.prior_rollout`); None: the true frames."""
+        for the decoder (the ``static_decoder`` baseline: the learned per-agent dynamics alone)."""
         super().__init__()
         check_settings(self, locals())
         seams = {"encoder": (encoder, Encoder), "prior": (prior, Prior), "duration": (duration, Duration),
@@ -98,7 +94,7 @@ class RelationalVAE(nn.Module):
         self.encoder, self.prior, self.duration, self.decoder = encoder, prior, duration, decoder
         self.objective, self.num_types, self.name = objective, num_edges, name
         self.gumbel_tau, self.rollout_edges, self.posterior_readout = gumbel_tau, rollout_edges, posterior_readout
-        self.forecast_edges, self.decoder_edges, self.prior_rollout = forecast_edges, decoder_edges, prior_rollout
+        self.forecast_edges, self.decoder_edges = forecast_edges, decoder_edges
         self.capabilities = DurationCapabilities.of(duration)  # the duration's optional members, read once
         # a decoder with a kinematic step to fit before training (not kept as a module here: one state-dict key)
         self.fits_kinematics = not missing_members(decoder, KinematicDecoder) and decoder.kinematic is not None
@@ -131,14 +127,13 @@ class RelationalVAE(nn.Module):
 
     # ------------------------------------------------------------------ inference and loss
     def infer(self, batch: Mapping[str, torch.Tensor], hard: bool, progress: Progress = Progress(),
-              cut: torch.Tensor | None = None, burn_in: int | None = None, mode: str = "global") -> Inference:
+              cut: torch.Tensor | None = None) -> Inference:
         """Teacher-forced pass: posterior edges per segment drive one-step predictions of every frame.
 
         batch: ``states`` [B, T, N, D], ``mask`` [B, T, N] bool, optionally ``everyone`` (a bool: every agent
         present; without it the mask is read on the host). cut: [B, E, T-1] bool, a given segmentation
         (a segment starts at each true step; the fixed boundaries of ``forced_boundaries`` are added) in place of
-        the duration plugin's, scored with :func:`~dider.models.given_cut.cut_segmentation` (``analysis.diagnose``).
-        burn_in, mode: the forecast protocol's, where a training pass's ``prior_rollout`` starts its roll-out."""
+        the duration plugin's, scored with :func:`~dider.models.given_cut.cut_segmentation` (``analysis.diagnose``)."""
         x, mask = batch["states"], batch["mask"]
         # With every agent present the plugins skip their masking passes; the batch says so (``everyone``): asking
         # the mask would make the device wait for the host.
@@ -155,10 +150,8 @@ class RelationalVAE(nn.Module):
         else:
             seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given)
         q_seg = self.segment_posterior(enc.posterior_logits, seg)
+        p_step = self.prior(enc.h_fwd)  # [B, E, T-1, K]; read at a segment's first step, so it stays online
         z = seg.spread(F.gumbel_softmax(q_seg, tau=self.gumbel_tau, hard=hard))  # [B, E, T-1, K]
-        h_prior = prior_features(self, x, mask, plugin_mask, enc.h_fwd, z.detach().argmax(-1),
-                                 rollout_share(self.prior_rollout, progress), burn_in, mode)
-        p_step = self.prior(h_prior)  # [B, E, T-1, K]; read at a segment's first step, so it stays online
         z = z if self.decoder_edges else torch.zeros_like(z)
         pred = self.decoder(x[:, :-1], z.transpose(1, 2), None if plugin_mask is None else mask[:, :-1])
         probs = seg.spread(F.softmax(q_seg, dim=-1))
@@ -169,7 +162,7 @@ class RelationalVAE(nn.Module):
                                                   else mask[:, :-1], self.likelihood.each)  # [B, T-1, E]
             out.evidence = evidence.masked_fill(~mask[:, 1:].index_select(2, recv), float("inf")).transpose(1, 2)
         if self.capabilities.held_type:  # the online boundary model, fitted at every step to the held type's changes
-            out.boundary_fit = self.duration.boundary_fit(h_prior, out.posterior_types().detach(), present)
+            out.boundary_fit = self.duration.boundary_fit(enc.h_fwd, out.posterior_types().detach(), present)
         out.terms = self.objective.values(out, batch)
         return out
 
@@ -184,8 +177,6 @@ class RelationalVAE(nn.Module):
         out = self.objective.schedule(progress)
         if self.capabilities.tau:
             out["tau"] = self.duration.tau(progress)
-        if self.prior_rollout is not None:
-            out["prior_rollout"] = rollout_share(self.prior_rollout, progress)
         return out
 
     def loss(self, out: Inference, progress: Progress = Progress()) -> dict[str, torch.Tensor]:

@@ -189,7 +189,7 @@ class RelationalVAEModule(L.LightningModule):
     def train_values(self, batch: Batch, progress: Progress) -> dict[str, torch.Tensor]:
         """A training pass at ``progress`` (the annealed schedules, tau too): the loss terms and ``segments/<stat>``
         (how the duration plugin cut the batch's edges)."""
-        out = self.model.infer(batch, False, progress, burn_in=self.hparams.burn_in, mode=self.burn_in_mode)
+        out = self.model.infer(batch, False, progress)
         present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
         return self.model.loss(out, progress) | {f"segments/{k}": v for k, v in out.seg.stats(present).items()}
 
