@@ -10,11 +10,12 @@ from hydra.utils import instantiate
 from dider.data.basketball import BasketballDataModule
 from dider.data.readers.basketball import detect_format
 from helpers.fixtures import write_dnri_bball, write_zhan
+from helpers.flat import flat
 from helpers.protocol import fits
 
 
 def make_dm(root: Path, **kw) -> BasketballDataModule:
-    dm = BasketballDataModule(root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
+    dm = flat(BasketballDataModule, root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
     dm.prepare_data()
     dm.setup()
     return dm
@@ -82,7 +83,7 @@ def test_dnri_format(tmp_path):
 
 def test_hydra_config_instantiates(tmp_path, make_cfg):
     write_zhan(tmp_path / "bb")
-    cfg = make_cfg(["data=basketball", f"data.root={tmp_path / 'bb'}"])
+    cfg = make_cfg(["data=basketball", f"data.source.root={tmp_path / 'bb'}"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.setup()
     assert next(iter(dm.test_dataloader()))["states"].shape[1:] == (49, 5, 4)
@@ -94,7 +95,7 @@ def _write_npz(path, **arrays):
 
 
 def test_bad_input(tmp_path):
-    with pytest.raises(ValueError, match="data.root is not set"):
+    with pytest.raises(ValueError, match="data.source.root is not set"):
         make_dm(None)
     with pytest.raises(FileNotFoundError, match="no such folder"):
         make_dm(tmp_path / "nowhere")
@@ -134,11 +135,11 @@ def test_bad_input(tmp_path):
     assert detect_format(tmp_path) == "zhan"
 
 
-BAD_CONFIG = [({"format": "csv"}, "data.format"), ({"agents": "ball"}, "data.agents"),
+BAD_CONFIG = [({"format": "csv"}, "data.source.format"), ({"agents": "ball"}, "data.source.agents"),
               ({"val_fraction": 1.0}, "data.val_fraction"), ({"train_len": 1}, "data.train_len")]
 
 
 @pytest.mark.parametrize("kw, key", BAD_CONFIG)
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        BasketballDataModule(**kw)
+        flat(BasketballDataModule, **kw)

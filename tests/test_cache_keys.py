@@ -13,6 +13,7 @@ from dider.data.ind import InDDataModule
 from dider.data.levelx.reading import WindowParams
 from dider.data.nri import NRIDataModule
 from dider.data.synth import SynthDataModule
+from helpers.flat import flat
 
 PUSH = {  # data=synth at its defaults, and with the positive control's step push
     "linear": {"train": "665bdfec1ceb0ee4", "val": "31036e376cd5978b", "test": "cc0f6d3fe258aad6"},
@@ -22,7 +23,7 @@ PUSH = {  # data=synth at its defaults, and with the positive control's step pus
 
 @pytest.mark.parametrize("push", sorted(PUSH))
 def test_the_push_simulators_cache_names(tmp_path, push):
-    dm = SynthDataModule(cache_dir=str(tmp_path), push=push)
+    dm = flat(SynthDataModule, cache_dir=str(tmp_path), push=push)
     assert {s: dm._path(s).name for s in PUSH[push]} == {s: f"synth_{s}_{k}.pt" for s, k in PUSH[push].items()}
 
 
@@ -38,7 +39,7 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
         raise LookupError  # stop before simulating
 
     monkeypatch.setattr(cache, "load_or_build", record)
-    dm = NRIDataModule(simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
+    dm = flat(NRIDataModule, simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
     with pytest.raises(LookupError):
         dm.prepare_data()
     assert [p.name for p in seen] == [name]

@@ -61,9 +61,9 @@ def test_file_readers_give_clips_with_their_indices(tmp_path) -> None:
     write_trajectories(path, num=6, steps=8, agents=3, mask=True, edges=True)
     c = trajectories.read(path, frame_rate=2.0)
     assert len(c) == 6 and c.ids["frame"].tolist() == [1] * 6  # differenced velocities: step 0 is the file's 1
-    with pytest.raises(ValueError, match="data.path is not set"):
+    with pytest.raises(ValueError, match="data.source.path is not set"):
         trajectories.read(None)
     with pytest.raises(FileNotFoundError, match="no such file"):
         trajectories.read(tmp_path / "none.npz")
-    with pytest.raises(ValueError, match="data.root is not set"):
+    with pytest.raises(ValueError, match="data.source.root is not set"):
         nri_files.read(None, "_springs5")

@@ -4,12 +4,13 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.simulate import simulate_push
 from dider.data.synth import SynthDataModule
+from helpers.flat import flat
 
 
 def make_dm(tmp_path, **kw) -> SynthDataModule:
     params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), loader={"batch_size": 8})
     params.update(kw)
-    dm = SynthDataModule(**params)
+    dm = flat(SynthDataModule, **params)
     dm.prepare_data()
     dm.setup()
     return dm
@@ -41,11 +42,11 @@ def test_cache_is_keyed_and_reused(tmp_path):
 
 @pytest.mark.parametrize(
     "kw, key",
-    [({"num_train": 0}, "data.num_train"), ({"num_steps": 1}, "data.num_steps")],
+    [({"num_train": 0}, "data.num_train"), ({"num_steps": 1}, "data.source.num_steps")],
 )
 def test_bad_config_names_the_key(tmp_path, kw, key):
     with pytest.raises(ValueError, match=key):
-        SynthDataModule(cache_dir=str(tmp_path), **kw)
+        flat(SynthDataModule, cache_dir=str(tmp_path), **kw)
 
 
 def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
@@ -57,9 +58,9 @@ def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
     assert dm.train_dataloader().batch_size == 5 and dm.test_dataloader().batch_size == 256
     assert BasketballDataModule().loader == Loader(batch_size=128, eval_batch_size=128)
     with pytest.raises(ValueError, match=r"data.loader.pin_memory='yes': expected true or false"):
-        SynthDataModule(cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
+        flat(SynthDataModule, cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
     with pytest.raises(ValueError, match=r"data.loader.workers: no such setting"):
-        SynthDataModule(cache_dir=str(tmp_path), loader={"workers": 2})
+        flat(SynthDataModule, cache_dir=str(tmp_path), loader={"workers": 2})
 
 
 def test_an_older_data_config_gets_its_loader_node_and_leaves_the_protocol_to_the_model():

@@ -57,7 +57,7 @@ def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
 
     # mode=predict under DDP: each rank predicts every other clip; rank 0 writes them all, in input order
     new = write_trajectories(tmp_path / "new.npz", num=15, steps=12, agents=3, velocities=True, seed=3)
-    args = ["mode=predict", f"ckpt_path={ckpt}", "data=trajectories", f"data.path={tmp_path / 'new.npz'}",
+    args = ["mode=predict", f"ckpt_path={ckpt}", "data=trajectories", f"data.source.path={tmp_path / 'new.npz'}",
             "predict.forecast_steps=4", "experiment=smoke", "logger=none", "trainer.enable_progress_bar=false"]
     proc = run_ddp([sys.executable, "-m", "dider.run", *args, "trainer=ddp_sim",
                     f"hydra.run.dir={tmp_path / 'ddp_predict'}"], tmp_path / "ddp_predict")

@@ -9,6 +9,7 @@ from hydra.utils import instantiate
 from dider.data.batch import Normalizer
 from dider.data.dnri_files import DNRIFilesDataModule
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from helpers.flat import flat
 
 SIZES = {"train": 8, "val": 3, "test": 5}
 STEPS = 30
@@ -34,7 +35,7 @@ def root(tmp_path: Path) -> Path:
 
 
 def make_dm(root: Path | None, setup: bool = True, **kw) -> DNRIFilesDataModule:
-    dm = DNRIFilesDataModule(root=None if root is None else str(root), **{**SMALL, **kw})
+    dm = flat(DNRIFilesDataModule, root=None if root is None else str(root), **{**SMALL, **kw})
     if setup:
         dm.setup()
     return dm
@@ -116,7 +117,7 @@ def test_pickles_and_non_tensors_are_refused(root, tmp_path):
 
 
 def test_bad_input(root, tmp_path):
-    with pytest.raises(ValueError, match="data.root is not set"):
+    with pytest.raises(ValueError, match="data.source.root is not set"):
         make_dm(None)
     with pytest.raises(FileNotFoundError, match="no such folder"):
         make_dm(tmp_path / "nowhere")
@@ -146,16 +147,16 @@ def test_bad_input(root, tmp_path):
 
 
 @pytest.mark.parametrize("kw, key", [({"normalization": "minmax"}, "data.normalization"),
-                                     ({"predict_split": "all"}, "data.predict_split"),
+                                     ({"predict_split": "all"}, "data.source.predict_split"),
                                      ({"num_train": 0}, "data.num_train")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        DNRIFilesDataModule(**kw)
+        flat(DNRIFilesDataModule, **kw)
 
 
 def test_hydra_config_instantiates(root, make_cfg):
     write_dnri(root)
-    cfg = make_cfg(["data=dnri_files", f"data.root={root}", "protocol.horizons=[1,10]"])
+    cfg = make_cfg(["data=dnri_files", f"data.source.root={root}", "protocol.horizons=[1,10]"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.setup()
     assert dm.hparams.normalization == "separate" and "edges" in next(iter(dm.val_dataloader()))

@@ -16,7 +16,7 @@ from helpers.fixtures import write_trajectories
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 # trajectories read at 10 frames per second (the data config's default is 1)
-DATA = ["experiment=smoke", "data=trajectories", "data.frame_rate=10", "protocol.horizons=[1,5]", "logger=none",
+DATA = ["experiment=smoke", "data=trajectories", "data.source.frame_rate=10", "protocol.horizons=[1,5]", "logger=none",
         "callbacks.timelines.num_clips=0", "trainer.enable_progress_bar=false"]
 
 
@@ -30,11 +30,11 @@ def same(a: dict[str, float], b: dict[str, float]) -> bool:
 
 @pytest.fixture
 def trained(make_cfg, tmp_path) -> tuple[Path, Path]:
-    """A run trained on an npz at data.frame_rate=10 with every clip's split: (the run, the npz)."""
+    """A run trained on an npz at data.source.frame_rate=10 with every clip's split: (the run, the npz)."""
     npz = tmp_path / "tracks.npz"
     write_trajectories(npz, num=60, steps=16, agents=3)
     run = tmp_path / "run"
-    train(make_cfg([*DATA, f"data.path={npz}"], tiny=False, out=run))
+    train(make_cfg([*DATA, f"data.source.path={npz}"], tiny=False, out=run))
     return run, npz
 
 
@@ -43,14 +43,17 @@ def test_eval_reads_the_clips_as_the_checkpoint_was_trained(make_cfg, tmp_path, 
     (1, not repeated on the command line) other velocities: evaluation uses the checkpoint's and gives exactly the
     training run's test metrics. A frame rate set to another value is refused naming both, unless eval.force."""
     run, npz = trained
-    data = ["experiment=smoke", "data=trajectories", f"data.path={npz}", "protocol.horizons=[1,5]", "logger=none",
+    data = ["experiment=smoke", "data=trajectories", f"data.source.path={npz}", "protocol.horizons=[1,5]",
+            "logger=none",
             "callbacks.timelines.num_clips=0", "mode=eval", f"ckpt_path={run}"]
     evaluated = train(make_cfg([*data, "data.num_train=8"], tiny=False, out=tmp_path / "eval"))
     assert same(evaluated, metrics_of(run))
-    with pytest.raises(ConfigError, match=r"data.frame_rate=4: the checkpoint .* was trained with data.frame_rate=10"
+    with pytest.raises(ConfigError,
+                       match=r"data.source.frame_rate=4: the checkpoint .* was trained with data.source.frame_rate=10"
                                           r".*eval.force=true"):
-        train(make_cfg([*data, "data.frame_rate=4"], tiny=False, out=tmp_path / "other_rate"))
-    forced = train(make_cfg([*data, "data.frame_rate=4", "eval.force=true"], tiny=False, out=tmp_path / "forced"))
+        train(make_cfg([*data, "data.source.frame_rate=4"], tiny=False, out=tmp_path / "other_rate"))
+    forced = train(make_cfg([*data, "data.source.frame_rate=4",
+                   "eval.force=true"], tiny=False, out=tmp_path / "forced"))
     assert forced["test/ade/h05"] != evaluated["test/ade/h05"]
 
 
@@ -60,7 +63,7 @@ def test_eval_in_a_training_run_writes_beside_its_results(make_cfg, tmp_path, tr
     another."""
     run, npz = trained
     before = (run / "metrics.json").read_bytes()
-    again = [*DATA, f"data.path={npz}", "mode=eval", "ckpt_path=last"]
+    again = [*DATA, f"data.source.path={npz}", "mode=eval", "ckpt_path=last"]
     evaluated = train(make_cfg(again, tiny=False, out=run))
     assert (run / "metrics.json").read_bytes() == before
     assert same(metrics_of(run / "eval" / "trajectories"), evaluated)

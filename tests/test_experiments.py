@@ -32,7 +32,7 @@ def fake_data(data: str, tmp: Path) -> list[str]:
                 "data.split=[1,1,1]"]
     if data == "basketball":
         write_zhan(tmp / "bball")
-        return [f"data.root={tmp / 'bball'}"]
+        return [f"data.source.root={tmp / 'bball'}"]
     if data == "soccer":  # kloppy's own sample files, which the experiment names: the first 3000 frames
         pytest.importorskip("kloppy")
         return ["data.source.options={limit:3000}", "data.loader.batch_size=4", "data.loader.eval_batch_size=4"]

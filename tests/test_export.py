@@ -42,7 +42,7 @@ def test_run_exports_every_test_clip(make_cfg, tmp_path):
 
     assert explore.main([str(out)]) == 0 and (out / "explorer.html").stat().st_size > 0
     assert len(blob["clips"]) == record["config"]["data"]["num_test"]
-    steps = record["config"]["data"]["num_steps"] - 1
+    steps = record["config"]["data"]["source"]["num_steps"] - 1
     for clip in blob["clips"]:
         assert len(clip["edges"]) == 6  # 3 particles, all present
         for edge in clip["edges"]:  # the segments tile the clip's transitions

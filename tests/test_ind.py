@@ -13,7 +13,7 @@ from dider.bench.data import benchmark_preprocess
 from dider.bench.fake_levelx import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data import ind as ind_mod
 from dider.data.ind import InDDataModule
-from dider.data.legacy import LEVELX, nest_track_args
+from dider.data.legacy import LEVELX, nest_args
 from dider.data.levelx.recordings import discover_recordings, split_counts
 from dider.protocol import burn_in_mask
 from helpers.fixtures import edit_csv, write_background, write_ind_root
@@ -29,7 +29,7 @@ def root(tmp_path: Path) -> Path:
 
 def levelx(**flat) -> InDDataModule:
     """The module with its settings given flat (nested as the config nests them)."""
-    return InDDataModule(**nest_track_args(LEVELX, flat)[1])
+    return InDDataModule(**nest_args(LEVELX, flat)[1])
 
 
 def make_dm(root: Path, cache: Path, setup: bool = True, **kw) -> InDDataModule:

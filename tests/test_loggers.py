@@ -64,7 +64,7 @@ def test_a_runs_tensorboard_name_carries_every_swept_setting(monkeypatch):
     from dider.outputs import run_record
 
     given = ["experiment=edge_ablation", "model=dider", "seed=2", "model.num_edges=6", "+data.options={limit:30}",
-             "hydra.sweep.dir=x", "logger=csv", "data.root=/d", "trainer.precision=32-true"]
+             "hydra.sweep.dir=x", "logger=csv", "data.source.root=/d", "trainer.precision=32-true"]
     monkeypatch.setattr(run_record, "overrides", lambda: given)
     cfg = OmegaConf.create({"model": {"name": "dider"}, "seed": 2})
     assert run_record.run_label(cfg) == \

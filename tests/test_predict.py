@@ -23,10 +23,12 @@ from dider.run import predict, train, validate_config
 from dider.trained import training_settings
 from dider.validation import ConfigError
 from helpers.fixtures import write_trajectories
+from helpers.flat import flat
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 API_PAGE = Path(__file__).resolve().parents[1] / "docs" / "api.md"
-TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]", "data.frame_rate=10",
+TINY = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]",
+        "data.source.frame_rate=10",
         "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0"]
 
 
@@ -46,7 +48,7 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A one-epoch DIDER run on an npz whose last agent leaves half-way."""
     root = tmp_path_factory.mktemp("trained")
     write_trajectories(root / "train.npz", num=60, steps=16, agents=3, mask=True)
-    train(compose_cfg([*TINY, f"data.path={root / 'train.npz'}"], root / "run"))
+    train(compose_cfg([*TINY, f"data.source.path={root / 'train.npz'}"], root / "run"))
     GlobalHydra.instance().clear()
     return root / "run"
 
@@ -64,7 +66,7 @@ def test_checkpoint_describes_itself(run):
     assert meta["version"] == dider.__version__
     assert meta["data"]["features"] == ["x", "y", "vx", "vy"]
     assert meta["data"]["args"]["frame_rate"] == 10
-    dm = TrajectoryDataModule(path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
+    dm = flat(TrajectoryDataModule, path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
     dm.setup("fit")  # the same file and split refit the same normaliser
     assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
     assert ckpt["hyper_parameters"]["net"]["name"] == "dider"
@@ -112,9 +114,10 @@ def test_forecast_reads_the_burn_in_only(run, new_data):
 def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
     path, arrays = new_data
     ckpt = run / "checkpoints" / "last.ckpt"
-    # data.frame_rate left out (the data config's is 1.0): the checkpoint's 10 is used, as dider.load does
-    given = [o for o in TINY if not o.startswith("data.frame_rate=")]
-    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={path}", "predict.forecast_steps=6",
+    # data.source.frame_rate left out (the data config's is 1.0): the checkpoint's 10 is used, as dider.load does
+    given = [o for o in TINY if not o.startswith("data.source.frame_rate=")]
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.source.path={path}",
+                      "predict.forecast_steps=6",
                        "model=dnri"],  # ignored: the checkpoint's own model is used
                       tmp_path / "pred")
     validate_config(cfg)
@@ -164,15 +167,15 @@ def test_predict_mode_writes_every_clip(run, new_data, tmp_path):
 
 def test_predict_refuses_another_frame_rate_unless_forced(run, new_data, tmp_path):
     ckpt = run / "checkpoints" / "last.ckpt"
-    given = [o for o in TINY if not o.startswith("data.frame_rate=")]
-    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={new_data[0]}",
-                       "data.frame_rate=4"], tmp_path / "pred")
-    with pytest.raises(ConfigError, match=r"data.frame_rate=4: the checkpoint .*last.ckpt was trained with "
-                                          r"data.frame_rate=10, .*predict.force=true"):
+    given = [o for o in TINY if not o.startswith("data.source.frame_rate=")]
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.source.path={new_data[0]}",
+                       "data.source.frame_rate=4"], tmp_path / "pred")
+    with pytest.raises(ConfigError, match=r"data.source.frame_rate=4: the checkpoint .*last.ckpt was trained with "
+                                          r"data.source.frame_rate=10, .*predict.force=true"):
         predict(cfg)
     assert not (tmp_path / "pred" / "predictions").exists()  # refused before any work
-    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.path={new_data[0]}",
-                       "data.frame_rate=4", "predict.force=true"], tmp_path / "forced")
+    cfg = compose_cfg([*given, "mode=predict", f"ckpt_path={ckpt}", f"data.source.path={new_data[0]}",
+                       "data.source.frame_rate=4", "predict.force=true"], tmp_path / "forced")
     assert {p.name for p in predict(cfg)} >= {"segments.csv", "clips.npz"}
 
 
@@ -215,7 +218,7 @@ def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
 
 
 def test_predict_needs_the_trained_normaliser(new_data):
-    dm = TrajectoryDataModule(path=str(new_data[0]))
+    dm = flat(TrajectoryDataModule, path=str(new_data[0]))
     with pytest.raises(ValueError, match="trained model's normaliser"):
         dm.setup("predict")
 
@@ -224,7 +227,7 @@ def test_predict_needs_the_trained_normaliser(new_data):
                                             (["mode=predict", "ckpt_path=last"], "ckpt_path=last"),
                                             (["predict.forecast_steps=0"], "predict.forecast_steps=0")])
 def test_predict_config_errors_name_the_key(tmp_path, overrides, key):
-    cfg = compose_cfg(["data=trajectories", f"data.path={README}", *overrides], tmp_path)
+    cfg = compose_cfg(["data=trajectories", f"data.source.path={README}", *overrides], tmp_path)
     with pytest.raises(ConfigError, match=re.escape(key)):
         validate_config(cfg)
 
@@ -263,7 +266,7 @@ def test_a_second_prediction_into_a_live_folder_is_refused_before_any_work(run, 
         raise AssertionError("the second prediction started working")
 
     monkeypatch.setattr("dider.run.load", work)
-    cfg = compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.path={new_data[0]}"], out)
+    cfg = compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.source.path={new_data[0]}"], out)
     with pytest.raises(RunRefused, match=r"is being written by another run \(pid"):
         predict(cfg)
     assert sorted(p.name for p in out.iterdir()) == [LOCK]
@@ -301,7 +304,7 @@ def test_predict_takes_the_threads_setting(run, new_data, tmp_path):
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
-        predict(compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.path={new_data[0]}",
+        predict(compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", f"data.source.path={new_data[0]}",
                              "threads=1"], tmp_path / "pred"))
         assert torch.get_num_threads() == 1
     finally:

@@ -23,7 +23,8 @@ import torch
 import dider
 from helpers.fixtures import write_ind_root, write_trajectories
 
-TINY_RUN = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]", "data.frame_rate=10",
+TINY_RUN = ["experiment=smoke", "data=trajectories", "data.num_val=4", "protocol.horizons=[1,5]",
+            "data.source.frame_rate=10",
             "trainer.enable_progress_bar=false", "logger=none", "callbacks.timelines.num_clips=0", "seed=1"]
 
 
@@ -37,7 +38,7 @@ def trained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A one-epoch DIDER run on 3-agent npz clips of 16 frames at 10 Hz."""
     root = tmp_path_factory.mktemp("trained")
     write_trajectories(root / "train.npz", num=60, steps=16, agents=3, mask=True)
-    proc = dider_run(*TINY_RUN, f"data.path={root / 'train.npz'}", f"hydra.run.dir={root / 'run'}", cwd=root)
+    proc = dider_run(*TINY_RUN, f"data.source.path={root / 'train.npz'}", f"hydra.run.dir={root / 'run'}", cwd=root)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return root / "run"
 
@@ -53,7 +54,8 @@ def snapshot(folder: Path) -> dict[str, str]:
 
 def _predict(tmp: Path, run: Path, npz: Path, *extra: str) -> list[str]:
     return ["mode=predict", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}", "data=trajectories",
-            f"data.path={npz}", "logger=none", "trainer.enable_progress_bar=false", f"hydra.run.dir={tmp / 'out'}",
+            f"data.source.path={npz}", "logger=none", "trainer.enable_progress_bar=false",
+            f"hydra.run.dir={tmp / 'out'}",
             *extra]
 
 
@@ -82,7 +84,7 @@ def crowd_table(tmp: Path) -> list[str]:
 
 def finished_run_refused(tmp: Path, run: Path) -> list[str]:
     """A second fresh training (other overrides) into a copy of a finished run's folder (.hydra/, run.log)."""
-    return [*TINY_RUN, f"data.path={run.parent / 'train.npz'}", "seed=2", f"hydra.run.dir={tmp / 'run_copy'}"]
+    return [*TINY_RUN, f"data.source.path={run.parent / 'train.npz'}", "seed=2", f"hydra.run.dir={tmp / 'run_copy'}"]
 
 
 def other_version(tmp: Path, run: Path) -> list[str]:
@@ -140,7 +142,7 @@ CLI = {
                                      other_forecast_kept),
     "predict-burn-in-longer-than-clips": Row(
         lambda tmp, run: _predict(tmp, run, _npz(tmp), "predict.forecast_steps=2", "predict.burn_in=50"), False,
-        r"predict\.burn_in=50: longer than the 11 steps of the clips of data\.path=.*new\.npz"),
+        r"predict\.burn_in=50: longer than the 11 steps of the clips of data\.source\.path=.*new\.npz"),
     "predict-one-step-clips": Row(lambda tmp, run: _predict(tmp, run, _npz(tmp, steps=2)), False,
                                   r"its clips give 1 step\(s\) of the model's input; the model needs >= 2"),
     "predict-unit-mismatch": Row(lambda tmp, run: _predict(tmp, run, _npz(tmp, scale=1e6)), True,
@@ -163,7 +165,7 @@ CLI = {
         True, r"predictions: .*forecast\.csv", names_in_forecast),
     "refused-run-leaves-the-folder": Row(finished_run_refused, False,
                                          r"run_copy already holds a run", _unchanged),
-    "unwritable-mlflow-store": Row(lambda tmp, run: [*TINY_RUN, f"data.path={run.parent / 'train.npz'}",
+    "unwritable-mlflow-store": Row(lambda tmp, run: [*TINY_RUN, f"data.source.path={run.parent / 'train.npz'}",
                                                      "logger=mlflow", f"logger.mlflow.tracking_uri=sqlite:///"
                                                      f"{run.parent / 'train.npz'}/mlflow.db",
                                                      f"hydra.run.dir={tmp / 'out'}"],
@@ -275,7 +277,7 @@ def test_a_long_prediction_reports_progress_and_stops_on_sigterm(trained, tmp_pa
 
 
 def test_eval_records_the_checkpoints_version(trained, tmp_path):
-    proc = dider_run(*TINY_RUN, f"data.path={trained.parent / 'train.npz'}", "mode=eval",
+    proc = dider_run(*TINY_RUN, f"data.source.path={trained.parent / 'train.npz'}", "mode=eval",
                      f"ckpt_path={trained / 'checkpoints' / 'last.ckpt'}", f"hydra.run.dir={tmp_path / 'eval'}",
                      cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr[-3000:]

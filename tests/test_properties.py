@@ -29,6 +29,7 @@ from dider.data.trajectories import TrajectoryDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
 from helpers.fixtures import write_ind_root
+from helpers.flat import flat
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None,
                 derandomize=True)  # the same examples on every run: a failure in CI reproduces locally
@@ -133,7 +134,7 @@ def test_trajectory_reader_fails_cleanly(spec):
         if "edges" in out:
             assert out["edges"].shape == (s, t - 1, num_edges(n)) and (out["edges"] >= 0).all()
         # ...and the whole DataModule on top of it also fails only cleanly.
-        dm = TrajectoryDataModule(path=str(path), frame_rate=spec["frame_rate"],
+        dm = flat(TrajectoryDataModule, path=str(path), frame_rate=spec["frame_rate"],
                                   loader={"batch_size": 2, "eval_batch_size": 2})
         try:
             dm.setup()
@@ -253,7 +254,7 @@ SYNTH = st.fixed_dictionaries({
 def test_synthetic_data_rejects_bad_parameters_by_key(params):
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            dm = SynthDataModule(cache_dir=tmp, loader={"batch_size": 4}, **params)
+            dm = flat(SynthDataModule, cache_dir=tmp, loader={"batch_size": 4}, **params)
             dm.prepare_data()
         except Exception as e:  # noqa: BLE001
             assert_clean(e, "data.", "push_factor")
@@ -271,7 +272,7 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
     """A save that dies part-way (disk full, Ctrl-C) leaves the finished splits and nothing else; the next
     run regenerates the missing ones and everything loads."""
     with tempfile.TemporaryDirectory() as tmp:
-        dm = SynthDataModule(num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
+        dm = flat(SynthDataModule, num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
                              loader={"batch_size": 4})
         real_save, calls = torch.save, []
 
@@ -318,7 +319,7 @@ def test_basketball_reader_fails_cleanly(spec, split):
         elif spec["damage"] == "npy":
             with path.open("wb") as f:
                 np.save(f, spec["array"])
-        dm = BasketballDataModule(root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
+        dm = flat(BasketballDataModule, root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
         try:
             dm.prepare_data()
             dm.setup()

@@ -32,9 +32,10 @@ def data_overrides(name: str, roots: dict[str, Path]) -> list[str]:
     return {
         "ind": ["data=ind", f"data.source.root={roots['ind']}", "data.split=[1,1,1]", "data.num_train=8",
                 "data.num_val=4", "data.num_test=4"],
-        "basketball": ["data=basketball", f"data.root={roots['bball']}", "data.num_train=16", "data.num_val=4",
+        "basketball": ["data=basketball", f"data.source.root={roots['bball']}", "data.num_train=16", "data.num_val=4",
                        "data.num_test=4"],
-        "trajectories": ["data=trajectories", f"data.path={roots['traj']}", "data.num_train=16", "data.num_val=4",
+        "trajectories": ["data=trajectories", f"data.source.path={roots['traj']}", "data.num_train=16",
+                         "data.num_val=4",
                          "data.num_test=4", "protocol.horizons=[1,5]"],
     }[name]
 

@@ -263,7 +263,7 @@ def test_a_checkpoint_with_nan_weights_is_named_in_eval_predict_and_load(make_cf
         train(make_cfg(["logger=none", "model=dider", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval"))
     with pytest.raises(ValueError, match=named):
         predict(make_cfg(["mode=predict", f"ckpt_path={ckpt}", "data=trajectories",
-                          f"data.path={_npz(tmp_path)}"], out=tmp_path / "predict"))
+                          f"data.source.path={_npz(tmp_path)}"], out=tmp_path / "predict"))
 
 
 def _npz(tmp_path: Path) -> Path:
@@ -274,20 +274,21 @@ def _npz(tmp_path: Path) -> Path:
 
 BAD_CONFIGS = [
     (["model.num_edges=1"], r"model.num_edges=1: must be >= 2"),
-    (["protocol.burn_in=50"], r"protocol.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
-    (["model.burn_in=50"], r"model.burn_in=50: must be shorter than the clips \(data.num_steps=50\)"),
-    (["data.num_steps=20", "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
+    (["protocol.burn_in=50"], r"protocol.burn_in=50: must be shorter than the clips \(data.source.num_steps=50\)"),
+    (["model.burn_in=50"], r"model.burn_in=50: must be shorter than the clips \(data.source.num_steps=50\)"),
+    (["data.source.num_steps=20",
+     "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
     (["protocol.horizons=[0,5]"], r"protocol.horizons=\[0, 5\]"),
     (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
     (["model=dider", "model.net.duration.rate=1.5"], r"model.net.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
     (["model.net.objective.kl_edge.capacity=-0.5"], r"model.net.objective.kl_edge.capacity=-0.5: must be >= 0"),
     (["model.net.objective.kl_duration.weight=-1"], r"model.net.objective.kl_duration.weight=-1: must be >= 0"),
     (["data=ind", "data.source.root=/no/such/inD"], r"data.source.root=/no/such/inD: no such folder"),
-    (["data=trajectories", "data.path=/no/such/file.npz"], r"data.path=/no/such/file.npz: no such file"),
+    (["data=trajectories", "data.source.path=/no/such/file.npz"], r"data.source.path=/no/such/file.npz: no such file"),
     (["data=ind", "data.windows.seq_len=20", "protocol.burn_in=20"],
      r"protocol.burn_in=20: must be shorter .*data.windows.seq_len=20"),
-    (["data=springs", "data.simulate.num_frames=20", "protocol.burn_in=20"],
-     r"protocol.burn_in=20: must be shorter .*data.simulate.num_frames=20"),
+    (["data=springs", "data.source.num_frames=20", "protocol.burn_in=20"],
+     r"protocol.burn_in=20: must be shorter .*data.source.num_frames=20"),
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
     (["model.burn_in_mode=sideways"], r"model.burn_in_mode='sideways'"),
@@ -338,7 +339,7 @@ def test_valid_configs_pass(make_cfg, tmp_path):
         validate_config(make_cfg(overrides))
     npz = tmp_path / "t.npz"
     npz.write_bytes(b"")
-    validate_config(make_cfg(["data=trajectories", f"data.path={npz}"]))
+    validate_config(make_cfg(["data=trajectories", f"data.source.path={npz}"]))
 
 
 # ------------------------------------------------------------------------------------------ run folders
@@ -466,7 +467,8 @@ def test_a_failed_run_says_so_in_its_folder(tmp_path):
     out, bad = tmp_path / "run", tmp_path / "bad.npz"
     bad.write_bytes(b"garbage")  # passes the config check (the file exists), fails when read
     proc = subprocess.run([sys.executable, "-m", "dider.run", "experiment=smoke", "data=trajectories",
-                           f"data.path={bad}", f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=300,
+                           f"data.source.path={bad}",
+                           f"hydra.run.dir={out}"], capture_output=True, text=True, timeout=300,
                           env=dict(os.environ, HYDRA_FULL_ERROR="1"), cwd=tmp_path)
     assert proc.returncode != 0
     failed = json.loads((out / "failed.json").read_text())
@@ -480,7 +482,7 @@ def _bad_npz(tmp: Path) -> list[str]:
     pos = np.random.default_rng(0).normal(size=(20, 12, 3, 2))
     pos[3, 4, 1, 0] = 1e300  # finite in float64, inf in float32
     np.savez(tmp / "big.npz", positions=pos)
-    return ["data=trajectories", f"data.path={tmp / 'big.npz'}", "protocol.horizons=[1,5]"]
+    return ["data=trajectories", f"data.source.path={tmp / 'big.npz'}", "protocol.horizons=[1,5]"]
 
 
 def _bad_csv(tmp: Path) -> list[str]:

@@ -84,9 +84,10 @@ def test_predict_and_the_api_give_sampled_futures(tmp_path):
     from test_predict import TINY, compose_cfg
 
     write_trajectories(tmp_path / "train.npz", num=40, steps=16, agents=3)
-    train(compose_cfg([*TINY, f"data.path={tmp_path / 'train.npz'}"], tmp_path / "run"))
+    train(compose_cfg([*TINY, f"data.source.path={tmp_path / 'train.npz'}"], tmp_path / "run"))
     new = write_trajectories(tmp_path / "new.npz", num=5, steps=12, agents=3, seed=3)
-    predict(compose_cfg([*TINY, "mode=predict", f"ckpt_path={tmp_path / 'run'}", f"data.path={tmp_path / 'new.npz'}",
+    predict(compose_cfg([*TINY, "mode=predict", f"ckpt_path={tmp_path / 'run'}",
+            f"data.source.path={tmp_path / 'new.npz'}",
                          "predict.forecast_steps=4", "predict.samples=3"], tmp_path / "pred"))
     table = pd.read_csv(tmp_path / "pred" / "predictions" / "forecast.csv")
     assert sorted(table["sample"].unique()) == [0, 1, 2, 3]

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.legacy import TABLE, nest_track_args
+from dider.data.legacy import TABLE, nest_args
 from dider.data.table import SPLITS, TableDataModule
 
 # The hand fixture. Scene 'east' (first in the file and by name): frames 0..5, agents amy and dan. Scene 'north':
@@ -57,7 +57,7 @@ def table(tmp_path: Path) -> Path:
 def make_dm(path: Path | None, columns: dict | None = None, **kw) -> TableDataModule:
     """The module of the table at ``path``, its settings given flat (nested as the config nests them)."""
     flat = {"path": None if path is None else str(path), "columns": columns or COLUMNS, **SMALL, **kw}
-    return TableDataModule(**nest_track_args(TABLE, flat)[1])
+    return TableDataModule(**nest_args(TABLE, flat)[1])
 
 
 def windows(path: Path, normalizer: Normalizer = IDENTITY, **kw) -> tuple[TableDataModule, object]:
@@ -341,7 +341,7 @@ def test_bad_input(tmp_path, table):
 ])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        TableDataModule(**nest_track_args(TABLE, {**SMALL, **kw})[1])
+        TableDataModule(**nest_args(TABLE, {**SMALL, **kw})[1])
 
 
 def test_command_line_run(tmp_path):

@@ -48,7 +48,7 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     # the model's own cut at test: its slots tile every transition of each edge (one test batch of 16 clips here,
     # so the product of the two epoch means is each edge's step count)
     own = record["metrics"]["test/segments/segments_per_edge"] * record["metrics"]["test/segments/steps_per_segment"]
-    assert own == pytest.approx(record["config"]["data"]["num_steps"] - 1, rel=1e-5)
+    assert own == pytest.approx(record["config"]["data"]["source"]["num_steps"] - 1, rel=1e-5)
     assert (out / "checkpoints" / "last.ckpt").exists()
     pngs = sorted((out / "figures").glob("timeline_*.png"))
     assert len(pngs) == 2 and all(p.stat().st_size > 1000 for p in pngs)

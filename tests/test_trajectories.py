@@ -10,11 +10,12 @@ from hydra.utils import instantiate
 from dider.data.trajectories import TrajectoryDataModule, split_indices
 from dider.run import train
 from helpers.fixtures import write_trajectories
+from helpers.flat import flat
 from helpers.protocol import fits
 
 
 def make_dm(path: Path | None, **kw) -> TrajectoryDataModule:
-    dm = TrajectoryDataModule(path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
+    dm = flat(TrajectoryDataModule, path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
     dm.setup()
     return dm
 
@@ -96,7 +97,7 @@ def test_split_is_seeded_and_caps(tmp_path):
 
 def test_hydra_config_instantiates(tmp_path, make_cfg):
     write_trajectories(tmp_path / "t.npz", edges=True)
-    cfg = make_cfg(["data=trajectories", f"data.path={tmp_path / 't.npz'}"])
+    cfg = make_cfg(["data=trajectories", f"data.source.path={tmp_path / 't.npz'}"])
     dm = instantiate(cfg.data, _convert_="all")
     dm.setup()
     assert "edges" in next(iter(dm.val_dataloader()))
@@ -104,7 +105,7 @@ def test_hydra_config_instantiates(tmp_path, make_cfg):
 
 def test_bad_input(tmp_path):
     p = tmp_path / "t.npz"
-    with pytest.raises(ValueError, match="data.path is not set"):
+    with pytest.raises(ValueError, match="data.source.path is not set"):
         make_dm(None)
     with pytest.raises(FileNotFoundError, match="no such file"):
         make_dm(p)
@@ -143,18 +144,19 @@ def test_bad_input(tmp_path):
 
 
 @pytest.mark.parametrize("kw, key", [({"split": (0.5, 0.5)}, "data.split"),
-                                     ({"frame_rate": 0}, "data.frame_rate"),
+                                     ({"frame_rate": 0}, "data.source.frame_rate"),
                                      ({"loader": {"batch_size": 0}}, "data.loader.batch_size")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        TrajectoryDataModule(**kw)
+        flat(TrajectoryDataModule, **kw)
 
 
 def test_a_run_checks_the_protocol_against_the_clips_before_training(make_cfg, tmp_path):
     """The clip length of a file is known once it is read: the run stops there, naming the model's key and the
     protocol's, before any training step."""
     write_trajectories(tmp_path / "short.npz", num=10, steps=9)  # 8 steps once differenced
-    cfg = make_cfg(["data=trajectories", f"data.path={tmp_path / 'short.npz'}", "logger=none"], out=tmp_path / "run")
+    cfg = make_cfg(["data=trajectories", f"data.source.path={tmp_path / 'short.npz'}",
+                   "logger=none"], out=tmp_path / "run")
     with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 10\]: each must lie in 1..3 .*the val split's\)"
                                          r" \(set by protocol.horizons\)"):
         train(cfg)

@@ -60,13 +60,13 @@ def cases(p: dict[str, str]) -> dict[str, list[str]]:
     small = ["data.num_train=300", "data.num_val=50", "data.num_test=100"]  # the generated sets' defaults are 40k
     levelx = [f"data.source.root={p['ind']}", "data.split=[3,1,1]"]
     out = {
-        "synth": ["data=synth", *small], "synth_step": ["data=synth", "data.push=step", *small],
+        "synth": ["data=synth", *small], "synth_step": ["data=synth", "data.source.push=step", *small],
         "springs": ["data=springs", *small], "charged": ["data=charged", *small],
-        "nri_files": ["data=nri_files", f"data.root={p['nri']}"],
-        "dnri_files": ["data=dnri_files", f"data.root={p['dnri_files']}"],
-        "basketball_zhan": ["data=basketball", f"data.root={p['zhan']}"],
-        "basketball_dnri": ["data=basketball", f"data.root={p['dnri_bball']}"],
-        "trajectories": ["data=trajectories", f"data.path={p['traj.npz']}"],
+        "nri_files": ["data=nri_files", f"data.source.root={p['nri']}"],
+        "dnri_files": ["data=dnri_files", f"data.source.root={p['dnri_files']}"],
+        "basketball_zhan": ["data=basketball", f"data.source.root={p['zhan']}"],
+        "basketball_dnri": ["data=basketball", f"data.source.root={p['dnri_bball']}"],
+        "trajectories": ["data=trajectories", f"data.source.path={p['traj.npz']}"],
         "table": ["data=table", f"data.source.path={p['table.csv']}", "data.source.frame_rate=10",
                   "data.windows.downsample=2"],
         "eth_ucy": ["data=eth_ucy", f"data.source.path={p['eth']}"],
@@ -78,7 +78,7 @@ def cases(p: dict[str, str]) -> dict[str, list[str]]:
     for exp in ("demo", "smoke", "synth_cpu_table", "synth_claims", "synth_protocol", "synth_long", "synth_table",
                 "springs_nri", "springs_dynamic"):
         out[f"experiment={exp}"] = [f"experiment={exp}", "hydra.mode=RUN"]
-    out["experiment=bball_table"] = ["experiment=bball_table", "hydra.mode=RUN", f"data.root={p['zhan']}"]
+    out["experiment=bball_table"] = ["experiment=bball_table", "hydra.mode=RUN", f"data.source.root={p['zhan']}"]
     for exp in ("ind50_table", "ind200_table", "edge_ablation"):
         out[f"experiment={exp}"] = [f"experiment={exp}", "hydra.mode=RUN", *levelx]
     return out

@@ -116,7 +116,7 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     datamodule.prepare_data()  # the clips are read and checked before the trainer starts
     datamodule.setup("predict")
     clips = datamodule.datasets["predict"]
-    where = " ".join(f"data.{k}={v}" for k in ("path", "root", "source.path", "source.root", "source.provider")
+    where = " ".join(f"data.{k}={v}" for k in ("source.path", "source.root", "source.provider")
                      if (v := OmegaConf.select(cfg.data, k))) or "data"
     if problem := clip_problem(clips.states.shape[1], where, burn_in, cfg.predict.forecast_steps):
         raise ConfigError(problem)

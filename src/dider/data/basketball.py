@@ -11,18 +11,18 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import asdict
 from typing import Any, ClassVar
 
 import torch
 
 from dider.data.batch import Normalizer
 from dider.data.clip_splits import capped, clip_datasets
-from dider.data.common import ClipDataModule
+from dider.data.common import ClipDataModule, source_node
 from dider.data.loader import Loader
 from dider.data.readers import basketball
-from dider.data.readers.basketball import AGENT_COLUMNS
 from dider.data.tracks import Clips
-from dider.validation import Rule, above, check_settings, integer, one_of, optional, within_open
+from dider.validation import Rule, check_settings, integer, optional, within_open
 
 log = logging.getLogger(__name__)
 
@@ -46,17 +46,13 @@ class BasketballDataModule(ClipDataModule):
     units = "ft"
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "format": one_of("auto", "zhan", "dnri"), "agents": one_of(*AGENT_COLUMNS), "val_fraction": within_open(0, 1),
-        "frame_rate": above(0), "train_len": optional(integer(2)),
-    }
+        "val_fraction": within_open(0, 1), "train_len": optional(integer(2))}
     LOADER = Loader(batch_size=128, eval_batch_size=128)  # DNRI's basketball batch
+    SOURCE = basketball.BasketballFiles()  # data.source overrides it key by key
 
     def __init__(
         self,
-        root: str | None = None,
-        format: str = "auto",
-        agents: str = "offence",
-        frame_rate: float = 6.25,
+        source: Mapping[str, Any] | None = None,
         val_fraction: float = 0.1,
         seed: int = 1,
         train_len: int | None = None,
@@ -66,23 +62,24 @@ class BasketballDataModule(ClipDataModule):
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """format: auto (from the files in ``root``) | zhan | dnri.
-        agents: the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (the ball and the 10).
-        frame_rate: the Zhan files' rate in Hz; finite-difference velocities are in feet / second.
+        """source: the files (:class:`~dider.data.readers.basketball.BasketballFiles`): ``root`` (required),
+        ``format``, ``agents``, ``frame_rate``.
         val_fraction: the training clips carved off for validation when the files have no validation split.
         seed: the carving seed.
         train_len: crop training clips to their first steps (DNRI trains on 40); null: whole clips."""
         super().__init__()
         check_settings(self, locals(), key="data")
+        self.source = source_node(self.SOURCE, source)
         self.save_hyperparameters(logger=False)
+        self.hparams["source"] = asdict(self.source)  # as read
         self.init_shared()
         self.format: str | None = None
 
     def _read(self) -> dict[str, Clips]:
         """Raw clips per split, in feet (and feet / s or the file's velocity units), validation carved from the
         training file where the files have none."""
-        h = self.hparams
-        self.format, raw = basketball.read(h.root, h.format, h.agents, h.frame_rate)
+        h, src = self.hparams, self.source
+        self.format, raw = basketball.read(src.root, src.format, src.agents, src.frame_rate)
         train = raw["train"]
         if "val" not in raw:  # carve validation clips from train, reproducibly
             keep, val = carve(len(train), h.val_fraction, h.seed)
@@ -92,7 +89,7 @@ class BasketballDataModule(ClipDataModule):
                 raise ValueError(f"basketball {split} clips have {clips.states.shape[2]} agents, train "
                                  f"{train.states.shape[2]}")
             if len(clips) == 0:
-                raise ValueError(f"basketball {split} split has no clips ({h.root})")
+                raise ValueError(f"basketball {split} split has no clips ({src.root})")
         return {s: raw[s] for s in ("train", "val", "test")}
 
     def setup(self, stage: str | None = None) -> None:
@@ -109,7 +106,7 @@ class BasketballDataModule(ClipDataModule):
         try:
             self.normalizer = self.train_normalizer(lambda: Normalizer.fit(raw["train"].states))
         except ValueError as err:  # e.g. constant positions: nothing to scale by
-            raise ValueError(f"basketball training clips in data.root={self.hparams.root}: {err}") from err
+            raise ValueError(f"basketball training clips in data.source.root={self.source.root}: {err}") from err
         self.datasets.update(clip_datasets(raw, self.normalizer))
         test = raw["test"].states
         log.info("basketball (%s): %s clips of %s steps, %d agents", self.format,

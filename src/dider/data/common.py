@@ -13,7 +13,7 @@ their names in ``source_names`` (key -> list indexed by the id).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -28,7 +28,7 @@ from dider.data.batch import Batch, Normalizer
 from dider.data.legacy import flat_view
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
-from dider.validation import Rule, integer, optional
+from dider.validation import ConfigError, Rule, integer, node_problems, optional
 
 SPLITS = ("train", "val", "test")
 # The per-agent features of every batch, in order (raw units before normalisation).
@@ -194,6 +194,15 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
         value = float(array[first])
         what = "NaN" if value != value else "inf (or beyond float32's range, |x| > 3.4e38)"
         raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first}: {what})")
+
+
+def source_node(defaults: Any, given: Mapping[str, Any] | None) -> Any:
+    """A data set's ``data.source`` node: ``defaults`` (its settings dataclass) overridden by the config's node key
+    by key; an unknown key or a bad value raises naming it (``data.source.<key>``)."""
+    given = dict(given or {})
+    if problems := node_problems(type(defaults), given, "data.source"):
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    return replace(defaults, **given)
 
 
 def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -19,7 +20,7 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.clip_splits import capped, clip_datasets
-from dider.data.common import SPLITS, ClipDataModule
+from dider.data.common import SPLITS, ClipDataModule, source_node
 from dider.data.loader import Loader
 from dider.data.readers import dnri_files
 from dider.validation import Rule, check_settings, one_of
@@ -51,40 +52,42 @@ class DNRIFilesDataModule(ClipDataModule):
     predicts = True
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "normalization": one_of(*NORMALIZATIONS), "predict_split": one_of(*SPLITS),
-    }
+        "normalization": one_of(*NORMALIZATIONS)}
     LOADER = Loader(batch_size=16, eval_batch_size=256)
+    SOURCE = dnri_files.DNRIFiles()  # data.source overrides it key by key
 
     def __init__(
         self,
-        root: str | None = None,
+        source: Mapping[str, Any] | None = None,
         normalization: str = "separate",
-        predict_split: str = "test",
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """root: the folder holding the six files (required)."""
+        """source: the files (:class:`~dider.data.readers.dnri_files.DNRIFiles`): ``root``, the folder holding the
+        six files (required), and ``predict_split``."""
         super().__init__()
         check_settings(self, locals(), key="data")
+        self.source = source_node(self.SOURCE, source)
         self.save_hyperparameters(logger=False)
+        self.hparams["source"] = asdict(self.source)  # as read
         self.init_shared()
         self.frame_step = 1
 
     def setup(self, stage: str | None = None) -> None:
-        h = self.hparams
+        h, src = self.hparams, self.source
         if stage == "predict":  # every clip of one split's files, the trained model's normalisation
             if "predict" not in self.datasets:
-                normalizer = self.predict_normalizer(f"data.root={h.root}")
-                clips = dnri_files.read(h.root, (h.predict_split,))[h.predict_split]
+                normalizer = self.predict_normalizer(f"data.source.root={src.root}")
+                clips = dnri_files.read(src.root, (src.predict_split,))[src.predict_split]
                 self.datasets["predict"] = clip_datasets({"predict": clips}, normalizer)["predict"]
             return
         if all(s in self.datasets for s in SPLITS):
             return
-        raw = dnri_files.read(h.root)
-        root = Path(h.root).expanduser()
+        raw = dnri_files.read(src.root)
+        root = Path(src.root).expanduser()
         try:
             self.normalizer = self.train_normalizer(lambda: fit_normalizer(raw["train"].states, h.normalization))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range

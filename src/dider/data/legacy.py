@@ -15,9 +15,19 @@ from dider.data.windowing import Windows
 PROTOCOL_KEYS = ("burn_in", "horizons", "burn_in_mode")
 TABLE = "dider.data.table.TableDataModule"
 LEVELX = "dider.data.ind.InDDataModule"
-# The track data modules whose settings were flat, by their old target: (today's target, the source's keys (old
-# name -> today's path under ``source``), the reader they read with where the source names it).
-FLAT_TRACKS: dict[str, tuple[str, dict[str, str], str | None]] = {
+NRI = "dider.data.nri.NRIDataModule"
+# The data modules whose settings were flat, by their old target: (today's target, the source's keys (old name ->
+# today's path under ``source``), the reader they read with where the source names it).
+FLAT: dict[str, tuple[str, dict[str, str], str | None]] = {
+    "dider.data.synth.SynthDataModule": (
+        "dider.data.synth.SynthDataModule", {k: k for k in ("num_steps", "push_factor", "push", "seed")}, None),
+    "dider.data.trajectories.TrajectoryDataModule": (
+        "dider.data.trajectories.TrajectoryDataModule", {k: k for k in ("path", "frame_rate")}, None),
+    "dider.data.basketball.BasketballDataModule": (
+        "dider.data.basketball.BasketballDataModule", {k: k for k in ("root", "format", "agents", "frame_rate")}, None),
+    "dider.data.dnri_files.DNRIFilesDataModule": (
+        "dider.data.dnri_files.DNRIFilesDataModule", {k: k for k in ("root", "predict_split")}, None),
+    NRI: (NRI, {"root": "root", "suffix": "suffix"}, "nri_files"),
     TABLE: (TABLE, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
     "dider.data.soccer.SoccerDataModule": (
         TABLE, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
@@ -30,10 +40,16 @@ FLAT_TRACKS: dict[str, tuple[str, dict[str, str], str | None]] = {
 WINDOW_KEYS = tuple(f.name for f in fields(Windows))
 
 
-def nest_track_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
-    """A track data module's flat arguments (an older version's) as today's target and nested arguments: the
-    source's keys under ``source``, the cut's under ``windows``; arguments already nested are kept."""
-    new_target, source_keys, reader = FLAT_TRACKS[target]
+def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
+    """A data module's flat arguments (an older version's) as today's target and nested arguments: the source's keys
+    under ``source`` (NRI's ``simulate`` node: the simulation's), the cut's under ``windows``; arguments already
+    nested are kept."""
+    if target == NRI and args.get("simulate") is not None:
+        args = {k: v for k, v in args.items() if k not in ("simulate", "root", "suffix")} | {
+            "source": {"reader": "particles", **dict(args["simulate"]), **dict(args.get("source") or {})}}
+    elif target == NRI:
+        args = {k: v for k, v in args.items() if k != "simulate"}
+    new_target, source_keys, reader = FLAT[target]
     out: dict[str, Any] = {}
     source: dict[str, Any] = {"reader": reader} if reader else {}
     windows: dict[str, Any] = {}
@@ -58,14 +74,14 @@ def nest_track_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str
 def upgrade_data_node(data: Mapping[str, Any]) -> dict[str, Any]:
     """A data config (plain) in today's layout: the loader's settings in its ``loader`` node where an older config
     has them at the top (``batch_size``, ``eval_batch_size``, ``num_workers``, ``pin_memory``), without the
-    forecast protocol's keys (``burn_in``, ``horizons``, ``burn_in_mode``: the model's), and a track data set's
-    flat settings nested (:func:`nest_track_args`)."""
+    forecast protocol's keys (``burn_in``, ``horizons``, ``burn_in_mode``: the model's), and the flat settings of
+    a data set nested (:func:`nest_args`)."""
     names = [f.name for f in fields(Loader)]
     node = {k: v for k, v in data.items() if k not in names and k not in PROTOCOL_KEYS}
     if older := {k: data[k] for k in names if k in data}:
         node["loader"] = {**older, **dict(data.get("loader") or {})}
-    if (target := node.get("_target_")) in FLAT_TRACKS:
-        node["_target_"], nested = nest_track_args(target, {k: v for k, v in node.items() if k != "_target_"})
+    if (target := node.get("_target_")) in FLAT:
+        node["_target_"], nested = nest_args(target, {k: v for k, v in node.items() if k != "_target_"})
         node = {"_target_": node["_target_"], **nested}
     return node
 

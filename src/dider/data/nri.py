@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import asdict
 from typing import Any, ClassVar
 
 from dider.data.batch import Normalizer
@@ -17,55 +18,57 @@ from dider.data.clip_splits import capped, clip_datasets
 from dider.data.common import SPLITS, ClipDataModule
 from dider.data.loader import Loader
 from dider.data.readers import nri_files, particles
-from dider.data.readers.particles import Simulation
+from dider.data.readers.particles import NRIFiles, Simulation
 from dider.data.tracks import Clips
-from dider.validation import Rule, check_settings, integer, optional
+from dider.validation import ConfigError, Rule, check_settings, integer, node_problems
 
 log = logging.getLogger(__name__)
 
 
 class NRIDataModule(ClipDataModule):
-    """NRI's springs or charged particles (module docstring). With ``simulate`` the clips are generated (each split
-    from its own seed, cached under ``cache_dir`` by every setting that made them) and ``num_train`` / ``num_val``
-    / ``num_test`` are the split sizes; with ``root`` they are read from NRI's files and those cap each split."""
+    """NRI's springs or charged particles (module docstring). Simulated (``source.reader: particles``) the clips are
+    generated, each split from its own seed, cached under ``cache_dir`` by every setting that made them, and
+    ``num_train`` / ``num_val`` / ``num_test`` are the split sizes; read from NRI's files (``source.reader:
+    nri_files``) those cap each split."""
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "simulate": Simulation, "root": optional(lambda v: None if isinstance(v, str) and v else "expected a path"),
-        "suffix": lambda v: None if isinstance(v, str) else "expected a string",
-    }
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS
     LOADER = Loader(batch_size=32, eval_batch_size=256)
-    SIMULATE = Simulation()
+    SOURCES = {"particles": Simulation, "nri_files": NRIFiles}
 
     def __init__(
         self,
-        simulate: Mapping[str, Any] | None = None,
-        root: str | None = None,
-        suffix: str = "_springs5",
+        source: Mapping[str, Any] | None = None,
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """simulate: the simulation's settings (:class:`Simulation`), or null to read ``root``. root: a folder of
-        NRI's files (:mod:`dider.data.readers.nri_files`), named ``{loc,vel,edges}_{train,valid,test}{suffix}.npy``."""
+        """source: the simulation (:class:`~dider.data.readers.particles.Simulation`, ``reader: particles``, the
+        default) or NRI's files (:class:`~dider.data.readers.particles.NRIFiles`, ``reader: nri_files``: ``root``,
+        ``suffix``)."""
         super().__init__()
+        given = dict(source or {})
+        cls = self.SOURCES.get(given.get("reader", "particles"))
+        if cls is None:
+            raise ConfigError(f"data.source.reader={given['reader']!r}: expected one of {sorted(self.SOURCES)}")
+        if problems := node_problems(cls, given, "data.source"):
+            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
-        both = lambda v: "give data.root or data.simulate, not both" if v and simulate is not None else None  # noqa: E731
-        related = {"root": (root, both)}
-        if simulate is not None:
-            related |= {f"{k}": (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()}
+        related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} \
+            if cls is Simulation else {}
         check_settings(self, locals(), related, key="data")
+        self.source = cls(**given)
         self.save_hyperparameters(logger=False)
-        self.simulation = None if simulate is None else Simulation(**dict(simulate))
-        frames = None if simulate is None else self.simulation.num_frames  # files: checked in setup
+        self.hparams["source"] = asdict(self.source)  # as read
+        self.simulation = self.source if cls is Simulation else None
         self.init_shared()
 
     def _read(self) -> dict[str, Clips]:
         h = self.hparams
         if self.simulation is not None:
             return particles.read(self.simulation, {s: getattr(h, f"num_{s}") for s in SPLITS}, self.cache_dir)
-        return nri_files.read(h.root, h.suffix)
+        return nri_files.read(self.source.root, self.source.suffix)
 
     def prepare_data(self) -> None:
         if self.simulation is not None:
@@ -81,5 +84,5 @@ class NRIDataModule(ClipDataModule):
         caps = {} if self.simulation else {"train": h.num_train, "val": h.num_val, "test": h.num_test}
         self.datasets.update(clip_datasets(capped(raw, caps), self.normalizer))
         train = raw["train"].states
-        log.info("%s: %s clips, %d balls, %d frames", self.simulation.system if self.simulation else self.hparams.root,
+        log.info("%s: %s clips, %d balls, %d frames", self.simulation.system if self.simulation else self.source.root,
                  {s: len(d) for s, d in self.datasets.items()}, train.shape[2], train.shape[1])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -12,8 +13,7 @@ from dider.data.clip_splits import clip_datasets
 from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
 from dider.data.loader import Loader
 from dider.data.readers import push
-from dider.data.simulate import PUSH_SHAPES
-from dider.validation import Rule, check_settings, finite, integer, one_of
+from dider.validation import Rule, check_settings, integer
 
 log = logging.getLogger(__name__)
 
@@ -30,36 +30,31 @@ class SynthDataModule(ClipDataModule):
     """
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {
-        "num_train": integer(1), "num_val": integer(1), "num_test": integer(1), "num_steps": integer(2),
-        "push_factor": finite, "seed": integer(-(2**53) + 1, " (magnitude < 2**53)", 2**53 - 1),
-        "push": one_of(*PUSH_SHAPES),
-    }
+        "num_train": integer(1), "num_val": integer(1), "num_test": integer(1), "source": push.Settings}
     LOADER = Loader(batch_size=16, eval_batch_size=256)
+    SOURCE = push.Settings()  # the simulation's defaults; data.source overrides them key by key
 
     def __init__(
         self,
+        source: Mapping[str, Any] | None = None,
         num_train: int = 40000,
         num_val: int = 1000,
         num_test: int = 1000,
-        num_steps: int = 50,
-        push_factor: float = 0.05,
         loader: Mapping[str, Any] | None = None,
-        seed: int = 1,
         cache_dir: str | None = None,
-        push: str = "linear",
     ) -> None:
-        """seed: the data seed (the top-level ``seed`` drives the model and training). push: the push's shape inside
-        the radius, ``linear`` (DNRI's: fading in and out) or ``step`` (on and off at once: a positive control for
-        segment boundaries; :func:`~dider.data.simulate.simulate_push`)."""
+        """source: the simulation (:class:`~dider.data.readers.push.Settings`): ``num_steps`` frames per clip,
+        ``push_factor``, the ``push``'s shape and the data ``seed``. num_train, num_val, num_test: the split sizes."""
         super().__init__()
         check_settings(self, locals(), key="data")
+        self.source = replace(self.SOURCE, **dict(source or {}))
         self.save_hyperparameters(logger=False)
+        self.hparams["source"] = asdict(self.source)  # as simulated
         self.init_shared()
 
     def _source(self) -> tuple[push.Settings, dict[str, int]]:
         h = self.hparams
-        settings = push.Settings(h.num_steps, h.push_factor, h.get("push", "linear"), h.seed)
-        return settings, {"train": h.num_train, "val": h.num_val, "test": h.num_test}
+        return self.source, {"train": h.num_train, "val": h.num_val, "test": h.num_test}
 
     def _path(self, split: str) -> Path:
         settings, sizes = self._source()

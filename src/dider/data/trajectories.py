@@ -1,5 +1,5 @@
-"""Bring-your-own trajectories: one ``.npz`` file (``data.path``) of fixed-length multi-agent clips (the layout and
-its reader: :mod:`dider.data.readers.trajectories`).
+"""Bring-your-own trajectories: one ``.npz`` file (``data.source.path``) of fixed-length multi-agent clips (the layout
+and its reader: :mod:`dider.data.readers.trajectories`).
 
 Clips are split into train / val / test with a seeded permutation (``split`` fractions, ``seed``);
 min/max normalisation is fitted on the present agents of the train split; absent agents get zeros.
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -16,9 +17,9 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.clip_splits import capped, clip_datasets
-from dider.data.common import ClipDataModule
+from dider.data.common import ClipDataModule, source_node
 from dider.data.readers import trajectories
-from dider.validation import Rule, above, check_settings
+from dider.validation import Rule, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -46,40 +47,42 @@ class TrajectoryDataModule(ClipDataModule):
 
     predicts = True
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"frame_rate": above(0)}
+    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS
+    SOURCE = trajectories.NpzFile()  # data.source overrides it key by key
 
     def __init__(
         self,
-        path: str | None = None,
+        source: Mapping[str, Any] | None = None,
         split: Sequence[float] = (0.8, 0.1, 0.1),
         seed: int = 1,
-        frame_rate: float = 1.0,
         num_train: int | None = None,
         num_val: int | None = None,
         num_test: int | None = None,
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """path: the .npz file (required).
-        split: train / val / test fractions of the clips (a permutation seeded by ``seed``).
-        frame_rate: finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (a file without 'velocities')."""
+        """source: the file (:class:`~dider.data.readers.trajectories.NpzFile`): its ``path`` (required) and
+        ``frame_rate`` (finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate, a file without 'velocities').
+        split: train / val / test fractions of the clips (a permutation seeded by ``seed``)."""
         super().__init__()
         check_settings(self, locals(), key="data")
+        self.source = source_node(self.SOURCE, source)
         split_indices(10**6, split, seed)  # the form of split; the clip count is known in setup
         self.save_hyperparameters(logger=False)
+        self.hparams["source"] = asdict(self.source)  # as read
         self.init_shared()
 
     def setup(self, stage: str | None = None) -> None:
         if self.datasets:
             return
-        h = self.hparams
+        h, src = self.hparams, self.source
         if stage == "predict":  # every clip, no split, the trained model's normalisation
-            clips = trajectories.read(h.path, h.frame_rate)
-            normalizer = self.predict_normalizer(f"data.path={Path(h.path).expanduser()}")
+            clips = trajectories.read(src.path, src.frame_rate)
+            normalizer = self.predict_normalizer(f"data.source.path={Path(src.path).expanduser()}")
             self.datasets.update(clip_datasets({"predict": clips}, normalizer))
             return
-        clips = trajectories.read(h.path, h.frame_rate)
-        path = Path(h.path).expanduser()
+        clips = trajectories.read(src.path, src.frame_rate)
+        path = Path(src.path).expanduser()
         parts = {s: clips.select(idx) for s, idx in split_indices(len(clips), h.split, h.seed).items()}
         parts = capped(parts, {"train": h.num_train, "val": h.num_val, "test": h.num_test})
         train = parts["train"]

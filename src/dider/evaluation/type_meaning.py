@@ -168,7 +168,7 @@ def degenerate_types(values: dict[str, float], prefix: str) -> str | None:
     named = ", ".join(f"type {k} on {100 * s:.2f}%" for k, s in odd)
     return (f"degenerate edges: {named} of the present edge-steps, so the types tell the pairs apart nowhere. "
             f"Try a weaker sparsity term (model.net.objective.sparsity.weight, .no_edge_prob), more epochs, or check "
-            f"that the pairs interact within a clip at data.frame_rate (windows long enough to see a reaction)")
+            f"that the pairs interact within a clip at data.source.frame_rate (windows long enough to see a reaction)")
 
 
 def profile_array(values: Mapping[str, float], prefix: str) -> np.ndarray | None:

@@ -83,7 +83,7 @@ def overridden_keys() -> set[str]:
 
 # Settings that name no run (where it writes, what it logs to, how it shows progress) or that the name holds anyway.
 UNNAMED = {"model", "seed", "experiment", "ckpt_path", "threads", "logger", "callbacks", "trainer.enable_progress_bar",
-           "data.cache_dir", "data.root", "data.path", "data.source.root", "data.source.path"}
+           "data.cache_dir", "data.source.root", "data.source.path"}
 
 
 def run_label(cfg: DictConfig) -> str:

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 MODES = ("train", "eval", "predict")
 
 # The key holding the clip length of each data module that knows it from its config alone.
-CLIP_LENGTH_KEYS = ("data.num_steps", "data.windows.seq_len", "data.simulate.num_frames")
+CLIP_LENGTH_KEYS = ("data.source.num_steps", "data.windows.seq_len", "data.source.num_frames")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -143,8 +143,7 @@ def _path_problems(get: Callable[[str], Any]) -> list[str]:
     problems = []
     # a format's reader (data.source.reader) may read a folder of files
     path_kind = "file" if get("data.source.reader") in (None, "table") else "file or folder"
-    for key, kind in (("data.root", "folder"), ("data.path", "file"), ("data.source.root", "folder"),
-                      ("data.source.path", path_kind)):
+    for key, kind in (("data.source.root", "folder"), ("data.source.path", path_kind)):
         value = get(key)
         if value is None:
             continue

@@ -25,6 +25,7 @@ from dider.data.basketball import BasketballDataModule
 from dider.data.dnri_files import DNRIFilesDataModule
 from dider.data.ind import InDDataModule
 from dider.data.nri import NRIDataModule
+from dider.data.readers.particles import NRIFiles, Simulation
 from dider.data.synth import SynthDataModule
 from dider.data.table import TableDataModule
 from dider.data.track_sources import FileSource, KloppySource
@@ -50,7 +51,7 @@ TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, Boun
 DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
         TrajectoryDataModule, NRIDataModule)
 # The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``).
-SOURCES = (FileSource, KloppySource)
+SOURCES = (FileSource, KloppySource, Simulation, NRIFiles)
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,

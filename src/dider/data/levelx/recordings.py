@@ -52,7 +52,7 @@ def discover_recordings(
     A recording is found by its tracks file; its two metadata files must exist next to it.
     """
     if not root.is_dir():
-        raise FileNotFoundError(f"data.root={root}: no such folder (point it at the folder holding the "
+        raise FileNotFoundError(f"data.source.root={root}: no such folder (point it at the folder holding the "
                                 f"{tracks_pattern.format(id='XX')} files)")
     regex = pattern_regex(tracks_pattern)
     for p in (tracks_meta_pattern, recording_meta_pattern):
@@ -71,7 +71,7 @@ def discover_recordings(
             chosen.append(rid)
         ids = _sort_ids(list(dict.fromkeys(chosen)))
     if not ids:
-        raise FileNotFoundError(f"data.root={root}: no files matching {tracks_pattern.format(id='*')}")
+        raise FileNotFoundError(f"data.source.root={root}: no files matching {tracks_pattern.format(id='*')}")
     out = []
     for i in ids:
         files = RecordingFiles(i, root / tracks_pattern.format(id=i), root / tracks_meta_pattern.format(id=i),

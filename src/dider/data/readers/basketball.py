@@ -1,5 +1,5 @@
 """Basketball player trajectories (Yue et al. 2014 STATS SportVU data, preprocessed by Zhan et al. or DNRI) as a clip
-source (``data=basketball``). The data may not be redistributed; ``data.root`` is a folder with either
+source (``data=basketball``). The data may not be redistributed; ``data.source.root`` is a folder with either
 
 - Zhan et al.'s ``train.npz`` / ``test.npz`` (or ``bball_train.npz`` / ``bball_test.npz``), key ``data``,
   shape (S, 50, 22): (x, y) in feet of the ball (columns 0-1), 5 offence players (2-11) and 5 defence
@@ -12,7 +12,9 @@ Every agent is present at every step; no edges, no ids.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -20,6 +22,7 @@ import torch
 from dider.data.common import check_finite
 from dider.data.readers.folder import data_root
 from dider.data.tracks import Clips
+from dider.validation import Rule, above, one_of
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +42,7 @@ def detect_format(root: Path) -> str:
     dnri = all(_dnri_path(root, k, s).is_file() for k in ("loc", "vel") for s in ("train", "test"))
     if zhan and dnri:
         raise ValueError(f"{root}: holds both Zhan npz and DNRI npy basketball files; set "
-                         f"data.format=zhan or data.format=dnri")
+                         f"data.source.format=zhan or data.source.format=dnri")
     if not (zhan or dnri):
         raise FileNotFoundError(
             f"{root}: no basketball data found: expected train.npz + test.npz (Zhan et al., key 'data') or "
@@ -107,6 +110,19 @@ def load_dnri(root: Path, split: str) -> torch.Tensor:
     return torch.cat(parts, dim=-1)
 
 
+@dataclass(frozen=True)
+class BasketballFiles:
+    """``data=basketball``'s ``data.source`` node."""
+
+    root: str | None = None  # the folder of the files (required)
+    format: str = "auto"  # auto (from the files in root) | zhan | dnri
+    agents: str = "offence"  # the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (+ ball)
+    frame_rate: float = 6.25  # the Zhan files' rate in Hz: finite-difference velocities are in feet / second
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"format": one_of("auto", "zhan", "dnri"),
+                                           "agents": one_of(*AGENT_COLUMNS), "frame_rate": above(0)}
+
+
 def read(root: str | Path | None, format: str = "auto", agents: str = "offence",
          frame_rate: float = 6.25) -> tuple[str, dict[str, Clips]]:
     """(the format read, 'zhan' or 'dnri'; its splits: train and test, and val where the files have one)."""
@@ -118,7 +134,7 @@ def read(root: str | Path | None, format: str = "auto", agents: str = "offence",
         raw = {s: load_zhan(folder / name, agents, frame_rate) for s, name in zip(("train", "test"), pair, strict=True)}
     else:
         if agents != "offence":
-            log.warning("data.agents=%s ignored: DNRI's npy files hold their own agents", agents)
+            log.warning("data.source.agents=%s ignored: DNRI's npy files hold their own agents", agents)
         has_val = _dnri_path(folder, "loc", "val").is_file()
         raw = {s: load_dnri(folder, s) for s in ("train", "test", "val")[:3 if has_val else 2]}
     return fmt, {s: Clips(x) for s, x in raw.items()}

@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import pickle
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
@@ -34,16 +36,27 @@ from dider.data.common import SPLITS, check_finite
 from dider.data.readers.folder import data_root
 from dider.data.tracks import Clips
 from dider.graph import num_edges
+from dider.validation import Rule, one_of
 
 # What torch.load raises on a file that is not a torch.save file (text, truncated, another format).
 _READ_ERRORS = (pickle.UnpicklingError, RuntimeError, EOFError, KeyError, ValueError, OSError, AttributeError,
                 IndexError, TypeError)
 
 
+@dataclass(frozen=True)
+class DNRIFiles:
+    """``data=dnri_files``'s ``data.source`` node."""
+
+    root: str | None = None  # the folder holding the six files (required)
+    predict_split: str = "test"  # the split whose files mode=predict reads
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"predict_split": one_of(*SPLITS)}
+
+
 def load_tensor(path: Path) -> torch.Tensor:
     """The tensor ``torch.save`` wrote to ``path``, loaded without running pickled code."""
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: missing (data.root must hold {{train,val,test}}_feats and _edges, "
+        raise FileNotFoundError(f"{path}: missing (data.source.root must hold {{train,val,test}}_feats and _edges, "
                                 f"as written by the DNRI code's small_synth_data.py)")
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
@@ -93,7 +106,7 @@ def load_split(root: Path, split: str) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def read(root: str | Path | None, splits: Sequence[str] = SPLITS) -> dict[str, Clips]:
-    """The ``splits`` of the folder ``root`` (``data.root``) as clips: edges[:, 1:] for the transitions t -> t+1,
+    """The ``splits`` of the folder ``root`` (``data.source.root``) as clips: edges[:, 1:] for the transitions t -> t+1,
     ids ``clip`` (the clip's index in its file)."""
     folder = data_root(root, "the folder with the DNRI code's train_feats, train_edges, val_feats, ... files")
     out = {}

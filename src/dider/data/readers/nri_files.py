@@ -36,7 +36,7 @@ def nri_path(root: Path, kind: str, split: str, suffix: str) -> Path:
 def _load(path: Path) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: missing (NRI's layout: loc_, vel_ and edges_ files for train, valid and "
-                                f"test, named with data.suffix)")
+                                f"test, named with data.source.suffix)")
     try:
         array = np.load(path, allow_pickle=False)
     except (ValueError, OSError, EOFError) as e:
@@ -75,9 +75,9 @@ def read_nri_split(root: Path, split: str, suffix: str) -> tuple[torch.Tensor, t
 
 
 def read(root: str | Path | None, suffix: str) -> dict[str, Clips]:
-    """Every split's files in the folder ``root`` (``data.root``) as clips, ids ``clip`` (the clip's index in its
+    """Every split's files in the folder ``root`` (``data.source.root``) as clips, ids ``clip`` (the clip's index in its
     file)."""
-    folder = data_root(root, "a folder of NRI's .npy files (or set data.simulate)")
+    folder = data_root(root, "a folder of NRI's .npy files (or simulate them: data=springs, data=charged)")
     out = {}
     for split in SPLITS:
         states, edges = read_nri_split(folder, split, suffix)

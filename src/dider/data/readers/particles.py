@@ -24,9 +24,10 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Simulation:
-    """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`); the
-    split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
+    """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`): their
+    ``data.source`` node; the split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
 
+    reader: str = "particles"  # the source: simulated (data=nri_files reads NRI's files: NRIFiles)
     system: str = "springs"  # springs or charged
     num_balls: int = 5
     num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
@@ -35,15 +36,33 @@ class Simulation:
     seed: int = 1  # the data seed; each split draws from its own stream
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
-        "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2), "sample_every": integer(1),
-        "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
+        "reader": one_of("particles"), "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2),
+        "sample_every": integer(1), "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
 
     def __post_init__(self) -> None:
-        check_settings(self, asdict(self), key="data.simulate")
+        check_settings(self, asdict(self), key="data.source")
+
+
+@dataclass(frozen=True)
+class NRIFiles:
+    """NRI's particle-system files (``data=nri_files``): ``{loc,vel,edges}_{train,valid,test}{suffix}.npy`` in
+    ``root`` (:mod:`dider.data.readers.nri_files`)."""
+
+    reader: str = "nri_files"
+    root: str | None = None  # the folder of the files (required)
+    suffix: str = "_springs5"  # NRI's file names: _springs5, _charged5, ...
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "reader": one_of("nri_files"), "suffix": lambda v: None if isinstance(v, str) else "expected a string"}
+
+    def __post_init__(self) -> None:
+        check_settings(self, asdict(self), key="data.source")
 
 
 def cache_path(sim: Simulation, split: str, size: int, cache_dir: Path) -> Path:
-    params = {**asdict(sim), "split": split, "num_samples": size, "version": 1}
+    # every setting but the reader's name, which the files' names predate
+    params = {**{k: v for k, v in asdict(sim).items() if k != "reader"}, "split": split, "num_samples": size,
+              "version": 1}
     return cache_dir / f"{sim.system}_{split}_{cache_key(params)}.pt"
 
 

@@ -6,26 +6,37 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from dider.data.cache import cache_key, cached_splits
 from dider.data.common import SPLITS
-from dider.data.simulate import simulate_push
+from dider.data.simulate import PUSH_SHAPES, simulate_push
 from dider.data.tracks import Clips
+from dider.validation import Rule, check_settings, finite, integer, one_of
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Settings:
-    """What the simulation depends on (the data module checks each value)."""
+    """What the simulation depends on: ``data=synth``'s ``data.source`` node (the split sizes are ``data.num_train``,
+    ``num_val`` and ``num_test``)."""
 
-    num_steps: int = 50
-    push_factor: float = 0.05
-    push: str = "linear"  # the push's shape inside the radius: linear (DNRI's) or step
-    seed: int = 1  # the data seed; split i draws from seed * 1000 + i
+    num_steps: int = 50  # frames per clip
+    push_factor: float = 0.05  # the push's strength
+    # the push's shape inside the radius: linear (DNRI's: fading in and out) or step (on and off at once: a positive
+    # control for segment boundaries; dider.data.simulate.simulate_push)
+    push: str = "linear"
+    seed: int = 1  # the data seed (the top-level seed drives the model and training); split i draws from seed*1000+i
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "num_steps": integer(2), "push_factor": finite, "push": one_of(*PUSH_SHAPES),
+        "seed": integer(-(2**53) + 1, " (magnitude < 2**53)", 2**53 - 1)}
+
+    def __post_init__(self) -> None:
+        check_settings(self, asdict(self), key="data.source")
 
 
 def cache_params(s: Settings, split: str, size: int) -> dict[str, Any]:

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import zipfile
 import zlib
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -25,9 +26,20 @@ from dider.data.common import check_finite
 from dider.data.tracks import Clips
 from dider.graph import num_edges
 from dider.protocol import fill_absent
+from dider.validation import Rule, above
 
 # What a damaged or foreign file can raise while numpy opens or decompresses it.
 _READ_ERRORS = (ValueError, OSError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
+
+
+@dataclass(frozen=True)
+class NpzFile:
+    """``data=trajectories``'s ``data.source`` node."""
+
+    path: str | None = None  # the .npz file (required)
+    frame_rate: float = 1.0  # finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (no 'velocities')
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"frame_rate": above(0)}
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:
@@ -65,7 +77,7 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, Any]:
     Every problem raises ValueError (FileNotFoundError for a missing file) naming the file and the key.
     """
     if not path.is_file():
-        raise FileNotFoundError(f"data.path={path}: no such file")
+        raise FileNotFoundError(f"data.source.path={path}: no such file")
     return trajectory_states(_read_npz(path), path, frame_rate)
 
 
@@ -128,7 +140,7 @@ def _velocities(arrays: dict[str, np.ndarray], path: str | Path, pos: torch.Tens
     # A velocity needs the agent at both ends of the step.
     vel = (pos[:, 1:] - pos[:, :-1]) * frame_rate
     pos, mask = pos[:, 1:], mask[:, 1:] & mask[:, :-1]
-    check_finite(f"{path}: key 'positions' (finite-difference velocities x data.frame_rate={frame_rate})",
+    check_finite(f"{path}: key 'positions' (finite-difference velocities x data.source.frame_rate={frame_rate})",
                  vel, mask[..., None])
     return pos, vel, mask, 1
 
@@ -147,10 +159,10 @@ def _edges(e: np.ndarray, path: str | Path, shape: tuple[int, int, int]) -> torc
 
 
 def read(path: str | Path | None, frame_rate: float = 1.0) -> Clips:
-    """The clips of the file ``path`` (``data.path``), ids ``clip`` (the clip's index in the file) and ``frame``
+    """The clips of the file ``path`` (``data.source.path``), ids ``clip`` (the clip's index in the file) and ``frame``
     (the file's time index of the clip's step 0)."""
     if path is None:
-        raise ValueError("data.path is not set: point it at an .npz with 'positions' [S, T, N, 2] "
+        raise ValueError("data.source.path is not set: point it at an .npz with 'positions' [S, T, N, 2] "
                          "(optional 'velocities', 'mask', 'edges')")
     data = load_trajectories(Path(path).expanduser(), frame_rate)
     count = data["states"].shape[0]
