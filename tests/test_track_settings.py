@@ -20,8 +20,8 @@ def test_windows_override_the_data_sets_defaults_key_by_key_and_name_a_wrong_key
         TableDataModule(windows={"seq_length": 5})
     with pytest.raises(ConfigError, match=r"data.windows.max_agents=1: must be >= data.windows.min_agents=2"):
         Windows(max_agents=1)
-    with pytest.raises(ConfigError, match=r"data.source: no such setting\(s\) \['provider'\] for "
-                                          r"data.source.reader=table"):
+    with pytest.raises(ConfigError, match=r"data.source.provider: no such setting \(expected one of \['reader', "
+                                          r"'path', 'columns', 'frame_rate'\]\)"):
         TableDataModule(source={"provider": "hawkeye"})
     with pytest.raises(ConfigError, match=r"data.source.files.trax: no such setting"):
         InDDataModule(source={"files": {"trax": "{id}.csv"}})

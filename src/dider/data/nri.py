@@ -15,12 +15,12 @@ from typing import Any, ClassVar
 
 from dider.data.batch import Normalizer
 from dider.data.clip_splits import capped, clip_datasets
-from dider.data.common import SPLITS, ClipDataModule
+from dider.data.common import SPLITS, ClipDataModule, source_node
 from dider.data.loader import Loader
 from dider.data.readers import nri_files, particles
 from dider.data.readers.particles import NRIFiles, Simulation
 from dider.data.tracks import Clips
-from dider.validation import ConfigError, Rule, check_settings, integer, node_problems
+from dider.validation import ConfigError, Rule, check_settings, integer
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +52,11 @@ class NRIDataModule(ClipDataModule):
         cls = self.SOURCES.get(given.get("reader", "particles"))
         if cls is None:
             raise ConfigError(f"data.source.reader={given['reader']!r}: expected one of {sorted(self.SOURCES)}")
-        if problems := node_problems(cls, given, "data.source"):
-            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+        self.source = source_node(cls(), given)
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
         related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} \
             if cls is Simulation else {}
         check_settings(self, locals(), related, key="data")
-        self.source = cls(**given)
         self.save_hyperparameters(logger=False)
         self.hparams["source"] = asdict(self.source)  # as read
         self.simulation = self.source if cls is Simulation else None

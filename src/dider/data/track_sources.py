@@ -11,14 +11,15 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+from dider.data.common import source_node
 from dider.data.readers import reader_problem
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, read_table
-from dider.validation import ConfigError, Rule, above, boolean, check_settings, finite, one_of
+from dider.validation import Rule, above, boolean, finite, one_of
 
 log = logging.getLogger(__name__)
 
@@ -105,11 +106,4 @@ SOURCES: dict[str, type] = {"kloppy": KloppySource}  # a reader with settings of
 def track_source(given: Mapping[str, Any] | None) -> TrackSource:
     """The ``data.source`` node as its reader's settings, checked: unknown keys and bad values raise naming them."""
     given = dict(given or {})
-    cls = SOURCES.get(given.get("reader", "table"), FileSource)
-    names = [f.name for f in fields(cls)]
-    if unknown := sorted(set(given) - set(names)):
-        raise ConfigError(f"data.source: no such setting(s) {unknown} for data.source.reader="
-                          f"{given.get('reader', 'table')} (expected some of {names})")
-    source = cls(**given)
-    check_settings(source, asdict(source), key="data.source")
-    return source
+    return source_node(SOURCES.get(given.get("reader", "table"), FileSource)(), given)
