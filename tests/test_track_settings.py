@@ -63,3 +63,10 @@ def test_an_older_flat_config_reads_as_todays(name):
     assert upgrade_data_node(old) == new
     built = instantiate(OmegaConf.create(new), _convert_="all")  # and it builds
     assert built.windows == Windows.of(type(built).WINDOWS, new["windows"], {})
+
+
+def test_a_config_in_todays_layout_passes_through_unchanged():
+    for node in ({"_target_": "dider.data.nri.NRIDataModule", "source": {"system": "charged"}, "num_train": 4},
+                 {"_target_": "dider.data.table.TableDataModule", "source": {"reader": "kloppy", "files": {}},
+                  "windows": {"seq_len": 8}}):
+        assert upgrade_data_node(node) == node

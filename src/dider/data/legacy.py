@@ -51,7 +51,7 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
         args = {k: v for k, v in args.items() if k != "simulate"}
     new_target, source_keys, reader = FLAT[target]
     out: dict[str, Any] = {}
-    source: dict[str, Any] = {"reader": reader} if reader else {}
+    source: dict[str, Any] = {}
     windows: dict[str, Any] = {}
     for key, value in args.items():
         if key in source_keys:
@@ -64,8 +64,8 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
             windows[key] = value
         else:
             out[key] = value
-    if source:
-        out["source"] = {**source, **dict(out.get("source") or {})}
+    if source:  # flat source keys: the reader they were read with (a node already nested names its own)
+        out["source"] = {**({"reader": reader} if reader else {}), **source, **dict(out.get("source") or {})}
     if windows:
         out["windows"] = {**windows, **dict(out.get("windows") or {})}
     return new_target, out
