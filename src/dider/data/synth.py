@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any, ClassVar
 
 from dider.data.batch import Normalizer
 from dider.data.clip_splits import clip_datasets
-from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir
+from dider.data.common import SPLITS, ClipDataModule, ClipDataset, default_cache_dir, source_node
 from dider.data.loader import Loader
 from dider.data.readers import push
 from dider.validation import Rule, check_settings, integer
@@ -47,7 +47,7 @@ class SynthDataModule(ClipDataModule):
         ``push_factor``, the ``push``'s shape and the data ``seed``. num_train, num_val, num_test: the split sizes."""
         super().__init__()
         check_settings(self, locals(), key="data")
-        self.source = replace(self.SOURCE, **dict(source or {}))
+        self.source = source_node(self.SOURCE, source)
         self.save_hyperparameters(logger=False)
         self.hparams["source"] = asdict(self.source)  # as simulated
         self.init_shared()
