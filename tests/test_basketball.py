@@ -7,28 +7,29 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from dider.data.basketball import BasketballDataModule
+from dider.data.clips import ClipsDataModule
 from dider.data.readers.basketball import detect_format
 from helpers.fixtures import write_dnri_bball, write_zhan
 from helpers.flat import flat
 from helpers.protocol import fits
 
 
-def make_dm(root: Path, **kw) -> BasketballDataModule:
-    dm = flat(BasketballDataModule, root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
+def make_dm(root: Path, **kw) -> ClipsDataModule:
+    dm = flat("basketball", root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
     dm.prepare_data()
     dm.setup()
     return dm
 
 
-def raw(dm: BasketballDataModule, split: str) -> torch.Tensor:
+def raw(dm: ClipsDataModule, split: str) -> torch.Tensor:
     return dm.normalizer.denormalize(dm.datasets[split].states)
 
 
 def test_zhan_format_dnri_setting(tmp_path):
     files = write_zhan(tmp_path)
     dm = make_dm(tmp_path)
-    assert dm.format == "zhan" and dm.clip_steps() == {"train": 49, "val": 49, "test": 49}
+    assert detect_format(tmp_path) == "zhan" and dm.units == "ft"
+    assert dm.clip_steps() == {"train": 49, "val": 49, "test": 49}
     fits(dm, 40, (1, 5, 9))  # DNRI's protocol: 40 observed, 9 forecast
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 36, "val": 4, "test": 12}
     batch = next(iter(dm.train_dataloader()))
@@ -69,7 +70,7 @@ def test_agents_options_alt_names_caps_and_train_len(tmp_path):
 def test_dnri_format(tmp_path):
     arrays = write_dnri_bball(tmp_path)
     dm = make_dm(tmp_path)
-    assert dm.format == "dnri"
+    assert detect_format(tmp_path) == "dnri"
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 30, "val": 8, "test": 10}
     loc, vel = arrays["valid"]
     want = torch.as_tensor(np.concatenate([loc, vel], -1), dtype=torch.float32)
@@ -142,4 +143,4 @@ BAD_CONFIG = [({"format": "csv"}, "data.source.format"), ({"agents": "ball"}, "d
 @pytest.mark.parametrize("kw, key", BAD_CONFIG)
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat(BasketballDataModule, **kw)
+        flat("basketball", **kw)

@@ -11,8 +11,7 @@ import pytest
 import dider.data.cache as cache
 from dider.data.ind import InDDataModule
 from dider.data.levelx.reading import WindowParams
-from dider.data.nri import NRIDataModule
-from dider.data.synth import SynthDataModule
+from dider.data.readers import push as push_reader
 from helpers.flat import flat
 
 PUSH = {  # data=synth at its defaults, and with the positive control's step push
@@ -23,8 +22,10 @@ PUSH = {  # data=synth at its defaults, and with the positive control's step pus
 
 @pytest.mark.parametrize("push", sorted(PUSH))
 def test_the_push_simulators_cache_names(tmp_path, push):
-    dm = flat(SynthDataModule, cache_dir=str(tmp_path), push=push)
-    assert {s: dm._path(s).name for s in PUSH[push]} == {s: f"synth_{s}_{k}.pt" for s, k in PUSH[push].items()}
+    dm = flat("synth", cache_dir=str(tmp_path), push=push)
+    sizes = {s: dm.hparams[f"num_{s}"] for s in PUSH[push]}
+    names = {s: push_reader.cache_path(dm.source, s, n, dm.cache_dir).name for s, n in sizes.items()}
+    assert names == {s: f"synth_{s}_{k}.pt" for s, k in PUSH[push].items()}
 
 
 @pytest.mark.parametrize("simulate, name", [
@@ -39,7 +40,7 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
         raise LookupError  # stop before simulating
 
     monkeypatch.setattr(cache, "load_or_build", record)
-    dm = flat(NRIDataModule, simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
+    dm = flat("springs", simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
     with pytest.raises(LookupError):
         dm.prepare_data()
     assert [p.name for p in seen] == [name]

@@ -2,15 +2,15 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.clips import ClipsDataModule
 from dider.data.simulate import simulate_push
-from dider.data.synth import SynthDataModule
 from helpers.flat import flat
 
 
-def make_dm(tmp_path, **kw) -> SynthDataModule:
+def make_dm(tmp_path, **kw) -> ClipsDataModule:
     params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), loader={"batch_size": 8})
     params.update(kw)
-    dm = flat(SynthDataModule, **params)
+    dm = flat("synth", **params)
     dm.prepare_data()
     dm.setup()
     return dm
@@ -46,21 +46,20 @@ def test_cache_is_keyed_and_reused(tmp_path):
 )
 def test_bad_config_names_the_key(tmp_path, kw, key):
     with pytest.raises(ValueError, match=key):
-        flat(SynthDataModule, cache_dir=str(tmp_path), **kw)
+        flat("synth", cache_dir=str(tmp_path), **kw)
 
 
 def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
-    from dider.data.basketball import BasketballDataModule
     from dider.data.loader import Loader
 
     dm = make_dm(tmp_path, loader={"batch_size": 5})
     assert dm.loader == Loader(batch_size=5, eval_batch_size=256)  # the synthetic set's evaluation batch kept
     assert dm.train_dataloader().batch_size == 5 and dm.test_dataloader().batch_size == 256
-    assert BasketballDataModule().loader == Loader(batch_size=128, eval_batch_size=128)
+    assert flat("basketball").loader == Loader(batch_size=128, eval_batch_size=128)
     with pytest.raises(ValueError, match=r"data.loader.pin_memory='yes': expected true or false"):
-        flat(SynthDataModule, cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
+        flat("synth", cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
     with pytest.raises(ValueError, match=r"data.loader.workers: no such setting"):
-        flat(SynthDataModule, cache_dir=str(tmp_path), loader={"workers": 2})
+        flat("synth", cache_dir=str(tmp_path), loader={"workers": 2})
 
 
 def test_an_older_data_config_gets_its_loader_node_and_leaves_the_protocol_to_the_model():
@@ -78,16 +77,16 @@ def test_every_data_setting_is_a_constructor_argument():
     import importlib
     import inspect
 
-    from dider.data.common import ClipDataModule
+    from dider.data.common import BaseDataModule
 
-    for name in ("basketball", "dnri_files", "ind", "nri", "synth", "table", "trajectories"):
+    for name in ("clips", "ind", "table"):
         importlib.import_module(f"dider.data.{name}")
     classes = set()
-    todo = [ClipDataModule]
+    todo = [BaseDataModule]
     while todo:
         todo += (subclasses := todo.pop().__subclasses__())
         classes.update(subclasses)
-    assert len(classes) >= 7, sorted(c.__name__ for c in classes)
+    assert len(classes) >= 3, sorted(c.__name__ for c in classes)
     for cls in classes:
         params = set(inspect.signature(cls.__init__).parameters)
         assert set(cls.SETTINGS) <= params, (cls.__name__, set(cls.SETTINGS) - params)

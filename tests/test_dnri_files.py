@@ -7,7 +7,7 @@ import torch
 from hydra.utils import instantiate
 
 from dider.data.batch import Normalizer
-from dider.data.dnri_files import DNRIFilesDataModule
+from dider.data.clips import ClipsDataModule
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 from helpers.flat import flat
 
@@ -34,8 +34,8 @@ def root(tmp_path: Path) -> Path:
     return tmp_path / "dnri"
 
 
-def make_dm(root: Path | None, setup: bool = True, **kw) -> DNRIFilesDataModule:
-    dm = flat(DNRIFilesDataModule, root=None if root is None else str(root), **{**SMALL, **kw})
+def make_dm(root: Path | None, setup: bool = True, **kw) -> ClipsDataModule:
+    dm = flat("dnri_files", root=None if root is None else str(root), **{**SMALL, **kw})
     if setup:
         dm.setup()
     return dm
@@ -151,7 +151,7 @@ def test_bad_input(root, tmp_path):
                                      ({"num_train": 0}, "data.num_train")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat(DNRIFilesDataModule, **kw)
+        flat("dnri_files", **kw)
 
 
 def test_hydra_config_instantiates(root, make_cfg):

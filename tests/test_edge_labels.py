@@ -5,13 +5,12 @@ code's alignment, which scores transition t against the push that produced x_t) 
 import torch
 
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2
-from dider.data.synth import SynthDataModule
 from dider.evaluation.metrics import BoundaryF1, EdgeAccuracy
 from helpers.flat import flat
 
 
 def first_test_batch(tmp_path) -> dict[str, torch.Tensor]:
-    dm = flat(SynthDataModule, num_train=8, num_val=4, num_test=200, loader={"eval_batch_size": 200},
+    dm = flat("synth", num_train=8, num_val=4, num_test=200, loader={"eval_batch_size": 200},
                          cache_dir=str(tmp_path), seed=5)
     dm.prepare_data()
     dm.setup()

@@ -18,7 +18,6 @@ from omegaconf import DictConfig, open_dict
 
 import dider
 from dider.data.batch import Normalizer
-from dider.data.trajectories import TrajectoryDataModule
 from dider.run import predict, train, validate_config
 from dider.trained import training_settings
 from dider.validation import ConfigError
@@ -66,7 +65,7 @@ def test_checkpoint_describes_itself(run):
     assert meta["version"] == dider.__version__
     assert meta["data"]["features"] == ["x", "y", "vx", "vy"]
     assert meta["data"]["args"]["frame_rate"] == 10
-    dm = flat(TrajectoryDataModule, path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
+    dm = flat("trajectories", path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
     dm.setup("fit")  # the same file and split refit the same normaliser
     assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
     assert ckpt["hyper_parameters"]["net"]["name"] == "dider"
@@ -218,7 +217,7 @@ def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
 
 
 def test_predict_needs_the_trained_normaliser(new_data):
-    dm = flat(TrajectoryDataModule, path=str(new_data[0]))
+    dm = flat("trajectories", path=str(new_data[0]))
     with pytest.raises(ValueError, match="trained model's normaliser"):
         dm.setup("predict")
 
@@ -246,7 +245,7 @@ def test_api_page_example_runs(run, new_data):
 def test_predict_refuses_a_data_set_without_a_prediction_set(run, tmp_path):
     cfg = compose_cfg(["experiment=smoke", "mode=predict", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"],
                       tmp_path)
-    with pytest.raises(ConfigError, match="SynthDataModule has no prediction set"):
+    with pytest.raises(ConfigError, match="data: push has no prediction set"):
         predict(cfg)
 
 

@@ -24,8 +24,6 @@ from dider.data.ind import InDDataModule
 from dider.data.levelx.recordings import discover_recordings
 from dider.data.readers.trajectories import load_trajectories
 from dider.data.simulate import simulate_push
-from dider.data.synth import SynthDataModule
-from dider.data.trajectories import TrajectoryDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
 from helpers.fixtures import write_ind_root
@@ -134,7 +132,7 @@ def test_trajectory_reader_fails_cleanly(spec):
         if "edges" in out:
             assert out["edges"].shape == (s, t - 1, num_edges(n)) and (out["edges"] >= 0).all()
         # ...and the whole DataModule on top of it also fails only cleanly.
-        dm = flat(TrajectoryDataModule, path=str(path), frame_rate=spec["frame_rate"],
+        dm = flat("trajectories", path=str(path), frame_rate=spec["frame_rate"],
                                   loader={"batch_size": 2, "eval_batch_size": 2})
         try:
             dm.setup()
@@ -254,7 +252,7 @@ SYNTH = st.fixed_dictionaries({
 def test_synthetic_data_rejects_bad_parameters_by_key(params):
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            dm = flat(SynthDataModule, cache_dir=tmp, loader={"batch_size": 4}, **params)
+            dm = flat("synth", cache_dir=tmp, loader={"batch_size": 4}, **params)
             dm.prepare_data()
         except Exception as e:  # noqa: BLE001
             assert_clean(e, "data.", "push_factor")
@@ -272,7 +270,7 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
     """A save that dies part-way (disk full, Ctrl-C) leaves the finished splits and nothing else; the next
     run regenerates the missing ones and everything loads."""
     with tempfile.TemporaryDirectory() as tmp:
-        dm = flat(SynthDataModule, num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
+        dm = flat("synth", num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
                              loader={"batch_size": 4})
         real_save, calls = torch.save, []
 
@@ -303,8 +301,6 @@ def zhan_files(draw) -> dict:
 @FAST
 @given(spec=zhan_files(), split=st.sampled_from(["train", "test"]))
 def test_basketball_reader_fails_cleanly(spec, split):
-    from dider.data.basketball import BasketballDataModule
-
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         good = np.random.default_rng(0).uniform(0, 50, (6, 50, 22)).astype(np.float32)
@@ -319,7 +315,7 @@ def test_basketball_reader_fails_cleanly(spec, split):
         elif spec["damage"] == "npy":
             with path.open("wb") as f:
                 np.save(f, spec["array"])
-        dm = flat(BasketballDataModule, root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
+        dm = flat("basketball", root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
         try:
             dm.prepare_data()
             dm.setup()

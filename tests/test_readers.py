@@ -80,7 +80,7 @@ def test_a_new_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
         "    return pd.read_csv(path, sep='\\t', names=['agent', 'frame', 'x', 'y'])\n")
     (tmp_path / "walk.tsv").write_text("1\t0\t0.0\t0.0\n1\t1\t0.5\t0.0\n2\t0\t1.0\t1.0\n2\t1\t1.0\t1.5\n")
     monkeypatch.setattr(readers, "__path__", [*readers.__path__, str(package)])  # as if it sat beside eth_ucy
-    readers.track_readers.cache_clear()
+    readers._modules.cache_clear()
     try:
         assert "pairs_tsv" in readers.track_readers() and "eth_ucy" in readers.track_readers()
         assert "push" not in readers.track_readers()  # a clip source is not a track reader
@@ -89,5 +89,36 @@ def test_a_new_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
         table = readers.read_tracks("pairs_tsv", tmp_path / "walk.tsv")
         assert list(table.columns) == ["agent", "frame", "x", "y"] and len(table) == 4
     finally:
-        readers.track_readers.cache_clear()
+        readers._modules.cache_clear()
         sys.modules.pop(f"{readers.__name__}.pairs_tsv", None)
+
+
+def test_a_new_clip_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
+    """A module beside the readers that names its settings class CLIPS is a clip source under its own name: the clips
+    module reads it, splits its one part by ``data.split``, caps and normalises it."""
+    import dider.data.readers as readers
+    from dider.data.clips import ClipsDataModule
+
+    package = tmp_path / "extra"
+    package.mkdir()
+    (package / "ramps.py").write_text(
+        "from dataclasses import dataclass\nimport torch\nfrom dider.data.tracks import Clips\n\n\n"
+        "@dataclass(frozen=True)\nclass Ramps:\n    reader: str = 'ramps'\n    count: int = 20\n\n"
+        "    def clips(self, sizes, cache_dir):\n"
+        "        t = torch.arange(self.count * 6 * 2 * 4, dtype=torch.float32).reshape(self.count, 6, 2, 4)\n"
+        "        return {'all': Clips(t)}\n\n    def where(self):\n        return 'the ramps'\n\n\n"
+        "CLIPS = Ramps\n")
+    monkeypatch.setattr(readers, "__path__", [*readers.__path__, str(package)])  # as if it sat beside push
+    readers._modules.cache_clear()
+    try:
+        assert "ramps" in readers.clip_sources() and "ramps" not in readers.track_readers()
+        dm = ClipsDataModule(source={"reader": "ramps", "count": 30}, split=(0.6, 0.2, 0.2), seed=2, num_test=4)
+        dm.setup()
+        assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 18, "val": 6, "test": 4}
+        states = dm.datasets["train"].states
+        assert states[..., :2].min() == -1 and states[..., :2].max() == 1  # fitted on the training split
+        with pytest.raises(ValueError, match=r"data.source.counts: no such setting"):
+            ClipsDataModule(source={"reader": "ramps", "counts": 3})
+    finally:
+        readers._modules.cache_clear()
+        sys.modules.pop(f"{readers.__name__}.ramps", None)

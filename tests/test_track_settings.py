@@ -65,8 +65,44 @@ def test_an_older_flat_config_reads_as_todays(name):
     assert built.windows == Windows.of(type(built).WINDOWS, new["windows"], {})
 
 
+CLIPS = "dider.data.clips.ClipsDataModule"
+SIZES = {"num_train": 4, "num_val": 2, "num_test": 2}
+# An older data module of clips (flat, or nested under its own class) and the node it reads as today.
+OLD_CLIPS = {
+    "synth": ({"_target_": "dider.data.synth.SynthDataModule", "num_steps": 12, "seed": 3, "burn_in": 5, **SIZES},
+              {"_target_": CLIPS, **SIZES, "source": {"reader": "push", "num_steps": 12, "seed": 3}}),
+    "synth nested": ({"_target_": "dider.data.synth.SynthDataModule", "source": {"push": "step"}, **SIZES},
+                     {"_target_": CLIPS, "source": {"reader": "push", "push": "step"}, **SIZES}),
+    "springs": ({"_target_": "dider.data.nri.NRIDataModule", "simulate": {"system": "charged"}, "root": None,
+                 "suffix": "_springs5", **SIZES},
+                {"_target_": CLIPS, **SIZES, "source": {"reader": "particles", "system": "charged"}}),
+    "springs nested": ({"_target_": "dider.data.nri.NRIDataModule", "source": {"system": "charged"}, **SIZES},
+                       {"_target_": CLIPS, "source": {"reader": "particles", "system": "charged"}, **SIZES}),
+    "nri_files": ({"_target_": "dider.data.nri.NRIDataModule", "simulate": None, "root": "d", "suffix": "_s"},
+                  {"_target_": CLIPS, "source": {"reader": "nri_files", "root": "d", "suffix": "_s"}}),
+    "dnri_files": ({"_target_": "dider.data.dnri_files.DNRIFilesDataModule", "root": "d", "normalization": "same"},
+                   {"_target_": CLIPS, "normalization": "same", "source": {"reader": "dnri_files", "root": "d"}}),
+    "basketball": ({"_target_": "dider.data.basketball.BasketballDataModule", "root": "d", "val_fraction": 0.2,
+                    "train_len": 40},
+                   {"_target_": CLIPS, "val_fraction": 0.2, "train_len": 40,
+                    "source": {"reader": "basketball", "root": "d"}}),
+    "trajectories": ({"_target_": "dider.data.trajectories.TrajectoryDataModule", "path": "x.npz", "frame_rate": 5,
+                      "split": [0.6, 0.2, 0.2]},
+                     {"_target_": CLIPS, "split": [0.6, 0.2, 0.2],
+                      "source": {"reader": "trajectories", "path": "x.npz", "frame_rate": 5}}),
+}
+
+
+@pytest.mark.parametrize("name", OLD_CLIPS)
+def test_an_older_data_module_of_clips_reads_as_the_clips_module(name):
+    old, new = OLD_CLIPS[name]
+    assert upgrade_data_node(old) == new
+    built = instantiate(OmegaConf.create(new), _convert_="all")  # and it builds, reading with the old reader
+    assert built.source.reader == new["source"]["reader"]
+
+
 def test_a_config_in_todays_layout_passes_through_unchanged():
-    for node in ({"_target_": "dider.data.nri.NRIDataModule", "source": {"system": "charged"}, "num_train": 4},
+    for node in ({"_target_": CLIPS, "source": {"reader": "particles", "system": "charged"}, "num_train": 4},
                  {"_target_": "dider.data.table.TableDataModule", "source": {"reader": "kloppy", "files": {}},
                   "windows": {"seq_len": 8}}):
         assert upgrade_data_node(node) == node

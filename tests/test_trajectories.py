@@ -7,20 +7,21 @@ import pytest
 import torch
 from hydra.utils import instantiate
 
-from dider.data.trajectories import TrajectoryDataModule, split_indices
+from dider.data.clip_splits import split_indices
+from dider.data.clips import ClipsDataModule
 from dider.run import train
 from helpers.fixtures import write_trajectories
 from helpers.flat import flat
 from helpers.protocol import fits
 
 
-def make_dm(path: Path | None, **kw) -> TrajectoryDataModule:
-    dm = flat(TrajectoryDataModule, path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
+def make_dm(path: Path | None, **kw) -> ClipsDataModule:
+    dm = flat("trajectories", path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
     dm.setup()
     return dm
 
 
-def all_clips(dm: TrajectoryDataModule) -> dict[str, torch.Tensor]:
+def all_clips(dm: ClipsDataModule) -> dict[str, torch.Tensor]:
     """Raw states of every split, put back in file order: [S, T, N, 4] (and masks)."""
     parts = split_indices(sum(len(d) for d in dm.datasets.values()), dm.hparams.split, dm.hparams.seed)
     n = sum(len(v) for v in parts.values())
@@ -148,7 +149,7 @@ def test_bad_input(tmp_path):
                                      ({"loader": {"batch_size": 0}}, "data.loader.batch_size")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat(TrajectoryDataModule, **kw)
+        flat("trajectories", **kw)
 
 
 def test_a_run_checks_the_protocol_against_the_clips_before_training(make_cfg, tmp_path):

@@ -165,7 +165,8 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
             OmegaConf.update(cfg.data, path, value)
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
-        raise ConfigError(f"data: {type(datamodule).__name__} has no prediction set; mode=predict reads "
+        what = getattr(getattr(datamodule, "source", None), "reader", None) or type(datamodule).__name__
+        raise ConfigError(f"data: {what} has no prediction set; mode=predict reads "
                           f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
     datamodule.use_normalizer(trained.normalizer)
     return datamodule

@@ -175,7 +175,7 @@ def node_problems(cls: type, node: Any, where: str) -> list[str]:
     if not isinstance(node, Mapping):
         return [f"{where}={node!r}: expected a mapping of {names}"]
     unknown = [f"{where}.{k}: no such setting (expected one of {names})" for k in node if k not in names]
-    return unknown + _problems(cls.SETTINGS, node, f"{where}.")
+    return unknown + _problems(getattr(cls, "SETTINGS", {}), node, f"{where}.")  # a class may have no rules
 
 
 def settings_problems(node: Any, path: str) -> list[str]:

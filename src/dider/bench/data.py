@@ -54,10 +54,10 @@ def data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[
         record = time_outputs(case.agents, clips=case.batch, steps=case.steps, tmpdir=tmpdir)
         return record["seconds"]["total"] / case.batch, {"seconds": record["seconds"], "edges": record["edges"]}
     # load: one epoch of the synthetic training loader (2000 clips) with the given workers
-    from dider.data.synth import SynthDataModule
+    from dider.data.clips import ClipsDataModule
 
     with tempfile.TemporaryDirectory(dir=tmpdir) as cache:
-        dm = SynthDataModule(num_train=2000, num_val=16, num_test=16, cache_dir=cache,
+        dm = ClipsDataModule(source={"reader": "push"}, num_train=2000, num_val=16, num_test=16, cache_dir=cache,
                              loader={"batch_size": case.batch, "num_workers": case.settings["num_workers"],
                                      "pin_memory": device == "cuda"})
         dm.prepare_data()

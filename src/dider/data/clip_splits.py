@@ -1,19 +1,66 @@
-"""A clip source's splits made into datasets: the caps on each split's clips and the normalised, padded clips
-(the normaliser itself is fitted by the data module, on the split or file its data set prescribes)."""
+"""A clip source's parts made into the three splits and their datasets: the splits of a file of clips (seeded
+fractions), a validation split carved from the training clips, the caps on each split's clips, the normaliser's
+ranges and the normalised, padded clips."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+
+import torch
 
 from dider.data.batch import Normalizer
 from dider.data.common import ClipDataset, spread_indices
 from dider.data.tracks import Clips
 from dider.protocol import fill_absent
 
+RANGES = ("separate", "same", "none")  # data.normalization
+
+
+def fractions_problem(fractions: object) -> str | None:
+    """The rule of ``data.split``: three positive fractions (train, val, test) summing to 1."""
+    ok = isinstance(fractions, Sequence) and len(fractions) == 3 \
+        and all(isinstance(f, (int, float)) and f > 0 for f in fractions) and abs(sum(fractions) - 1) <= 1e-6
+    return None if ok else "three positive fractions (train, val, test) summing to 1"
+
+
+def split_indices(num: int, fractions: Sequence[float], seed: int) -> dict[str, torch.Tensor]:
+    """Seeded train / val / test index sets of range(num) (``fractions`` as :func:`fractions_problem` asks); val and
+    test get >= 1 clip each."""
+    val, test = (max(1, round(f * num)) for f in fractions[1:])
+    if num - val - test < 1:
+        raise ValueError(f"data.split={list(fractions)}: {num} clips are too few for train, val and test")
+    perm = torch.randperm(num, generator=torch.Generator().manual_seed(seed))
+    parts = {"train": perm[val + test:], "val": perm[:val], "test": perm[val:val + test]}
+    return {k: v.sort().values for k, v in parts.items()}
+
+
+def carve(num: int, fraction: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reproducible (keep, carved) index split of range(num): ``round(fraction * num)`` (>= 1) carved."""
+    take = max(1, round(fraction * num))
+    if take >= num:
+        raise ValueError(f"data.val_fraction={fraction}: carving {take} of {num} training clips leaves none")
+    perm = torch.randperm(num, generator=torch.Generator().manual_seed(seed))
+    return perm[take:].sort().values, perm[:take].sort().values
+
 
 def capped(parts: Mapping[str, Clips], caps: Mapping[str, int | None]) -> dict[str, Clips]:
     """Each split's clips cut to its cap (``caps[split]``: that many evenly spread; None or no entry: all)."""
     return {split: clips.select(spread_indices(len(clips), caps.get(split))) for split, clips in parts.items()}
+
+
+def fit_ranges(clips: Clips, ranges: str) -> Normalizer:
+    """The normaliser of ``clips``' present agents: positions and velocities each to [-1, 1] by their own scalar
+    min and max (``separate``, NRI's and DNRI's), by one range for all four features (``same``, DNRI's
+    ``--same_data_norm``), or the identity (``none``)."""
+    if ranges == "none":
+        return Normalizer((-1.0, 1.0), (-1.0, 1.0))
+    if ranges == "same":
+        values = clips.states if clips.mask is None else clips.states[clips.mask]
+        if values.numel() == 0:
+            raise ValueError("no present agent states to fit on")
+        lo, hi = values.min().item(), values.max().item()
+        return Normalizer((lo, hi), (lo, hi))
+    return Normalizer.fit(clips.states, clips.mask)
 
 
 def clip_datasets(parts: Mapping[str, Clips], normalizer: Normalizer) -> dict[str, ClipDataset]:

@@ -246,7 +246,7 @@ class EpochOrder(RandomSampler):
         yield from torch.randperm(len(self.data_source), generator=generator).tolist()[done * self.batch_size:]
 
 
-class ClipDataModule(L.LightningDataModule):
+class BaseDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
     Every subclass takes ``loader`` (the DataLoaders' settings, :class:`~dider.data.loader.Loader`: a mapping
@@ -266,7 +266,7 @@ class ClipDataModule(L.LightningDataModule):
     that caches nothing takes it for a uniform interface).
     """
 
-    # The rules of the shared arguments; a subclass adds its own (``ClipDataModule.SETTINGS | {...}``).
+    # The rules of the shared arguments; a subclass adds its own (``BaseDataModule.SETTINGS | {...}``).
     SETTINGS: ClassVar[dict[str, Rule | type]] = {
         "loader": Loader, "num_train": optional(integer(1)), "num_val": optional(integer(1)),
         "num_test": optional(integer(1)),

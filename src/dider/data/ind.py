@@ -37,7 +37,7 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.cache import cache_key, load_or_build
 from dider.data.columns import csv_header, read_columns
-from dider.data.common import SPLITS, ClipDataModule, PackedClipDataset, pad_collate, spread_indices
+from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.levelx.reading import WindowParams
 from dider.data.levelx.recordings import RecordingFiles, discover_recordings, split_counts
 from dider.data.levelx.source import LevelXSource
@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 CACHE_VERSION = 1  # part of the cache key: bump it when preprocessing changes what a cached file holds
 
 
-class InDDataModule(ClipDataModule):
+class InDDataModule(BaseDataModule):
     """inD / rounD / uniD windows from the raw CSV files (see the module docstring).
 
     Batches: states [B, T, N, 4] (normalised; zeros for absent agents), mask [B, T, N] bool; N is the
@@ -67,7 +67,7 @@ class InDDataModule(ClipDataModule):
 
     collate_fn = staticmethod(pad_collate)
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"source": LevelXSource,
+    SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {"source": LevelXSource,
                                                                              "windows": Windows}
     SOURCE = LevelXSource()  # inD's; data.source overrides it key by key
     WINDOWS = Windows(seq_len=50, downsample=10)  # DNRI's inD windows: 50 steps of 2.5 Hz

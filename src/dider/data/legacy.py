@@ -15,19 +15,17 @@ from dider.data.windowing import Windows
 PROTOCOL_KEYS = ("burn_in", "horizons", "burn_in_mode")
 TABLE = "dider.data.table.TableDataModule"
 LEVELX = "dider.data.ind.InDDataModule"
+CLIPS = "dider.data.clips.ClipsDataModule"
 NRI = "dider.data.nri.NRIDataModule"
-# The data modules whose settings were flat, by their old target: (today's target, the source's keys (old name ->
-# today's path under ``source``), the reader they read with where the source names it).
+# The data modules of older versions, by their target: (today's target, the source's keys that were flat (old name ->
+# today's path under ``source``), the reader of the source where the config names none).
 FLAT: dict[str, tuple[str, dict[str, str], str | None]] = {
-    "dider.data.synth.SynthDataModule": (
-        "dider.data.synth.SynthDataModule", {k: k for k in ("num_steps", "push_factor", "push", "seed")}, None),
-    "dider.data.trajectories.TrajectoryDataModule": (
-        "dider.data.trajectories.TrajectoryDataModule", {k: k for k in ("path", "frame_rate")}, None),
+    "dider.data.synth.SynthDataModule": (CLIPS, {k: k for k in ("num_steps", "push_factor", "push", "seed")}, "push"),
+    "dider.data.trajectories.TrajectoryDataModule": (CLIPS, {k: k for k in ("path", "frame_rate")}, "trajectories"),
     "dider.data.basketball.BasketballDataModule": (
-        "dider.data.basketball.BasketballDataModule", {k: k for k in ("root", "format", "agents", "frame_rate")}, None),
-    "dider.data.dnri_files.DNRIFilesDataModule": (
-        "dider.data.dnri_files.DNRIFilesDataModule", {k: k for k in ("root", "predict_split")}, None),
-    NRI: (NRI, {"root": "root", "suffix": "suffix"}, "nri_files"),
+        CLIPS, {k: k for k in ("root", "format", "agents", "frame_rate")}, "basketball"),
+    "dider.data.dnri_files.DNRIFilesDataModule": (CLIPS, {k: k for k in ("root", "predict_split")}, "dnri_files"),
+    NRI: (CLIPS, {"root": "root", "suffix": "suffix"}, "particles"),
     TABLE: (TABLE, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
     "dider.data.soccer.SoccerDataModule": (
         TABLE, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
@@ -41,15 +39,16 @@ WINDOW_KEYS = tuple(f.name for f in fields(Windows))
 
 
 def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]]:
-    """A data module's flat arguments (an older version's) as today's target and nested arguments: the source's keys
-    under ``source`` (NRI's ``simulate`` node: the simulation's), the cut's under ``windows``; arguments already
-    nested are kept."""
+    """A data module's arguments in an older version's layout as today's target and nested arguments: the source's
+    keys under ``source`` (NRI's ``simulate`` node: the simulation's) with the reader they were read with, the cut's
+    under ``windows``; arguments already nested are kept."""
+    new_target, source_keys, reader = FLAT[target]
     if target == NRI and args.get("simulate") is not None:
         args = {k: v for k, v in args.items() if k not in ("simulate", "root", "suffix")} | {
             "source": {"reader": "particles", **dict(args["simulate"]), **dict(args.get("source") or {})}}
     elif target == NRI:
         args = {k: v for k, v in args.items() if k != "simulate"}
-    new_target, source_keys, reader = FLAT[target]
+        reader = "nri_files" if args.get("root") is not None or "suffix" in args else reader
     out: dict[str, Any] = {}
     source: dict[str, Any] = {}
     windows: dict[str, Any] = {}
@@ -64,7 +63,7 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
             windows[key] = value
         else:
             out[key] = value
-    if source:  # flat source keys: the reader they were read with (a node already nested names its own)
+    if source or new_target == CLIPS:  # the reader they were read with (a node already nested names its own)
         out["source"] = {**({"reader": reader} if reader else {}), **source, **dict(out.get("source") or {})}
     if windows:
         out["windows"] = {**windows, **dict(out.get("windows") or {})}

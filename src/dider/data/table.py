@@ -39,9 +39,10 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.clip_splits import fractions_problem, split_indices
 from dider.data.common import (
     SPLITS,
-    ClipDataModule,
+    BaseDataModule,
     PackedClipDataset,
     pad_collate,
     ragged_rows,
@@ -49,7 +50,6 @@ from dider.data.common import (
 )
 from dider.data.table_reading import id_name
 from dider.data.track_sources import track_source
-from dider.data.trajectories import split_indices
 from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows
 from dider.protocol import fill_absent
 from dider.validation import Rule, check_settings
@@ -180,7 +180,7 @@ def _packed(parts: list[dict[str, np.ndarray]], t: dict[str, Any]) -> dict[str, 
     return out
 
 
-class TableDataModule(ClipDataModule):
+class TableDataModule(BaseDataModule):
     """Windows of a data set of long tracks: a table, or what a reader reads (see the module docstring).
 
     Batches: states [B, T, N, 4] (normalised; zeros for absent agents), mask [B, T, N] bool and source
@@ -197,7 +197,8 @@ class TableDataModule(ClipDataModule):
     # the window settings the table's cut does not read
     UNUSED = {"eval_stride": "a table is cut before its split: data.windows.stride serves every split"}
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = ClipDataModule.SETTINGS | {"windows": Windows}
+    SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {
+        "windows": Windows, "split": fractions_problem}
 
     def __init__(
         self,
@@ -225,7 +226,6 @@ class TableDataModule(ClipDataModule):
         check_settings(self, locals(), key="data")
         self.source = track_source(source)
         self.windows = Windows.of(self.WINDOWS, windows, self.UNUSED)
-        split_indices(10**4, split, seed)  # checks the form of split early; the window count comes later
         self.save_hyperparameters(logger=False)
         self.hparams["source"], self.hparams["windows"] = asdict(self.source), asdict(self.windows)  # as read
         self.init_shared()

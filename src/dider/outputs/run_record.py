@@ -99,7 +99,8 @@ def run_label(cfg: DictConfig) -> str:
 
 def hparams(cfg: DictConfig) -> dict[str, Any]:
     """The scalar settings worth comparing across runs, flattened with '/'."""
-    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": cfg.data._target_.rsplit(".", 1)[-1]}
+    data = OmegaConf.select(cfg, "data.source.reader") or cfg.data._target_.rsplit(".", 1)[-1]  # what was read
+    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": data}
     for section in ("protocol", "model", "data"):
         if section not in cfg:
             continue

@@ -82,7 +82,7 @@ def trajectory_figure(positions: torch.Tensor, mask: torch.Tensor, types: torch.
     coloured by that type, so segments show where along the paths they happened.
 
     positions: [T, N, 2] raw units; mask: [T, N] bool; types: [E, T-1] long (transition t -> t+1 drawn at
-    frame t + 1); background: (image, extent) as from ``ClipDataModule.background``.
+    frame t + 1); background: (image, extent) as from ``BaseDataModule.background``.
     """
     t, n = mask.shape
     send, recv = edge_index(n)

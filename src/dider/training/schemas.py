@@ -21,15 +21,11 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from dider.data.basketball import BasketballDataModule
-from dider.data.dnri_files import DNRIFilesDataModule
+from dider.data.clips import ClipsDataModule
 from dider.data.ind import InDDataModule
-from dider.data.nri import NRIDataModule
-from dider.data.readers.particles import NRIFiles, Simulation
-from dider.data.synth import SynthDataModule
+from dider.data.readers import clip_sources
 from dider.data.table import TableDataModule
 from dider.data.track_sources import FileSource, KloppySource
-from dider.data.trajectories import TrajectoryDataModule
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
 from dider.models.durations import LearnedDuration, PerStepDuration, StaticDuration
 from dider.models.encoder import GNNLSTMEncoder
@@ -48,10 +44,10 @@ from dider.training.module import RelationalVAEModule
 PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDuration, LearnedDuration, SegmentEnd,
            HoldGate, MarkovDecoder, RecurrentDecoder)
 TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, BoundaryFit)
-DATA = (SynthDataModule, DNRIFilesDataModule, BasketballDataModule, InDDataModule, TableDataModule,
-        TrajectoryDataModule, NRIDataModule)
-# The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``).
-SOURCES = (FileSource, KloppySource, Simulation, NRIFiles)
+DATA = (ClipsDataModule, InDDataModule, TableDataModule)
+# The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``):
+# the track sources' and every clip source's.
+SOURCES = (FileSource, KloppySource, *clip_sources().values())
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,

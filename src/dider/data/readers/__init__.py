@@ -7,9 +7,14 @@ here that says ``TRACKS = True`` and defines ``read(path) -> DataFrame``, found 
 module's), and one YAML in ``conf/data`` that names it. ``kloppy`` reads a soccer provider's files into the same rows
 (``data=soccer``).
 
-A clip source gives each split as :class:`~dider.data.tracks.Clips`, already cut to a fixed length, raw: the
-simulators (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
-``trajectories``); its data module splits, caps and normalises them (:mod:`dider.data.clip_splits`).
+A clip source gives its clips already cut to a fixed length, raw (:class:`~dider.data.tracks.Clips`): the simulators
+(``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
+``trajectories``). Its module names its settings class ``CLIPS``: a frozen dataclass (the ``data.source`` node) with
+``reader`` (the module's name) and ``clips(sizes, cache_dir)``, which returns the splits the input has (``train``,
+``val``, ``test``; ``train`` and ``test``; or ``all``), and ``where()``, what error messages name it by; optionally
+``predict_clips()`` (every clip, for ``mode=predict``) and the class constants ``GENERATED`` (``data.num_*`` are the
+sizes to make), ``FIT_ON_FILE`` (the normaliser is fitted on the whole training file, before the caps) and
+``UNITS``. :class:`~dider.data.clips.ClipsDataModule` splits, caps and normalises them.
 """
 
 from __future__ import annotations
@@ -26,14 +31,18 @@ COLUMNS = ("scene", "agent", "frame", "x", "y", "vx", "vy", "agent_class")
 
 
 @cache
+def _modules() -> dict[str, ModuleType]:
+    return {info.name: importlib.import_module(f"{__name__}.{info.name}") for info in pkgutil.iter_modules(__path__)}
+
+
 def track_readers() -> dict[str, ModuleType]:
     """The track readers of this package by name: its modules that say ``TRACKS = True``."""
-    found = {}
-    for info in pkgutil.iter_modules(__path__):
-        module = importlib.import_module(f"{__name__}.{info.name}")
-        if getattr(module, "TRACKS", False):
-            found[info.name] = module
-    return found
+    return {name: module for name, module in _modules().items() if getattr(module, "TRACKS", False)}
+
+
+def clip_sources() -> dict[str, type]:
+    """The clip sources of this package by reader name: the settings class each module names ``CLIPS``."""
+    return {name: module.CLIPS for name, module in _modules().items() if hasattr(module, "CLIPS")}
 
 
 def reader_problem(reader: object) -> str | None:

@@ -12,6 +12,7 @@ Every agent is present at every step; no edges, no ids.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -114,13 +115,27 @@ def load_dnri(root: Path, split: str) -> torch.Tensor:
 class BasketballFiles:
     """``data=basketball``'s ``data.source`` node."""
 
+    reader: str = "basketball"
     root: str | None = None  # the folder of the files (required)
     format: str = "auto"  # auto (from the files in root) | zhan | dnri
     agents: str = "offence"  # the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (+ ball)
     frame_rate: float = 6.25  # the Zhan files' rate in Hz: finite-difference velocities are in feet / second
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"format": one_of("auto", "zhan", "dnri"),
+    UNITS: ClassVar[str] = "ft"
+    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("basketball"), "format": one_of("auto", "zhan", "dnri"),
                                            "agents": one_of(*AGENT_COLUMNS), "frame_rate": above(0)}
+
+    def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
+        """Train and test, and val where the files have one (else the data module carves it from train)."""
+        fmt, parts = read(self.root, self.format, self.agents, self.frame_rate)
+        log.info("basketball files in %s: %s format", self.root, fmt)
+        return parts
+
+    def where(self) -> str:
+        return f"data.source.root={self.root}"
+
+
+CLIPS = BasketballFiles  # a clip source: data.source.reader=basketball
 
 
 def read(root: str | Path | None, format: str = "auto", agents: str = "offence",

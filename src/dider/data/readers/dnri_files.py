@@ -25,7 +25,7 @@ tensors is refused, never run. Every problem raises naming the file.
 from __future__ import annotations
 
 import pickle
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
@@ -47,10 +47,25 @@ _READ_ERRORS = (pickle.UnpicklingError, RuntimeError, EOFError, KeyError, ValueE
 class DNRIFiles:
     """``data=dnri_files``'s ``data.source`` node."""
 
+    reader: str = "dnri_files"
     root: str | None = None  # the folder holding the six files (required)
     predict_split: str = "test"  # the split whose files mode=predict reads
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"predict_split": one_of(*SPLITS)}
+    FIT_ON_FILE: ClassVar[bool] = True  # DNRI fits the ranges on the whole training file, before any cap
+    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("dnri_files"), "predict_split": one_of(*SPLITS)}
+
+    def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
+        return read(self.root)
+
+    def predict_clips(self) -> Clips:
+        """Every clip of the ``predict_split``'s files (``mode=predict``)."""
+        return read(self.root, (self.predict_split,))[self.predict_split]
+
+    def where(self) -> str:
+        return f"data.source.root={self.root}"
+
+
+CLIPS = DNRIFiles  # a clip source: data.source.reader=dnri_files
 
 
 def load_tensor(path: Path) -> torch.Tensor:

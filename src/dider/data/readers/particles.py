@@ -27,13 +27,15 @@ class Simulation:
     """What ``data=springs`` / ``data=charged`` simulate (:func:`~dider.data.particles.simulate_particles`): their
     ``data.source`` node; the split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
 
-    reader: str = "particles"  # the source: simulated (data=nri_files reads NRI's files: NRIFiles)
+    reader: str = "particles"  # simulated (data=nri_files reads NRI's files: dider.data.readers.nri_files)
     system: str = "springs"  # springs or charged
     num_balls: int = 5
     num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
     sample_every: int = 100  # integration steps per frame
     switch_prob: float = 0.0  # chance per frame that a spring breaks or forms / a charge flips (0: NRI's static graph)
     seed: int = 1  # the data seed; each split draws from its own stream
+
+    GENERATED: ClassVar[bool] = True  # data.num_* are the splits' sizes
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
         "reader": one_of("particles"), "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2),
@@ -42,21 +44,14 @@ class Simulation:
     def __post_init__(self) -> None:
         check_settings(self, asdict(self), key="data.source")
 
+    def clips(self, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
+        return read(self, sizes, cache_dir)
 
-@dataclass(frozen=True)
-class NRIFiles:
-    """NRI's particle-system files (``data=nri_files``): ``{loc,vel,edges}_{train,valid,test}{suffix}.npy`` in
-    ``root`` (:mod:`dider.data.readers.nri_files`)."""
+    def where(self) -> str:
+        return f"the {self.system} simulation"
 
-    reader: str = "nri_files"
-    root: str | None = None  # the folder of the files (required)
-    suffix: str = "_springs5"  # NRI's file names: _springs5, _charged5, ...
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {
-        "reader": one_of("nri_files"), "suffix": lambda v: None if isinstance(v, str) else "expected a string"}
-
-    def __post_init__(self) -> None:
-        check_settings(self, asdict(self), key="data.source")
+CLIPS = Simulation  # a clip source: data.source.reader=particles
 
 
 def cache_path(sim: Simulation, split: str, size: int, cache_dir: Path) -> Path:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import zipfile
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, ClassVar
@@ -26,7 +27,7 @@ from dider.data.common import check_finite
 from dider.data.tracks import Clips
 from dider.graph import num_edges
 from dider.protocol import fill_absent
-from dider.validation import Rule, above
+from dider.validation import Rule, above, one_of
 
 # What a damaged or foreign file can raise while numpy opens or decompresses it.
 _READ_ERRORS = (ValueError, OSError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
@@ -36,10 +37,24 @@ _READ_ERRORS = (ValueError, OSError, EOFError, KeyError, NotImplementedError, zi
 class NpzFile:
     """``data=trajectories``'s ``data.source`` node."""
 
+    reader: str = "trajectories"
     path: str | None = None  # the .npz file (required)
     frame_rate: float = 1.0  # finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (no 'velocities')
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"frame_rate": above(0)}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("trajectories"), "frame_rate": above(0)}
+
+    def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
+        """Every clip of the file as one part (``all``): the data module splits them."""
+        return {"all": read(self.path, self.frame_rate)}
+
+    def predict_clips(self) -> Clips:
+        return read(self.path, self.frame_rate)
+
+    def where(self) -> str:
+        return f"data.source.path={self.path}"
+
+
+CLIPS = NpzFile  # a clip source: data.source.reader=trajectories
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:

@@ -1,0 +1,130 @@
+"""The data module of every data set that comes as fixed-length clips: the simulators (``data=synth``, ``springs``,
+``charged``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``, ``trajectories``).
+
+``data.source`` says what is read or simulated; its ``reader`` picks the clip source (:mod:`dider.data.readers`),
+whose settings fill the rest of the node. The module makes the source's parts into the three splits (a file of clips
+split by ``split`` fractions, a validation split carved from the training files by ``val_fraction``; ``seed`` seeds
+both), crops the training clips (``train_len``), caps each split (``num_*``; a simulator's sizes), fits the
+normaliser (``normalization``) on the training split and serves the batches: states [B, T, N, 4] normalised, mask
+[B, T, N], edges [B, T-1, E] long where the source has them, and the clips' ids as ``source``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict
+from typing import Any, ClassVar
+
+from dider.data.clip_splits import RANGES, capped, carve, clip_datasets, fit_ranges, fractions_problem, split_indices
+from dider.data.common import SPLITS, BaseDataModule, source_node
+from dider.data.readers import clip_sources
+from dider.data.tracks import Clips
+from dider.validation import ConfigError, Rule, check_settings, integer, one_of, optional, within_open
+
+log = logging.getLogger(__name__)
+
+
+class ClipsDataModule(BaseDataModule):
+    """Fixed-length clips from a clip source (module docstring). After ``setup``: ``normalizer``, ``datasets`` (a
+    ClipDataset per split); ``setup("predict")`` serves every clip of a source that has a prediction set (``.npz``
+    trajectories, DNRI's files), normalised with the trained model's normaliser."""
+
+    SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {
+        "normalization": one_of(*RANGES), "split": fractions_problem, "val_fraction": within_open(0, 1),
+        "seed": integer(0, "", 2**63 - 1), "train_len": optional(integer(2))}
+
+    def __init__(
+        self,
+        source: Mapping[str, Any] | None = None,
+        normalization: str = "separate",
+        split: Sequence[float] = (0.8, 0.1, 0.1),
+        val_fraction: float = 0.1,
+        seed: int = 1,
+        train_len: int | None = None,
+        num_train: int | None = None,
+        num_val: int | None = None,
+        num_test: int | None = None,
+        loader: Mapping[str, Any] | None = None,
+        cache_dir: str | None = None,
+    ) -> None:
+        """source: what is read or simulated (its ``reader`` and that reader's settings).
+        normalization: separate (positions and velocities each by their own range), same (one range) or none.
+        split: train / val / test fractions of a source that gives one file of clips (a permutation seeded by
+        ``seed``). val_fraction: the training clips carved off for validation where the files have no validation
+        split (seeded by ``seed``). train_len: crop training clips to their first steps; null: whole clips.
+        num_train, num_val, num_test: a simulator's split sizes (required); else a cap on each split's clips."""
+        super().__init__()
+        given = dict(source or {})
+        sources = clip_sources()
+        if (cls := sources.get(given.get("reader"))) is None:
+            raise ConfigError(f"data.source.reader={given.get('reader')!r}: expected one of {sorted(sources)}")
+        self.source = source_node(cls(), given)
+        sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
+        generated = getattr(cls, "GENERATED", False)
+        related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} if generated else {}
+        check_settings(self, locals(), related, key="data")
+        self.save_hyperparameters(logger=False)
+        self.hparams["source"] = asdict(self.source)  # as read
+        self.init_shared()
+        self.units = getattr(cls, "UNITS", None)
+        self.predicts = hasattr(self.source, "predict_clips")
+
+    def _sizes(self) -> dict[str, int | None]:
+        return {split: self.hparams[f"num_{split}"] for split in SPLITS}
+
+    def prepare_data(self) -> None:
+        if getattr(self.source, "GENERATED", False):  # simulated once, cached for every later setup
+            self.source.clips(self._sizes(), self.cache_dir)
+
+    def setup(self, stage: str | None = None) -> None:
+        if stage == "predict":  # every clip of the input, the trained model's normalisation
+            if "predict" not in self.datasets:
+                if not self.predicts:
+                    raise ValueError(f"data.source.reader={self.source.reader}: has no prediction set")
+                normalizer = self.predict_normalizer(self.source.where())
+                self.datasets.update(clip_datasets({"predict": self.source.predict_clips()}, normalizer))
+            return
+        if all(split in self.datasets for split in SPLITS):
+            return
+        h, where = self.hparams, self.source.where()
+        parts = self._splits(self.source.clips(self._sizes(), self.cache_dir))
+        if getattr(self.source, "FIT_ON_FILE", False):
+            self._fit(parts["train"], where)
+        if h.train_len is not None:
+            if h.train_len > (steps := parts["train"].states.shape[1]):
+                raise ValueError(f"data.train_len={h.train_len}: longer than the training clips ({steps} steps)")
+            parts["train"] = parts["train"].crop(h.train_len)
+        if not getattr(self.source, "GENERATED", False):
+            parts = capped(parts, self._sizes())
+        self._fit(parts["train"], where)
+        self.datasets.update(clip_datasets(parts, self.normalizer))
+        _, steps, agents, _ = parts["test"].states.shape
+        log.info("%s: %s clips of %d steps, %d agents%s", where, {s: len(d) for s, d in self.datasets.items()}, steps,
+                 agents, "" if parts["test"].edges is None else ", with edges")
+
+    def _splits(self, parts: dict[str, Clips]) -> dict[str, Clips]:
+        """The source's parts as train, val and test: one part split by fractions, a missing validation split carved
+        from the training clips; every split non-empty, with the training clips' agents."""
+        h = self.hparams
+        if set(parts) == {"all"}:
+            clips = parts["all"]
+            parts = {split: clips.select(idx) for split, idx in split_indices(len(clips), h.split, h.seed).items()}
+        elif "val" not in parts:
+            keep, val = carve(len(parts["train"]), h.val_fraction, h.seed)
+            parts = {**parts, "train": parts["train"].select(keep), "val": parts["train"].select(val)}
+        agents = parts["train"].states.shape[2:]
+        for split in SPLITS:
+            if len(parts[split]) == 0:
+                raise ValueError(f"{self.source.where()}: the {split} split has no clips")
+            if parts[split].states.shape[2:] != agents:  # clip lengths may differ between files, agents not
+                raise ValueError(f"{self.source.where()}: the {split} clips have {parts[split].states.shape[2]} "
+                                 f"agents, the training clips {agents[0]}")
+        return {split: parts[split] for split in SPLITS}
+
+    def _fit(self, train: Clips, where: str) -> None:
+        """The normaliser fitted on ``train`` (once; a trained model's, given by ``use_normalizer``, is kept)."""
+        try:
+            self.normalizer = self.train_normalizer(lambda: fit_ranges(train, self.hparams.normalization))
+        except ValueError as e:  # e.g. no present agent, or agents that never move: a zero range
+            raise ValueError(f"{where}: cannot fit the normalisation on the training clips: {e}") from None
