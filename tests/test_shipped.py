@@ -24,12 +24,13 @@ def test_the_catalog_names_files_that_ship_and_say_how_they_were_made():
 @pytest.mark.parametrize("name", sorted(catalog()))
 def test_a_shipped_model_reproduces_its_recorded_test_metrics(name):
     """The record's own command (``mode=eval ckpt_path=NAME``, test clips regenerated from the data seed), in a
-    fresh process, within float tolerance: another CPU's matrix products round differently."""
+    fresh process, within float tolerance: another CPU's matrix products round differently (across the CPUs the
+    records were made and checked on, 6e-6 relative at most: the bound leaves over 100 times that)."""
     record = catalog()[name]
     again = evaluate(name, record["evaluate"])
     assert set(record["metrics"]) <= set(again)  # every recorded metric is scored again (a test pass may add some)
     off = {k: (v, again[k]) for k, v in record["metrics"].items()
-           if not (math.isnan(v) and math.isnan(again[k])) and again[k] != pytest.approx(v, rel=1e-2, abs=1e-3)}
+           if not (math.isnan(v) and math.isnan(again[k])) and again[k] != pytest.approx(v, rel=1e-3, abs=1e-9)}
     assert not off, off
 
 

@@ -10,8 +10,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 import dider
-from dider.data.synth import SynthDataModule
+from dider.data.clips import ClipsDataModule
 from dider.graph import edge_index
+
+LOADER = {"batch_size": 16, "eval_batch_size": 256}  # data=synth's loader
 
 
 def renamed(o):
@@ -34,7 +36,8 @@ def main() -> None:
     send, recv = edge_index(3)
     for run in sys.argv[1:]:
         model = load(glob.glob(run)[0].rstrip("/"))
-        dm = SynthDataModule(num_train=32, num_val=8, num_test=200, seed=1, cache_dir="/tmp/leads_cache", push="step")
+        dm = ClipsDataModule(source={"reader": "push", "seed": 1, "push": "step"}, num_train=32, num_val=8,
+                             num_test=200, cache_dir="/tmp/leads_cache", loader=LOADER)
         dm.use_normalizer(model.normalizer)
         dm.setup()
         test = dm.datasets["test"]

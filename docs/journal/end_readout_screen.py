@@ -24,7 +24,7 @@ import lightning as L
 import torch
 
 import dider.models.segment_end as segment_end
-from dider.data.synth import SynthDataModule
+from dider.data.clips import ClipsDataModule
 from dider.models.end_categorical import decided_end, end_log_probs
 from dider.training.module import RelationalVAEModule
 
@@ -86,7 +86,8 @@ def main() -> None:
             module.hparams.samples = 0
             module.model.duration.end_readout = readout
             module.model.duration.sync_free = True
-            dm = SynthDataModule(num_train=10000, num_val=200, num_test=500, loader={"eval_batch_size": 250})
+            dm = ClipsDataModule(source={"reader": "push"}, num_train=10000, num_val=200, num_test=500,
+                                 loader={"batch_size": 16, "eval_batch_size": 250})
             trainer = L.Trainer(accelerator="cpu", max_epochs=16, logger=False, enable_progress_bar=False,
                                 enable_model_summary=False)
             metrics = trainer.test(module, datamodule=dm, verbose=False)[0]

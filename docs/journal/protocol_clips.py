@@ -7,14 +7,17 @@ from typing import Any
 import torch
 
 import dider
-from dider.data.synth import SynthDataModule
+from dider.data.clips import ClipsDataModule
+
+LOADER = {"batch_size": 16, "eval_batch_size": 256}  # data=synth's loader
 
 
 def protocol_clips(model_name: str, clips: int, cache: str) -> tuple[Any, torch.nn.Module, dict[str, torch.Tensor]]:
     """-> (the trained model, its network in eval mode, one batch of the first ``clips`` test clips)."""
     torch.set_num_threads(1)
     model = dider.load(model_name)
-    dm = SynthDataModule(num_train=32, num_val=8, num_test=clips, seed=1, cache_dir=cache)
+    dm = ClipsDataModule(source={"reader": "push", "seed": 1}, num_train=32, num_val=8, num_test=clips, cache_dir=cache,
+                         loader=LOADER)
     dm.use_normalizer(model.normalizer)
     dm.setup()
     test = dm.datasets["test"]

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dider.data.synth import SynthDataModule
+from dider.data.clips import ClipsDataModule
 from dider.training.module import RelationalVAEModule
 
 
@@ -38,7 +38,7 @@ def held_to_end(segments: dict, truth: np.ndarray) -> dict[str, int]:
     return {"interaction_segments": total, "held_to_clip_end": run_on}
 
 
-def after_push(module: RelationalVAEModule, dm: SynthDataModule) -> dict[str, float]:
+def after_push(module: RelationalVAEModule, dm: ClipsDataModule) -> dict[str, float]:
     """On edge-steps after an edge's last true interaction step: where the held segment still holds an interaction
     through the clip's end, and where it was released: the per-step posterior's interaction probability and the
     decoder's evidence (nats)."""
@@ -68,7 +68,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     logging.disable(logging.WARNING)
-    dm = SynthDataModule(num_train=10000, num_val=200, num_test=500)  # the protocol's data
+    dm = ClipsDataModule(source={"reader": "push"}, num_train=10000, num_val=200, num_test=500,
+                         loader={"batch_size": 16, "eval_batch_size": 256})  # the protocol's data
     dm.setup()
     truth = (dm.datasets["test"].edges > 0).numpy()
     result = {"command": "python docs/journal/run_on_diagnosis.py " + " ".join(args.folders) + f" --out {args.out}"}

@@ -11,20 +11,22 @@ import dider
 import dider.run  # noqa: F401  (registers the kloppy_sample resolver)
 
 # the recipe the run was trained with (docs/journal/soccer.md)
-RECIPE = ["data.provider=skillcorner", "data.downsample=2", "data.seq_len=30", "data.stride=30", "protocol.burn_in=10",
-          "protocol.horizons=[1,10,20]", "data.min_agent_steps=15", "data.min_agents=4",
-          "data.files={meta_data:'${kloppy_sample:skillcorner_match_data.json}',"
+RECIPE = ["data.source.provider=skillcorner", "data.windows.downsample=2", "data.windows.seq_len=30",
+          "data.windows.stride=30", "protocol.burn_in=10", "protocol.horizons=[1,10,20]",
+          "data.windows.min_agent_steps=15", "data.windows.min_agents=4",
+          "data.source.files={meta_data:'${kloppy_sample:skillcorner_match_data.json}',"
           "raw_data:'${kloppy_sample:skillcorner_structured_data.json}'}"]
 run = sys.argv[1]
 m = dider.load(run)
 with initialize_config_module(version_base="1.3", config_module="dider.conf"):
     cfg = compose(config_name="config", overrides=["data=soccer", *RECIPE])
 dm = instantiate(cfg.data, _convert_="all")
-dm.prepare_data(); dm.setup("fit")
+dm.prepare_data()
+dm.setup("fit")
 norm = dm.normalizer
 torch.manual_seed(0)
 for split in ("train", "test"):
-    loader = dm._loader(split, train=False)
+    loader = dm._dataloader(split, train=False)
     errs = {"model": [], "cv": []}
     for batch in loader:
         x, mask = batch["states"], batch["mask"]
