@@ -98,3 +98,18 @@ def test_normalizer_roundtrip_and_errors():
     torch.testing.assert_close(n.denormalize(n.normalize(x)), x, atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="pos_range"):
         Normalizer((1.0, 1.0), (0.0, 1.0))
+
+
+def test_a_split_setting_a_clip_source_does_not_read_is_refused(tmp_path):
+    """The simulators give their splits as made: a split fraction or a carving seed set for them would be ignored
+    silently, so it is refused naming the key and the sources that read it."""
+    from dider.data.clips import ClipsDataModule
+
+    sizes = {"num_train": 4, "num_val": 2, "num_test": 2}
+    with pytest.raises(ValueError, match=r"data.val_fraction=0.2: data.source.reader=push gives its splits as they "
+                                         r"are; read by a source whose files may lack a validation split"):
+        ClipsDataModule(source={"reader": "push"}, val_fraction=0.2, **sizes)
+    with pytest.raises(ValueError, match=r"data.split=\[0.6, 0.2, 0.2\]: data.source.reader=particles"):
+        ClipsDataModule(source={"reader": "particles"}, split=[0.6, 0.2, 0.2], **sizes)
+    ClipsDataModule(source={"reader": "push"}, split=(0.8, 0.1, 0.1), seed=1, **sizes)  # the defaults pass
+    ClipsDataModule(source={"reader": "trajectories"}, split=[0.6, 0.2, 0.2], seed=4)  # read there

@@ -103,7 +103,8 @@ def test_a_new_clip_format_is_one_module_found_by_its_name(tmp_path, monkeypatch
     package.mkdir()
     (package / "ramps.py").write_text(
         "from dataclasses import dataclass\nimport torch\nfrom dider.data.tracks import Clips\n\n\n"
-        "@dataclass(frozen=True)\nclass Ramps:\n    reader: str = 'ramps'\n    count: int = 20\n\n"
+        "@dataclass(frozen=True)\nclass Ramps:\n    reader: str = 'ramps'\n    count: int = 20\n"
+        "    SPLIT_SETTINGS = ('split', 'seed')\n\n"
         "    def clips(self, sizes, cache_dir):\n"
         "        t = torch.arange(self.count * 6 * 2 * 4, dtype=torch.float32).reshape(self.count, 6, 2, 4)\n"
         "        return {'all': Clips(t)}\n\n    def where(self):\n        return 'the ramps'\n\n\n"

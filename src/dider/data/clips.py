@@ -24,6 +24,13 @@ from dider.validation import ConfigError, Rule, check_settings, integer, one_of,
 
 log = logging.getLogger(__name__)
 
+# The settings that make the three splits, their defaults and the sources that read them: a source names those it
+# reads in ``SPLIT_SETTINGS``; another one set away from its default is refused.
+SPLIT_DEFAULTS = {"split": [0.8, 0.1, 0.1], "val_fraction": 0.1, "seed": 1}
+WHO_READS = {"split": "a source of one file of clips (reader trajectories)",
+             "val_fraction": "a source whose files may lack a validation split (reader basketball)",
+             "seed": "the sources that split or carve (readers trajectories, basketball)"}
+
 
 class ClipsDataModule(BaseDataModule):
     """Fixed-length clips from a clip source (module docstring). After ``setup``: ``normalizer``, ``datasets`` (a
@@ -64,6 +71,11 @@ class ClipsDataModule(BaseDataModule):
         generated = getattr(cls, "GENERATED", False)
         related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} if generated else {}
         check_settings(self, locals(), related, key="data")
+        reads = getattr(cls, "SPLIT_SETTINGS", ())
+        given = {"split": list(split), "val_fraction": val_fraction, "seed": seed}
+        if unread := [f"data.{k}={v!r}: data.source.reader={self.source.reader} gives its splits as they are; read "
+                      f"by {WHO_READS[k]}" for k, v in given.items() if k not in reads and v != SPLIT_DEFAULTS[k]]:
+            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(unread))
         self.save_hyperparameters(logger=False)
         self.hparams["source"] = asdict(self.source)  # as read
         self.init_shared()

@@ -13,8 +13,9 @@ A clip source gives its clips already cut to a fixed length, raw (:class:`~dider
 ``reader`` (the module's name) and ``clips(sizes, cache_dir)``, which returns the splits the input has (``train``,
 ``val``, ``test``; ``train`` and ``test``; or ``all``), and ``where()``, what error messages name it by; optionally
 ``predict_clips()`` (every clip, for ``mode=predict``) and the class constants ``GENERATED`` (``data.num_*`` are the
-sizes to make), ``FIT_ON_FILE`` (the normaliser is fitted on the whole training file, before the caps) and
-``UNITS``. :class:`~dider.data.clips.ClipsDataModule` splits, caps and normalises them.
+sizes to make), ``FIT_ON_FILE`` (the normaliser is fitted on the whole training file, before the caps),
+``SPLIT_SETTINGS`` (which of ``data.split``, ``val_fraction`` and ``seed`` it needs) and ``UNITS``.
+:class:`~dider.data.clips.ClipsDataModule` splits, caps and normalises them.
 """
 
 from __future__ import annotations

@@ -122,6 +122,7 @@ class BasketballFiles:
     frame_rate: float = 6.25  # the Zhan files' rate in Hz: finite-difference velocities are in feet / second
 
     UNITS: ClassVar[str] = "ft"
+    SPLIT_SETTINGS: ClassVar[tuple[str, ...]] = ("val_fraction", "seed")  # Zhan's files have no validation split
     SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("basketball"), "format": one_of("auto", "zhan", "dnri"),
                                            "agents": one_of(*AGENT_COLUMNS), "frame_rate": above(0)}
 

@@ -41,6 +41,7 @@ class NpzFile:
     path: str | None = None  # the .npz file (required)
     frame_rate: float = 1.0  # finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (no 'velocities')
 
+    SPLIT_SETTINGS: ClassVar[tuple[str, ...]] = ("split", "seed")  # the module splits the file's clips
     SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("trajectories"), "frame_rate": above(0)}
 
     def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
