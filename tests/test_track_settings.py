@@ -106,3 +106,14 @@ def test_a_config_in_todays_layout_passes_through_unchanged():
                  {"_target_": "dider.data.table.TableDataModule", "source": {"reader": "kloppy", "files": {}},
                   "windows": {"seq_len": 8}}):
         assert upgrade_data_node(node) == node
+
+
+def test_a_checkpoints_flat_view_keeps_the_data_seed_and_an_older_nri_files_config_reads_the_files():
+    """A simulator's seed is the data seed in the flat view a checkpoint records (as older checkpoints hold it), and
+    NRI's older ``simulate: null`` means its files even before ``root`` is set."""
+    from dider.data.legacy import flat_view, nest_args
+
+    assert flat_view({"seed": 1, "source": {"reader": "push", "seed": 7}})["seed"] == 7
+    assert flat_view({"seed": 3, "source": {"reader": "trajectories"}})["seed"] == 3  # the split seed there
+    _, nested = nest_args("dider.data.nri.NRIDataModule", {"simulate": None, "root": None})
+    assert nested["source"] == {"reader": "nri_files", "root": None}

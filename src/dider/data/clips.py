@@ -39,7 +39,7 @@ class ClipsDataModule(BaseDataModule):
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {
         "normalization": one_of(*RANGES), "split": fractions_problem, "val_fraction": within_open(0, 1),
-        "seed": integer(0, "", 2**63 - 1), "train_len": optional(integer(2))}
+        "seed": integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1), "train_len": optional(integer(2))}
 
     def __init__(
         self,

@@ -250,11 +250,11 @@ class BaseDataModule(L.LightningDataModule):
     """The loaders API and the arguments every data module shares.
 
     Every subclass takes ``loader`` (the DataLoaders' settings, :class:`~dider.data.loader.Loader`: a mapping
-    that overrides its class's ``LOADER`` defaults key by key), ``num_train`` / ``num_val`` / ``num_test`` and
-    ``cache_dir``, with defaults of its own. Its ``__init__`` checks its arguments by its class's ``SETTINGS``
-    (``check_settings(self, locals(), key="data")``: errors name ``data.<key>``), calls
-    ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments of the ``__init__``
-    that calls it, so hparams, and the checkpoints, hold every argument of the subclass) and then
+    that overrides its class's ``LOADER`` defaults key by key; the YAML of a data set sets its own),
+    ``num_train`` / ``num_val`` / ``num_test`` and ``cache_dir``, with defaults of its own. Its ``__init__`` checks
+    its arguments by its class's ``SETTINGS`` (``check_settings(self, locals(), key="data")``: errors name
+    ``data.<key>``), calls ``self.save_hyperparameters(logger=False)`` itself (Lightning records the arguments of
+    the ``__init__`` that calls it, so hparams, and the checkpoints, hold every argument of the subclass) and then
     :meth:`init_shared`. Subclasses fill ``self.datasets`` and ``self.normalizer`` in ``setup``. The forecast
     protocol (burn-in, horizons) is the model's: it checks the clips against it (:meth:`clip_steps`); a data
     config picks the protocol that suits its clips in its defaults list: ``- /protocol@_global_.protocol: NAME``

@@ -15,17 +15,18 @@ from dider.data.windowing import Windows
 PROTOCOL_KEYS = ("burn_in", "horizons", "burn_in_mode")
 TABLE = "dider.data.table.TableDataModule"
 LEVELX = "dider.data.ind.InDDataModule"
-CLIPS = "dider.data.clips.ClipsDataModule"
+CLIPS_DM = "dider.data.clips.ClipsDataModule"
 NRI = "dider.data.nri.NRIDataModule"
 # The data modules of older versions, by their target: (today's target, the source's keys that were flat (old name ->
 # today's path under ``source``), the reader of the source where the config names none).
 FLAT: dict[str, tuple[str, dict[str, str], str | None]] = {
-    "dider.data.synth.SynthDataModule": (CLIPS, {k: k for k in ("num_steps", "push_factor", "push", "seed")}, "push"),
-    "dider.data.trajectories.TrajectoryDataModule": (CLIPS, {k: k for k in ("path", "frame_rate")}, "trajectories"),
+    "dider.data.synth.SynthDataModule": (
+        CLIPS_DM, {k: k for k in ("num_steps", "push_factor", "push", "seed")}, "push"),
+    "dider.data.trajectories.TrajectoryDataModule": (CLIPS_DM, {k: k for k in ("path", "frame_rate")}, "trajectories"),
     "dider.data.basketball.BasketballDataModule": (
-        CLIPS, {k: k for k in ("root", "format", "agents", "frame_rate")}, "basketball"),
-    "dider.data.dnri_files.DNRIFilesDataModule": (CLIPS, {k: k for k in ("root", "predict_split")}, "dnri_files"),
-    NRI: (CLIPS, {"root": "root", "suffix": "suffix"}, "particles"),
+        CLIPS_DM, {k: k for k in ("root", "format", "agents", "frame_rate")}, "basketball"),
+    "dider.data.dnri_files.DNRIFilesDataModule": (CLIPS_DM, {k: k for k in ("root", "predict_split")}, "dnri_files"),
+    NRI: (CLIPS_DM, {"root": "root", "suffix": "suffix"}, "particles"),
     TABLE: (TABLE, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
     "dider.data.soccer.SoccerDataModule": (
         TABLE, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
@@ -47,8 +48,9 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
         args = {k: v for k, v in args.items() if k not in ("simulate", "root", "suffix")} | {
             "source": {"reader": "particles", **dict(args["simulate"]), **dict(args.get("source") or {})}}
     elif target == NRI:
+        # ``simulate: null`` (or NRI's file settings) read the files; no simulate at all: the default simulation
+        reader = "nri_files" if "simulate" in args or args.get("root") is not None or "suffix" in args else reader
         args = {k: v for k, v in args.items() if k != "simulate"}
-        reader = "nri_files" if args.get("root") is not None or "suffix" in args else reader
     out: dict[str, Any] = {}
     source: dict[str, Any] = {}
     windows: dict[str, Any] = {}
@@ -63,7 +65,7 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
             windows[key] = value
         else:
             out[key] = value
-    if source or new_target == CLIPS:  # the reader they were read with (a node already nested names its own)
+    if source or new_target == CLIPS_DM:  # the reader they were read with (a node already nested names its own)
         out["source"] = {**({"reader": reader} if reader else {}), **source, **dict(out.get("source") or {})}
     if windows:
         out["windows"] = {**windows, **dict(out.get("windows") or {})}
@@ -89,6 +91,6 @@ def flat_view(args: Mapping[str, Any]) -> dict[str, Any]:
     """A data module's arguments as one flat mapping (the layout of older checkpoints): the settings of its
     ``source`` and ``windows`` nodes at the top, beside its own."""
     flat = {k: v for k, v in args.items() if k not in ("source", "windows")}
-    for node in ("source", "windows"):
-        flat |= {k: v for k, v in dict(args.get(node) or {}).items() if k not in flat}
-    return flat
+    flat |= {k: v for k, v in dict(args.get("windows") or {}).items() if k not in flat}
+    # the source's own over the module's: a simulator's ``seed`` is the data seed, as older checkpoints record it
+    return flat | dict(args.get("source") or {})

@@ -10,8 +10,8 @@ from dider.validation import Rule, boolean, check_settings, integer
 
 @dataclass(frozen=True)
 class Loader:
-    """The DataLoaders' settings. A data module's class holds its data set's defaults (``LOADER``); the data
-    config's ``loader`` node overrides them key by key."""
+    """The DataLoaders' settings: a data set's defaults are in its YAML's ``loader`` node (or its module's class,
+    ``LOADER``, where one module serves one data set); a config's ``loader`` node overrides them key by key."""
 
     batch_size: int = 16  # clips per training batch
     eval_batch_size: int = 64  # clips per validation, test and prediction batch (no gradients: larger fits)

@@ -97,10 +97,17 @@ def run_label(cfg: DictConfig) -> str:
     return name.replace(",", ";").replace(":", ".")
 
 
+def _data_name(cfg: DictConfig) -> str:
+    """The data set's config name (``data=springs``), or where there is none (a config built in Python) its module's
+    class."""
+    if HydraConfig.initialized() and (name := HydraConfig.get().runtime.choices.get("data")):
+        return str(name)
+    return cfg.data._target_.rsplit(".", 1)[-1]
+
+
 def hparams(cfg: DictConfig) -> dict[str, Any]:
     """The scalar settings worth comparing across runs, flattened with '/'."""
-    data = OmegaConf.select(cfg, "data.source.reader") or cfg.data._target_.rsplit(".", 1)[-1]  # what was read
-    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": data}
+    keep = {"seed": cfg.seed, "model": cfg.model.get("name", "model"), "data": _data_name(cfg)}
     for section in ("protocol", "model", "data"):
         if section not in cfg:
             continue
