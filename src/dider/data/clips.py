@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 from dider.data.clip_splits import RANGES, capped, carve, clip_datasets, fit_ranges, fractions_problem, split_indices
 from dider.data.common import SPLITS, BaseDataModule, source_node
 from dider.data.readers import clip_sources
-from dider.data.tracks import Clips
+from dider.data.tracks import Clips, ClipSource
 from dider.validation import ConfigError, Rule, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)
@@ -66,7 +66,7 @@ class ClipsDataModule(BaseDataModule):
         sources = clip_sources()
         if (cls := sources.get(given.get("reader"))) is None:
             raise ConfigError(f"data.source.reader={given.get('reader')!r}: expected one of {sorted(sources)}")
-        self.source = source_node(cls(), given)
+        self.source: ClipSource = source_node(cls(), given)
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
         generated = getattr(cls, "GENERATED", False)
         related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} if generated else {}

@@ -1,9 +1,13 @@
-"""What a clip source gives the data module: :class:`Clips`, a split of fixed-length clips already cut (the
-simulators, and the files that ship clips: NRI's, DNRI's, the basketball sets, ``.npz`` trajectories)."""
+"""What a clip source is (:class:`ClipSource`) and what it gives the data module: :class:`Clips`, a split of
+fixed-length clips already cut (the simulators, and the files that ship clips: NRI's, DNRI's, the basketball sets,
+``.npz`` trajectories)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
+from typing import ClassVar, Protocol
 
 import torch
 
@@ -37,3 +41,23 @@ class Clips:
         """Every clip's first ``steps`` steps (and the transitions between them)."""
         return Clips(self.states[:, :steps], None if self.mask is None else self.mask[:, :steps],
                      None if self.edges is None else self.edges[:, :steps - 1], self.ids)
+
+
+class ClipSource(Protocol):
+    """A clip source's settings (its ``data.source`` node, a frozen dataclass that its reader module names ``CLIPS``),
+    as :class:`~dider.data.clips.ClipsDataModule` reads it. Optional members, read where present: ``predict_clips()
+    -> Clips`` (every clip, for ``mode=predict``) and the class constants below."""
+
+    reader: str  # the reader module's name
+    GENERATED: ClassVar[bool]  # data.num_* are the sizes to simulate (else caps on what the files hold)
+    FIT_ON_FILE: ClassVar[bool]  # the normaliser is fitted on the whole training file, before any cap
+    SPLIT_SETTINGS: ClassVar[tuple[str, ...]]  # which of data.split, data.val_fraction and data.seed it reads
+    UNITS: ClassVar[str]  # the positions' unit, for scale bars
+
+    def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
+        """The parts the input holds: ``train``, ``val`` and ``test``; ``train`` and ``test``; or ``all``."""
+        ...
+
+    def where(self) -> str:
+        """What error messages name the input by (``data.source.root=...``)."""
+        ...

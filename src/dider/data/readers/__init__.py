@@ -10,12 +10,9 @@ module's), and one YAML in ``conf/data`` that names it. ``kloppy`` reads a socce
 A clip source gives its clips already cut to a fixed length, raw (:class:`~dider.data.tracks.Clips`): the simulators
 (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
 ``trajectories``). Its module names its settings class ``CLIPS``: a frozen dataclass (the ``data.source`` node) with
-``reader`` (the module's name) and ``clips(sizes, cache_dir)``, which returns the splits the input has (``train``,
-``val``, ``test``; ``train`` and ``test``; or ``all``), and ``where()``, what error messages name it by; optionally
-``predict_clips()`` (every clip, for ``mode=predict``) and the class constants ``GENERATED`` (``data.num_*`` are the
-sizes to make), ``FIT_ON_FILE`` (the normaliser is fitted on the whole training file, before the caps),
-``SPLIT_SETTINGS`` (which of ``data.split``, ``val_fraction`` and ``seed`` it needs) and ``UNITS``.
-:class:`~dider.data.clips.ClipsDataModule` splits, caps and normalises them.
+the members of :class:`~dider.data.tracks.ClipSource` (``reader``, the module's name; ``clips(sizes, cache_dir)``,
+the splits the input holds; ``where()``; and the optional ones). :class:`~dider.data.clips.ClipsDataModule` splits,
+caps and normalises them.
 """
 
 from __future__ import annotations
