@@ -42,7 +42,9 @@ def fake_data(data: str, tmp: Path) -> list[str]:
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_runs(experiment, make_cfg, tmp_path):
     cfg = make_cfg([f"experiment={experiment}"], tiny=False)
-    data = Path(cfg.data._target_.split(".")[-2]).name  # ind, basketball, synth, ...
+    data = Path(cfg.data._target_.split(".")[-2]).name  # ind, table, clips
+    if data == "clips":
+        data = cfg.data.source.reader  # push, particles, basketball, ...
     if data == "table" and cfg.data.source.reader == "kloppy":
         data = "soccer"
     if data == "ind" and cfg.data.windows.seq_len == 200:
