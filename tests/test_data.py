@@ -113,3 +113,21 @@ def test_a_split_setting_a_clip_source_does_not_read_is_refused(tmp_path):
         ClipsDataModule(source={"reader": "particles"}, split=[0.6, 0.2, 0.2], **sizes)
     ClipsDataModule(source={"reader": "push"}, split=(0.8, 0.1, 0.1), seed=1, **sizes)  # the defaults pass
     ClipsDataModule(source={"reader": "trajectories"}, split=[0.6, 0.2, 0.2], seed=4)  # read there
+
+
+def test_the_normalisers_ranges_by_hand():
+    """separate: positions and velocities each by their own min and max; same: one range for all four; none: the
+    identity; an absent agent's values (here 99) are never fitted on."""
+    from dider.data.clip_splits import fit_ranges
+    from dider.data.tracks import Clips
+
+    states = torch.tensor([[[[0.0, 2.0, -1.0, 0.5], [99.0, 99.0, 99.0, 99.0]]]])  # [S=1, T=1, N=2, 4]
+    mask = torch.tensor([[[True, False]]])
+    clips = Clips(states, mask)
+    separate = fit_ranges(clips, "separate")
+    assert separate.pos_range == (0.0, 2.0) and separate.vel_range == (-1.0, 0.5)
+    same = fit_ranges(clips, "same")
+    assert same.pos_range == same.vel_range == (-1.0, 2.0)
+    assert fit_ranges(clips, "none").normalize(states[0, 0, :1]).tolist() == states[0, 0, :1].tolist()
+    with pytest.raises(ValueError, match="no present agent"):
+        fit_ranges(Clips(states, torch.zeros_like(mask)), "same")
