@@ -68,13 +68,14 @@ class ClipsDataModule(BaseDataModule):
             raise ConfigError(f"data.source.reader={given.get('reader')!r}: expected one of {sorted(sources)}")
         self.source: ClipSource = source_node(cls(), given)
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
-        generated = getattr(cls, "GENERATED", False)
-        related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} if generated else {}
+        self.generated = getattr(cls, "GENERATED", False)  # num_* are the sizes to simulate, not caps
+        related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} \
+            if self.generated else {}
         check_settings(self, locals(), related, key="data")
         reads = getattr(cls, "SPLIT_SETTINGS", ())
-        given = {"split": list(split), "val_fraction": val_fraction, "seed": seed}
+        splitting = {"split": list(split), "val_fraction": val_fraction, "seed": seed}
         if unread := [f"data.{k}={v!r}: data.source.reader={self.source.reader} gives its splits as they are; read "
-                      f"by {WHO_READS[k]}" for k, v in given.items() if k not in reads and v != SPLIT_DEFAULTS[k]]:
+                      f"by {WHO_READS[k]}" for k, v in splitting.items() if k not in reads and v != SPLIT_DEFAULTS[k]]:
             raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(unread))
         self.save_hyperparameters(logger=False)
         self.hparams["source"] = asdict(self.source)  # as read
@@ -86,7 +87,7 @@ class ClipsDataModule(BaseDataModule):
         return {split: self.hparams[f"num_{split}"] for split in SPLITS}
 
     def prepare_data(self) -> None:
-        if getattr(self.source, "GENERATED", False):  # simulated once, cached for every later setup
+        if self.generated:  # simulated once, cached for every later setup
             self.source.clips(self._sizes(), self.cache_dir)
 
     def setup(self, stage: str | None = None) -> None:
@@ -107,7 +108,7 @@ class ClipsDataModule(BaseDataModule):
             if h.train_len > (steps := parts["train"].states.shape[1]):
                 raise ValueError(f"data.train_len={h.train_len}: longer than the training clips ({steps} steps)")
             parts["train"] = parts["train"].crop(h.train_len)
-        if not getattr(self.source, "GENERATED", False):
+        if not self.generated:
             parts = capped(parts, self._sizes())
         self._fit(parts["train"], where)
         self.datasets.update(clip_datasets(parts, self.normalizer))
