@@ -9,9 +9,9 @@ from types import SimpleNamespace
 import pytest
 
 import dider.data.cache as cache
-from dider.data.ind import InDDataModule
 from dider.data.levelx.reading import WindowParams
 from dider.data.readers import push as push_reader
+from dider.data.tracks import TracksDataModule
 from helpers.flat import flat
 
 PUSH = {  # data=synth at its defaults, and with the positive control's step push
@@ -49,5 +49,5 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
 def test_a_levelx_recordings_cache_name(tmp_path):
     files = SimpleNamespace(id="00", signature=lambda: [
         ("00_tracks.csv", 100, 5), ("00_tracksMeta.csv", 10, 5), ("00_recordingMeta.csv", 1, 5)])
-    dm = InDDataModule(source={"root": str(tmp_path)}, cache_dir=str(tmp_path))
-    assert dm.cache_path(files, WindowParams()).name == "ind_00_acc2bd9a07cc918a.pt"
+    dm = TracksDataModule(source={"reader": "levelx", "root": str(tmp_path)}, cache_dir=str(tmp_path))
+    assert dm.tracks().cache_path(files, WindowParams()).name == "ind_00_acc2bd9a07cc918a.pt"

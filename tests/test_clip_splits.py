@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.clip_source import Clips
 from dider.data.clip_splits import capped, clip_datasets
 from dider.data.readers import dnri_files, nri_files, trajectories
-from dider.data.tracks import Clips
 from helpers.fixtures import write_trajectories
 from test_dnri_files import write_dnri
 

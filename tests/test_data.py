@@ -79,14 +79,14 @@ def test_every_data_setting_is_a_constructor_argument():
 
     from dider.data.common import BaseDataModule
 
-    for name in ("clips", "ind", "table"):
+    for name in ("clips", "tracks"):
         importlib.import_module(f"dider.data.{name}")
     classes = set()
     todo = [BaseDataModule]
     while todo:
         todo += (subclasses := todo.pop().__subclasses__())
         classes.update(subclasses)
-    assert len(classes) >= 3, sorted(c.__name__ for c in classes)
+    assert len(classes) >= 2, sorted(c.__name__ for c in classes)
     for cls in classes:
         params = set(inspect.signature(cls.__init__).parameters)
         assert set(cls.SETTINGS) <= params, (cls.__name__, set(cls.SETTINGS) - params)
@@ -118,8 +118,8 @@ def test_a_split_setting_a_clip_source_does_not_read_is_refused(tmp_path):
 def test_the_normalisers_ranges_by_hand():
     """separate: positions and velocities each by their own min and max; same: one range for all four; none: the
     identity; an absent agent's values (here 99) are never fitted on."""
+    from dider.data.clip_source import Clips
     from dider.data.clip_splits import fit_ranges
-    from dider.data.tracks import Clips
 
     states = torch.tensor([[[[0.0, 2.0, -1.0, 0.5], [99.0, 99.0, 99.0, 99.0]]]])  # [S=1, T=1, N=2, 4]
     mask = torch.tensor([[[True, False]]])

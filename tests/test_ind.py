@@ -11,10 +11,11 @@ from hydra.utils import instantiate
 
 from dider.bench.data import benchmark_preprocess
 from dider.bench.fake_levelx import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
-from dider.data import ind as ind_mod
-from dider.data.ind import InDDataModule
+from dider.data.clip_splits import split_counts
 from dider.data.legacy import LEVELX, nest_args
-from dider.data.levelx.recordings import discover_recordings, split_counts
+from dider.data.levelx import tracks as ind_mod
+from dider.data.levelx.recordings import discover_recordings
+from dider.data.tracks import TracksDataModule
 from dider.protocol import burn_in_mask
 from helpers.fixtures import edit_csv, write_background, write_ind_root
 
@@ -27,12 +28,17 @@ def root(tmp_path: Path) -> Path:
     return write_ind_root(tmp_path / "inD")
 
 
-def levelx(**flat) -> InDDataModule:
+def levelx(**flat) -> TracksDataModule:
     """The module with its settings given flat (nested as the config nests them)."""
-    return InDDataModule(**nest_args(LEVELX, flat)[1])
+    return TracksDataModule(**nest_args(LEVELX, flat)[1])
 
 
-def make_dm(root: Path, cache: Path, setup: bool = True, **kw) -> InDDataModule:
+def recordings(ds) -> list[str]:
+    """The recordings a split's windows come from."""
+    return [ds.scenes[i] for i in ds.window_scene.unique().tolist()]
+
+
+def make_dm(root: Path, cache: Path, setup: bool = True, **kw) -> TracksDataModule:
     dm = levelx(root=None if root is None else str(root), cache_dir=str(cache), **{**SMALL, **kw})
     if setup:
         dm.prepare_data()
@@ -61,8 +67,8 @@ def test_fixture_has_the_real_headers(root):
 def test_windows_match_the_csv_rows(root, tmp_path):
     dm = make_dm(root, tmp_path / "cache")
     train = dm.datasets["train"]
-    assert train.recordings == ["00", "01"] and dm.datasets["val"].recordings == ["02"]
-    assert dm.datasets["test"].recordings == ["03"] and dm.dt == pytest.approx(0.4)
+    assert recordings(train) == ["00", "01"] and recordings(dm.datasets["val"]) == ["02"]
+    assert recordings(dm.datasets["test"]) == ["03"] and dm.dt == pytest.approx(0.4)
     # 60 steps per recording, non-overlapping 20-step windows: 3 per recording.
     assert len(train) == 6 and train.window_start.tolist() == [0, 20, 40] * 2
     rows = downsampled(root, "00")
@@ -70,8 +76,8 @@ def test_windows_match_the_csv_rows(root, tmp_path):
         lo, hi = int(train.offsets[w]), int(train.offsets[w + 1])
         start = int(train.window_start[w])
         inside = rows[(rows.step >= start) & (rows.step < start + 20)]
-        assert train.track_id[lo:hi].tolist() == sorted(inside.trackId.unique())
-        for j, tid in enumerate(train.track_id[lo:hi].tolist()):
+        assert train.agent_ids[lo:hi].tolist() == sorted(inside.trackId.unique())
+        for j, tid in enumerate(train.agent_ids[lo:hi].tolist()):
             tr = inside[inside.trackId == tid]
             t = torch.as_tensor(tr.step.to_numpy() - start)
             want = torch.as_tensor(tr[["xCenter", "yCenter", "xVelocity", "yVelocity"]].to_numpy(),
@@ -116,13 +122,13 @@ def test_masks_parked_and_entering_agents(root, tmp_path):
     ds = dm.datasets["train"]
     meta = pd.read_csv(root / "00_tracksMeta.csv").set_index("trackId")
     lo, hi = int(ds.offsets[0]), int(ds.offsets[1])
-    for j, tid in enumerate(ds.track_id[lo:hi].tolist()):
+    for j, tid in enumerate(ds.agent_ids[lo:hi].tolist()):
         steps = ds.mask[lo + j].nonzero().squeeze(1)
         first = int(np.ceil(meta.initialFrame[tid] / 10))
         assert int(steps[0]) == max(first, 0) and int(steps[-1]) == min(meta.finalFrame[tid] // 10, 19)
         assert steps.numel() == int(steps[-1] - steps[0] + 1)  # contiguous
     # Parked vehicles (trackId 0, 1: present all recording, zero velocity) are in every window.
-    parked = torch.isin(ds.track_id, torch.tensor([0, 1]))
+    parked = torch.isin(ds.agent_ids, torch.tensor([0, 1]))
     assert int(parked.sum()) == 2 * len(ds) and ds.mask[parked].all()
     raw = dm.normalizer.denormalize(ds.states[parked])
     assert raw[..., 2:].abs().max() < 1e-4
@@ -159,7 +165,7 @@ def test_downsample_stride_and_window_filters(root, tmp_path):
     assert (capped.datasets["train"].num_agents == full.datasets["train"].num_agents.clamp(max=3)).all()
     # the cap keeps the agents present longest: the parked ones (whole windows) always survive
     ds = capped.datasets["train"]
-    assert int(torch.isin(ds.track_id, torch.tensor([0, 1])).sum()) == 2 * len(ds)
+    assert int(torch.isin(ds.agent_ids, torch.tensor([0, 1])).sum()) == 2 * len(ds)
     longer = make_dm(root, cache, min_agent_steps=12)  # only agents present >= 12 of the 20 steps
     assert (longer.datasets["train"].mask.sum(1) >= 12).all()
     assert len(longer.datasets["train"].mask) < len(full.datasets["train"].mask)
@@ -180,7 +186,7 @@ def test_class_filter_and_caps(root, tmp_path):
     capped = make_dm(root, cache, num_train=4, num_val=1)
     assert len(capped.datasets["train"]) == 4 and len(capped.datasets["val"]) == 1
     # evenly spread: both training recordings are still sampled
-    assert set(capped.datasets["train"].window_recording.tolist()) == {0, 1}
+    assert set(capped.datasets["train"].window_scene.tolist()) == {0, 1}
 
 
 def test_splits_and_recording_selection(root, tmp_path):
@@ -191,7 +197,7 @@ def test_splits_and_recording_selection(root, tmp_path):
     with pytest.raises(ValueError, match="data.split"):
         levelx(split=(2, 0.5, 1))
     dm = make_dm(root, tmp_path / "c", split=(0.5, 0.25, 0.25))
-    assert [dm.datasets[s].recordings for s in ("train", "val", "test")] == [["00", "01"], ["02"], ["03"]]
+    assert [recordings(dm.datasets[s]) for s in ("train", "val", "test")] == [["00", "01"], ["02"], ["03"]]
     recs = discover_recordings(root, recordings=[3, "01", 2])
     assert [r.id for r in recs] == ["01", "02", "03"]
     with pytest.raises(FileNotFoundError, match="recording 9"):
@@ -199,7 +205,7 @@ def test_splits_and_recording_selection(root, tmp_path):
 
 
 def test_default_is_dnri_protocol():
-    dm = InDDataModule()
+    dm = TracksDataModule(source={"reader": "levelx"})
     assert list(dm.hparams.split) == [19, 7, 7] and dm.windows.downsample == 10 and dm.windows.seq_len == 50
     assert list(dm.source.columns.features) == ["xCenter", "yCenter", "xVelocity", "yVelocity"]
     assert dm.source.classes is None and dm.windows.min_agents == 2
@@ -255,7 +261,7 @@ def test_hydra_config_instantiates(root, make_cfg):
     batch = next(iter(dm.val_dataloader()))
     assert batch["states"].shape[1] == 20 and cfg.model.burn_in == 5
     for option in ("ind200", "round", "unid"):
-        assert make_cfg([f"data={option}"]).data._target_ == "dider.data.ind.InDDataModule"
+        assert make_cfg([f"data={option}"]).data._target_ == "dider.data.tracks.TracksDataModule"
 
 
 def test_benchmark_runs_small(tmp_path):

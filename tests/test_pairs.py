@@ -4,8 +4,8 @@
 import pytest
 import torch
 
-from dider.data.ind import InDDataModule
 from dider.data.pairs import OPPOSITE, PARKED, PairRules, find_pairs, pair_kind_matrix
+from dider.data.tracks import TracksDataModule
 from dider.evaluation.metrics import PairConsistency
 from dider.graph import edge_index
 from helpers.fixtures import write_ind_root
@@ -75,8 +75,9 @@ def test_pair_consistency_metric():
 def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     # The fixture's tracks 0 and 1 are parked cars present in every window; the other tracks move.
     root = write_ind_root(tmp_path / "inD")
-    dm = InDDataModule(source={"root": str(root)}, windows={"seq_len": 20}, cache_dir=str(tmp_path / "cache"),
-                       split=(2, 1, 1), loader={"batch_size": 4, "eval_batch_size": 4})
+    dm = TracksDataModule(source={"reader": "levelx", "root": str(root)}, windows={"seq_len": 20}, pairs={},
+                          cache_dir=str(tmp_path / "cache"), split=(2, 1, 1),
+                          loader={"batch_size": 4, "eval_batch_size": 4})
     dm.prepare_data()
     dm.setup()
     batch = next(iter(dm.test_dataloader()))
@@ -86,6 +87,6 @@ def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     assert not (batch["pair_kind"][:, (send >= 2) | (recv >= 2)] == PARKED).any()
     assert "pair_kind" not in next(iter(dm.train_dataloader()))
     with pytest.raises(ValueError, match="data.pairs"):
-        InDDataModule(source={"root": str(root)}, pairs={"parked_speed": 0.0})
+        TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_speed": 0.0})
     with pytest.raises(ValueError, match="data.pairs.*fields"):
-        InDDataModule(source={"root": str(root)}, pairs={"parked_sped": 1.0})
+        TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_sped": 1.0})

@@ -20,10 +20,10 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from dider.data.ind import InDDataModule
 from dider.data.levelx.recordings import discover_recordings
 from dider.data.readers.trajectories import load_trajectories
 from dider.data.simulate import simulate_push
+from dider.data.tracks import TracksDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
 from helpers.fixtures import write_ind_root
@@ -201,12 +201,12 @@ def test_levelx_reader_fails_cleanly_and_caches_atomically(ops, seed):
                                      num_parked=1, seed=seed), Path(tmp) / "cache"
         for op in ops:
             corrupt(root, op)
-        dm = InDDataModule(source={"root": str(root)}, windows={"seq_len": 10}, cache_dir=str(cache),
-                           split=(1, 1, 1))
-        params = dm.window_params("train")
+        dm = TracksDataModule(source={"reader": "levelx", "root": str(root)}, windows={"seq_len": 10},
+                              cache_dir=str(cache), split=(1, 1, 1))
+        params = dm.tracks().params(10)
         try:
             files = discover_recordings(root)[0]
-            blob = dm._load_or_build(files, params)
+            blob = dm.tracks().recording(files, params)
         except Exception as e:  # noqa: BLE001 - the property is about which exceptions
             assert_clean(e, *FILES, "data.")
             assert not cache.exists() or not any(p.is_file() for p in cache.rglob("*"))  # no cache, no temp

@@ -102,7 +102,7 @@ def test_a_new_clip_format_is_one_module_found_by_its_name(tmp_path, monkeypatch
     package = tmp_path / "extra"
     package.mkdir()
     (package / "ramps.py").write_text(
-        "from dataclasses import dataclass\nimport torch\nfrom dider.data.tracks import Clips\n\n\n"
+        "from dataclasses import dataclass\nimport torch\nfrom dider.data.clip_source import Clips\n\n\n"
         "@dataclass(frozen=True)\nclass Ramps:\n    reader: str = 'ramps'\n    count: int = 20\n"
         "    SPLIT_SETTINGS = ('split', 'seed')\n\n"
         "    def clips(self, sizes, cache_dir):\n"

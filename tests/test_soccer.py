@@ -12,7 +12,7 @@ import torch
 kloppy = pytest.importorskip("kloppy")
 
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows  # noqa: E402
-from dider.data.table import TableDataModule  # noqa: E402
+from dider.data.tracks import TracksDataModule  # noqa: E402
 
 FILES = Path(kloppy.__file__).parent / "tests" / "files"
 HAWKEYE = {"ball_feeds": str(FILES / "hawkeye_1_1.football.samples.ball"),
@@ -52,9 +52,9 @@ def test_every_provider_reads_into_metres(provider):
     assert (np.lexsort(key.T[::-1]) == np.arange(len(key))).all()  # ... sorted by them
 
 
-def soccer(files: dict, **windows) -> TableDataModule:
+def soccer(files: dict, **windows) -> TracksDataModule:
     """``data=soccer``'s module on Hawk-Eye's files (its window defaults: max_speed 12 m/s)."""
-    return TableDataModule(source={"reader": "kloppy", "provider": "hawkeye", "files": files},
+    return TracksDataModule(source={"reader": "kloppy", "provider": "hawkeye", "files": files},
                            windows={"max_speed": 12.0, **windows})
 
 
@@ -92,7 +92,7 @@ def test_hawkeye_windows_velocities_and_rate():
 ])
 def test_bad_input_is_named(kwargs, match):
     with pytest.raises((ValueError, FileNotFoundError), match=match):
-        TableDataModule(source={"reader": "kloppy", "files": HAWKEYE} | kwargs, windows={"seq_len": 12}).setup("fit")
+        TracksDataModule(source={"reader": "kloppy", "files": HAWKEYE} | kwargs, windows={"seq_len": 12}).setup("fit")
 
 
 def test_a_file_kloppy_cannot_read_is_named(tmp_path):

@@ -15,8 +15,11 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.common import SPLITS
 from dider.data.legacy import TABLE, nest_args
-from dider.data.table import SPLITS, TableDataModule
+from dider.data.pairs import PARKED
+from dider.data.tracks import TracksDataModule
+from dider.graph import edge_index
 
 # The hand fixture. Scene 'east' (first in the file and by name): frames 0..5, agents amy and dan. Scene 'north':
 # frames 10..17, bob at every frame, amy at every frame but 13 (a gap), cat from frame 14 on.
@@ -54,13 +57,13 @@ def table(tmp_path: Path) -> Path:
     return path
 
 
-def make_dm(path: Path | None, columns: dict | None = None, **kw) -> TableDataModule:
+def make_dm(path: Path | None, columns: dict | None = None, **kw) -> TracksDataModule:
     """The module of the table at ``path``, its settings given flat (nested as the config nests them)."""
     flat = {"path": None if path is None else str(path), "columns": columns or COLUMNS, **SMALL, **kw}
-    return TableDataModule(**nest_args(TABLE, flat)[1])
+    return TracksDataModule(**nest_args(TABLE, flat)[1])
 
 
-def windows(path: Path, normalizer: Normalizer = IDENTITY, **kw) -> tuple[TableDataModule, object]:
+def windows(path: Path, normalizer: Normalizer = IDENTITY, **kw) -> tuple[TracksDataModule, object]:
     """Every window of the table (the predict setup), in raw units by default."""
     dm = make_dm(path, **kw)
     dm.use_normalizer(normalizer)
@@ -225,7 +228,7 @@ def test_the_split_does_not_depend_on_the_rows_order(tmp_path):
 def test_split(tmp_path, caplog, scenes, by):
     path = table_of_scenes(tmp_path / "t.csv", scenes)
     dm = make_dm(path, stride=4)  # 12 steps after the drop: 3 windows a scene
-    with caplog.at_level(logging.INFO, logger="dider.data.table"):
+    with caplog.at_level(logging.INFO, logger="dider.data.tracks"):
         dm.setup()
     assert f"split by {by}" in caplog.text
     clips = {s: dm.datasets[s].sources["clip"] for s in ("train", "val", "test")}
@@ -341,7 +344,7 @@ def test_bad_input(tmp_path, table):
 ])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        TableDataModule(**nest_args(TABLE, {**SMALL, **kw})[1])
+        TracksDataModule(**nest_args(TABLE, {**SMALL, **kw})[1])
 
 
 def test_command_line_run(tmp_path):
@@ -404,3 +407,23 @@ def test_the_readme_own_data_commands_run_on_the_example(tmp_path):
         done = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
         assert done.returncode == 0, f"{' '.join(command)}:\n{done.stderr[-3000:]}"
     assert (tmp_path / "runs" / "mine" / "explorer.html").exists()
+
+
+def test_a_table_with_classes_gets_the_consistency_check(tmp_path):
+    """``data.pairs`` on a table: its test windows carry the pairs of parked vehicles (two cars that never move), as
+    inD's do; a table without classes is refused, naming ``data.pairs``."""
+    rows = [{"place": scene, "who": agent, "t": f, "px": 5.0 * agent + speed * f, "py": scene + 0.5 * speed * f,
+             "kind": kind}
+            for scene in range(3) for agent, kind, speed in ((0, "car", 0.0), (1, "car", 0.0), (2, "pedestrian", 1.0))
+            for f in range(12)]
+    path = tmp_path / "t.csv"
+    pd.DataFrame(rows).to_csv(path, index=False)
+    dm = make_dm(path, columns={**COLUMNS, "agent_class": "kind"}, pairs={})
+    dm.setup("fit")
+    batch = next(iter(dm.test_dataloader()))
+    send, recv = edge_index(batch["states"].shape[2])
+    cars = (send < 2) & (recv < 2)
+    assert (batch["pair_kind"][:, cars] == PARKED).all() and not (batch["pair_kind"][:, ~cars] == PARKED).any()
+    assert "pair_kind" not in next(iter(dm.train_dataloader()))
+    with pytest.raises(ValueError, match="data.pairs: the consistency check needs the agents' classes"):
+        make_dm(path, pairs={}).setup("fit")

@@ -9,8 +9,8 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.clip_source import Clips
 from dider.data.common import ClipDataset, spread_indices
-from dider.data.tracks import Clips
 from dider.protocol import fill_absent
 
 RANGES = ("separate", "same", "none")  # data.normalization
@@ -71,3 +71,26 @@ def clip_datasets(parts: Mapping[str, Clips], normalizer: Normalizer) -> dict[st
         mask = clips.present
         out[split] = ClipDataset(fill_absent(normalizer.normalize(clips.states), mask), mask, clips.edges, clips.ids)
     return out
+
+
+def split_counts(split: Sequence[float], available: int) -> tuple[int, int, int]:
+    """Recordings (scenes split in order) per split from counts (ints, e.g. DNRI's [19, 7, 7]) or fractions (all
+    < 1, e.g. [0.6, 0.2, 0.2]; val and test get at least one each, train the rest). Counts may leave recordings
+    unused."""
+    if len(split) != 3:
+        raise ValueError(f"data.split={list(split)}: expected three entries (train, val, test)")
+    if all(0 < float(s) < 1 for s in split):
+        val, test = (max(1, round(float(s) * available)) for s in split[1:])
+        counts = (available - val - test, val, test)
+    elif all(float(s) == int(s) for s in split):
+        counts = tuple(int(s) for s in split)
+    else:
+        raise ValueError(f"data.split={list(split)}: give recording counts (ints) or fractions (all in "
+                         f"(0, 1))")
+    if min(counts) < 1:
+        raise ValueError(f"data.split={list(split)}: every split needs >= 1 recording (got {list(counts)} "
+                         f"from {available} recordings)")
+    if sum(counts) > available:
+        raise ValueError(f"data.split={list(split)} asks for {sum(counts)} recordings but only {available} "
+                         f"were found")
+    return counts  # type: ignore[return-value]

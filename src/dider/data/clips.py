@@ -16,10 +16,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from typing import Any, ClassVar
 
+from dider.data.clip_source import Clips, ClipSource
 from dider.data.clip_splits import RANGES, capped, carve, clip_datasets, fit_ranges, fractions_problem, split_indices
 from dider.data.common import SPLITS, BaseDataModule, source_node
 from dider.data.readers import clip_sources
-from dider.data.tracks import Clips, ClipSource
 from dider.validation import ConfigError, Rule, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)

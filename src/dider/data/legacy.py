@@ -15,6 +15,7 @@ from dider.data.windowing import Windows
 PROTOCOL_KEYS = ("burn_in", "horizons", "burn_in_mode")
 TABLE = "dider.data.table.TableDataModule"
 LEVELX = "dider.data.ind.InDDataModule"
+TRACKS = "dider.data.tracks.TracksDataModule"
 CLIPS_DM = "dider.data.clips.ClipsDataModule"
 NRI = "dider.data.nri.NRIDataModule"
 # The data modules of older versions, by their target: (today's target, the source's keys that were flat (old name ->
@@ -27,15 +28,18 @@ FLAT: dict[str, tuple[str, dict[str, str], str | None]] = {
         CLIPS_DM, {k: k for k in ("root", "format", "agents", "frame_rate")}, "basketball"),
     "dider.data.dnri_files.DNRIFilesDataModule": (CLIPS_DM, {k: k for k in ("root", "predict_split")}, "dnri_files"),
     NRI: (CLIPS_DM, {"root": "root", "suffix": "suffix"}, "particles"),
-    TABLE: (TABLE, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
+    TABLE: (TRACKS, {k: k for k in ("reader", "path", "columns", "frame_rate")}, None),
     "dider.data.soccer.SoccerDataModule": (
-        TABLE, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
-    LEVELX: (LEVELX, {
+        TRACKS, {k: k for k in ("provider", "files", "options", "ball", "frame_rate")}, "kloppy"),
+    LEVELX: (TRACKS, {
         **{k: k for k in ("root", "name", "recordings", "classes", "background_scale")},
         **{f"{k}_pattern": f"files.{k}" for k in ("tracks", "tracks_meta", "recording_meta", "background")},
         "track_id_column": "columns.track_id", "frame_column": "columns.frame", "class_column": "columns.agent_class",
-        "frame_rate_column": "columns.frame_rate", "features": "columns.features"}, None),
+        "frame_rate_column": "columns.frame_rate", "features": "columns.features"}, "levelx"),
 }
+# What the levelX module read from its class where its config said nothing: the loader's batches and the consistency
+# check (``pairs: null`` was its default rules; today it is no check).
+LEVELX_DEFAULTS = {"loader": {"batch_size": 8, "eval_batch_size": 8}, "pairs": {}}
 WINDOW_KEYS = tuple(f.name for f in fields(Windows))
 
 
@@ -44,6 +48,8 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
     keys under ``source`` (NRI's ``simulate`` node: the simulation's) with the reader they were read with, the cut's
     under ``windows``; arguments already nested are kept."""
     new_target, source_keys, reader = FLAT[target]
+    if target == LEVELX:
+        args = {**args, **{k: v for k, v in LEVELX_DEFAULTS.items() if args.get(k) is None}}
     if target == NRI and args.get("simulate") is not None:
         args = {k: v for k, v in args.items() if k not in ("simulate", "root", "suffix")} | {
             "source": {"reader": "particles", **dict(args["simulate"]), **dict(args.get("source") or {})}}
@@ -65,7 +71,7 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
             windows[key] = value
         else:
             out[key] = value
-    if source or new_target == CLIPS_DM:  # the reader they were read with (a node already nested names its own)
+    if source or reader:  # the reader they were read with (a node already nested names its own)
         out["source"] = {**({"reader": reader} if reader else {}), **source, **dict(out.get("source") or {})}
     if windows:
         out["windows"] = {**windows, **dict(out.get("windows") or {})}

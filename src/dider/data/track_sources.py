@@ -1,10 +1,14 @@
-"""The ``source`` node of the data sets of long tracks (``data=table``, ``eth_ucy``, ``soccer``, a user's reader): the
-reader and what it reads, turned into one track table (:func:`~dider.data.table_reading.read_table`'s rows).
+"""The ``source`` node of the data sets of long tracks (:class:`~dider.data.tracks.TracksDataModule`): the reader
+and what it reads. Each source's class says how its data set is cut and split: ``WINDOWS`` (the windows' defaults),
+``UNUSED`` (the window settings it does not read, and why), ``SPLIT`` (the split's default), ``IN_ORDER`` (its scenes
+are recordings split in order before the cut; else a table's, cut and then split by a seeded permutation), ``UNITS``;
+``open(windows, cache_dir)`` gives its scenes (:class:`~dider.data.tracks.Tracks`).
 
 - :class:`FileSource`: a ``.csv`` / ``.parquet`` table whose columns ``columns`` names (reader ``table``), or the
   files a track reader of :mod:`dider.data.readers` reads (``eth_ucy``, or a new format's module).
 - :class:`KloppySource`: a soccer provider's tracking files through kloppy (reader ``kloppy``); the frame rate is
   the provider's unless given.
+- :class:`~dider.data.levelx.source.LevelXSource`: the inD / rounD / uniD recordings (reader ``levelx``).
 """
 
 from __future__ import annotations
@@ -16,9 +20,12 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from dider.data.common import source_node
+from dider.data.levelx.source import LevelXSource
 from dider.data.readers import reader_problem
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows
+from dider.data.table import TableTracks
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, read_table
+from dider.data.windowing import Windows
 from dider.validation import Rule, above, boolean, finite, one_of
 
 log = logging.getLogger(__name__)
@@ -32,8 +39,22 @@ def _rate(value: Any) -> str | None:
     return above(0)(value) or finite(value)
 
 
+class TableLayout:
+    """How a table is cut and split (the constants of :mod:`dider.data.track_sources`' sources), and its opening."""
+
+    WINDOWS: ClassVar[Windows] = Windows()
+    UNUSED: ClassVar[dict[str, str]] = {
+        "eval_stride": "a table is cut before its split: data.windows.stride serves every split"}
+    SPLIT: ClassVar[tuple[float, ...]] = (0.8, 0.1, 0.1)  # fractions of the scenes (or windows), seeded
+    IN_ORDER: ClassVar[bool] = False
+
+    def open(self, windows: Windows, cache_dir: Path) -> TableTracks:
+        """The table's scenes, read on first use (nothing is cached)."""
+        return TableTracks(self.rows, self.where, windows)
+
+
 @dataclass(frozen=True)
-class FileSource:
+class FileSource(TableLayout):
     """A table file, or what a track reader reads."""
 
     reader: str = "table"  # ``table`` or a track reader's module name (dider.data.readers)
@@ -65,7 +86,7 @@ class FileSource:
 
 
 @dataclass(frozen=True)
-class KloppySource:
+class KloppySource(TableLayout):
     """A match's tracking data read through kloppy (``pip install 'dider[soccer]'``)."""
 
     reader: str = "kloppy"
@@ -82,7 +103,8 @@ class KloppySource:
     UNITS: ClassVar[str | None] = "m"  # kloppy's metric pitch coordinates
 
     def where(self) -> str:
-        return f"data.source.provider={self.provider} data.source.files={dict(self.files or {})}"
+        files = dict(self.files) if isinstance(self.files, Mapping) else self.files  # checked as it reads
+        return f"data.source.provider={self.provider} data.source.files={files or {}}"
 
     def rows(self) -> tuple[dict[str, Any], float]:
         rows, rate = tracking_rows(kloppy_tracking(self.provider, self.files, self.options), self.ball, self.where())
@@ -99,11 +121,13 @@ class KloppySource:
         return rows, rate
 
 
-TrackSource = FileSource | KloppySource
-SOURCES: dict[str, type] = {"kloppy": KloppySource}  # a reader with settings of its own; any other: FileSource
+TrackSource = FileSource | KloppySource | LevelXSource
+# the readers with settings of their own; any other: FileSource
+SOURCES: dict[str, type] = {"kloppy": KloppySource, "levelx": LevelXSource}
 
 
 def track_source(given: Mapping[str, Any] | None) -> TrackSource:
     """The ``data.source`` node as its reader's settings, checked: unknown keys and bad values raise naming them."""
     given = dict(given or {})
-    return source_node(SOURCES.get(given.get("reader", "table"), FileSource)(), given)
+    cls = SOURCES.get(given.get("reader", "table"), FileSource)
+    return cls.of(given) if hasattr(cls, "of") else source_node(cls(), given)

@@ -22,10 +22,10 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
 from dider.data.clips import ClipsDataModule
-from dider.data.ind import InDDataModule
+from dider.data.levelx.source import LevelXSource
 from dider.data.readers import clip_sources
-from dider.data.table import TableDataModule
 from dider.data.track_sources import FileSource, KloppySource
+from dider.data.tracks import TracksDataModule
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
 from dider.models.durations import LearnedDuration, PerStepDuration, StaticDuration
 from dider.models.encoder import GNNLSTMEncoder
@@ -44,10 +44,10 @@ from dider.training.module import RelationalVAEModule
 PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDuration, LearnedDuration, SegmentEnd,
            HoldGate, MarkovDecoder, RecurrentDecoder)
 TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, BoundaryFit)
-DATA = (ClipsDataModule, InDDataModule, TableDataModule)
+DATA = (ClipsDataModule, TracksDataModule)
 # The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``):
 # the track sources' and every clip source's.
-SOURCES = (FileSource, KloppySource, *clip_sources().values())
+SOURCES = (FileSource, KloppySource, LevelXSource, *clip_sources().values())
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,

@@ -1,15 +1,19 @@
-"""The ``source`` node of the levelX data sets (``data=ind``, ``round``, ``unid``): where the recordings are, which of
-them, what their files and columns are called and which road users are kept."""
+"""The ``source`` node of the levelX data sets (``data=ind``, ``round``, ``unid``; reader ``levelx``): where the
+recordings are, which of them, what their files and columns are called and which road users are kept; and how they
+are cut and split (DNRI's inD setup: 50-step windows of 2.5 Hz, recordings 19 / 7 / 7 in order)."""
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, ClassVar
 
 from dider.data.levelx.reading import DEFAULT_FEATURES
 from dider.data.levelx.recordings import pattern_regex
+from dider.data.levelx.tracks import LevelXTracks
+from dider.data.windowing import Windows
 from dider.validation import ConfigError, Rule, above, node_problems
 
 
@@ -52,6 +56,7 @@ class LevelXColumns:
 class LevelXSource:
     """A levelX data set's recordings."""
 
+    reader: str = "levelx"
     root: str | None = None  # the folder with each recording's files
     name: str = "ind"  # the data set's name: the cache files' prefix and the log messages
     recordings: tuple[int | str, ...] | None = None  # the recording ids used, e.g. [0, 1, 7]; null: every one found
@@ -63,6 +68,19 @@ class LevelXSource:
 
     SETTINGS: ClassVar[dict[str, Rule | type]] = {"files": LevelXFiles, "columns": LevelXColumns,
                                                   "background_scale": above(0)}
+    WINDOWS: ClassVar[Windows] = Windows(seq_len=50, downsample=10)  # DNRI's inD windows: 50 steps of 2.5 Hz
+    UNUSED: ClassVar[dict[str, str]] = {
+        "max_speed": "levelX tracks come from a drone's view: no tracking jumps to drop"}
+    SPLIT: ClassVar[tuple[int, ...]] = (19, 7, 7)  # DNRI's: recordings 00-18 / 19-25 / 26-32
+    IN_ORDER: ClassVar[bool] = True
+    UNITS: ClassVar[str] = "m"
+
+    def where(self) -> str:
+        return f"{self.name} (data.source.root={self.root})"
+
+    def open(self, windows: Windows, cache_dir: Path) -> LevelXTracks:
+        """The recordings found (read and cached when cut)."""
+        return LevelXTracks(self, windows, cache_dir)
 
     @classmethod
     def of(cls, given: Mapping[str, Any] | None) -> LevelXSource:

@@ -1,4 +1,4 @@
-"""Cutting one levelX recording into windows, and joining and selecting the windows of a split.
+"""Cutting one levelX recording into windows.
 
 A recording is downsampled on absolute frame numbers (every ``downsample``-th frame from frame 0) and cut
 into windows of ``seq_len`` downsampled steps, one every ``stride`` steps. A window keeps the tracks
@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from dider.data.common import ragged_rows
 from dider.data.levelx.reading import WindowParams, check_consistency, frame_rate, read_tracks, read_tracks_meta
 from dider.data.levelx.recordings import RecordingFiles
 from dider.data.windowing import MAX_GRID_CELLS, grid_windows
@@ -111,37 +110,3 @@ def _empty_windows(p: WindowParams, class_names: list[str], rate: float, locatio
         "window_start": torch.zeros(0, dtype=torch.long), "frame_rate": rate, "location_id": location,
         "recording": rec, "num_steps": 0, "num_tracks": 0,
     }
-
-
-def concat_windows(blobs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Join the packed windows of several recordings (offsets shifted, class codes remapped to one
-    sorted vocabulary). Adds window_recording [W] (index into ``recordings``)."""
-    names = sorted(set().union(*(b["class_names"] for b in blobs)))
-    offsets = [torch.zeros(1, dtype=torch.long)]
-    shift = 0
-    for b in blobs:
-        offsets.append(b["offsets"][1:] + shift)
-        shift += int(b["offsets"][-1])
-    lut = [torch.tensor([names.index(c) for c in b["class_names"]] or [0], dtype=torch.long) for b in blobs]
-    return {
-        "states": torch.cat([b["states"] for b in blobs]),
-        "mask": torch.cat([b["mask"] for b in blobs]),
-        "offsets": torch.cat(offsets),
-        "track_id": torch.cat([b["track_id"] for b in blobs]),
-        "agent_class": torch.cat([m[b["agent_class"]] for m, b in zip(lut, blobs, strict=True)]),
-        "class_names": names,
-        "window_start": torch.cat([b["window_start"] for b in blobs]),
-        "window_recording": torch.cat([torch.full((len(b["window_start"]),), i, dtype=torch.long)
-                                       for i, b in enumerate(blobs)]),
-        "recordings": [b["recording"] for b in blobs],
-    }
-
-
-def select_windows(data: dict[str, Any], idx: torch.Tensor) -> dict[str, Any]:
-    """The windows ``idx`` [K] long of a packed split (as made by :func:`concat_windows`)."""
-    rows, offsets = ragged_rows(data["offsets"], idx)
-    out = dict(data, offsets=offsets, window_start=data["window_start"][idx],
-               window_recording=data["window_recording"][idx])
-    for key in ("states", "mask", "track_id", "agent_class"):
-        out[key] = data[key][rows]
-    return out

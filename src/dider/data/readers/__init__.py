@@ -7,10 +7,10 @@ here that says ``TRACKS = True`` and defines ``read(path) -> DataFrame``, found 
 module's), and one YAML in ``conf/data`` that names it. ``kloppy`` reads a soccer provider's files into the same rows
 (``data=soccer``).
 
-A clip source gives its clips already cut to a fixed length, raw (:class:`~dider.data.tracks.Clips`): the simulators
-(``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
+A clip source gives its clips already cut to a fixed length, raw (:class:`~dider.data.clip_source.Clips`): the
+simulators (``push``, ``particles``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``,
 ``trajectories``). Its module names its settings class ``CLIPS``: a frozen dataclass (the ``data.source`` node) with
-the members of :class:`~dider.data.tracks.ClipSource` (``reader``, the module's name; ``clips(sizes, cache_dir)``,
+the members of :class:`~dider.data.clip_source.ClipSource` (``reader``, the module's name; ``clips(sizes, cache_dir)``,
 the splits the input holds; ``where()``; and the optional ones). :class:`~dider.data.clips.ClipsDataModule` splits,
 caps and normalises them.
 """

@@ -20,9 +20,9 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from dider.data.clip_source import Clips
 from dider.data.common import check_finite
 from dider.data.readers.folder import data_root
-from dider.data.tracks import Clips
 from dider.validation import Rule, above, one_of
 
 log = logging.getLogger(__name__)

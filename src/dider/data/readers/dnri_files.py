@@ -32,9 +32,9 @@ from typing import ClassVar
 
 import torch
 
+from dider.data.clip_source import Clips
 from dider.data.common import SPLITS, check_finite
 from dider.data.readers.folder import data_root
-from dider.data.tracks import Clips
 from dider.graph import num_edges
 from dider.validation import Rule, one_of
 

@@ -23,9 +23,9 @@ from typing import ClassVar
 import numpy as np
 import torch
 
+from dider.data.clip_source import Clips
 from dider.data.common import SPLITS, check_finite
 from dider.data.readers.folder import data_root
-from dider.data.tracks import Clips
 from dider.graph import edge_index
 from dider.io import atomic_write
 from dider.validation import Rule, check_settings, one_of

@@ -13,9 +13,9 @@ from typing import Any, ClassVar
 import torch
 
 from dider.data.cache import cache_key, cached_splits
+from dider.data.clip_source import Clips
 from dider.data.common import SPLITS
 from dider.data.particles import SYSTEMS, simulate_particles
-from dider.data.tracks import Clips
 from dider.graph import edge_index
 from dider.validation import Rule, check_settings, integer, one_of, within
 

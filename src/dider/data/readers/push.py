@@ -11,9 +11,9 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from dider.data.cache import cache_key, cached_splits
+from dider.data.clip_source import Clips
 from dider.data.common import SPLITS
 from dider.data.simulate import PUSH_SHAPES, simulate_push
-from dider.data.tracks import Clips
 from dider.validation import Rule, check_settings, finite, integer, one_of
 
 log = logging.getLogger(__name__)

@@ -23,8 +23,8 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
+from dider.data.clip_source import Clips
 from dider.data.common import check_finite
-from dider.data.tracks import Clips
 from dider.graph import num_edges
 from dider.protocol import fill_absent
 from dider.validation import Rule, above, one_of
