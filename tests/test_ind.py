@@ -187,6 +187,7 @@ def test_class_filter_and_caps(root, tmp_path):
     assert len(capped.datasets["train"]) == 4 and len(capped.datasets["val"]) == 1
     # evenly spread: both training recordings are still sampled
     assert set(capped.datasets["train"].window_scene.tolist()) == {0, 1}
+    assert capped.datasets["train"].sources["clip"].tolist() == [0, 1, 2, 3]  # numbered in the split as capped
 
 
 def test_splits_and_recording_selection(root, tmp_path):
@@ -262,6 +263,8 @@ def test_hydra_config_instantiates(root, make_cfg):
     assert batch["states"].shape[1] == 20 and cfg.model.burn_in == 5
     for option in ("ind200", "round", "unid"):
         assert make_cfg([f"data={option}"]).data._target_ == "dider.data.tracks.TracksDataModule"
+    rules = instantiate(make_cfg(["data=ind", "data.pairs.parked_speed=0.3"]).data, _convert_="all").pair_rules
+    assert rules.parked_speed == 0.3 and rules.moving_speed == 2.0  # each rule a key of its own
 
 
 def test_benchmark_runs_small(tmp_path):

@@ -427,3 +427,5 @@ def test_a_table_with_classes_gets_the_consistency_check(tmp_path):
     assert "pair_kind" not in next(iter(dm.train_dataloader()))
     with pytest.raises(ValueError, match="data.pairs: the consistency check needs the agents' classes"):
         make_dm(path, pairs={}).setup("fit")
+    _, ds = windows(path, pairs={})  # prediction has no test split: no pairs, and no classes needed
+    assert ds.pairs is None and len(ds) == 12

@@ -11,7 +11,7 @@ from dider.data.common import data_description
 from dider.data.legacy import LEVELX_DEFAULTS, TRACKS, flat_view, upgrade_data_node
 from dider.data.tracks import TracksDataModule
 from dider.data.windowing import Windows
-from dider.validation import ConfigError
+from dider.validation import ConfigError, settings_problems
 
 
 def test_windows_override_the_data_sets_defaults_key_by_key_and_name_a_wrong_key():
@@ -64,7 +64,7 @@ OLD = {
     "ind nested": ({"_target_": "dider.data.ind.InDDataModule", "source": {"root": "d"}, "windows": {"seq_len": 8},
                     "pairs": None, "loader": {"batch_size": 2}},
                    {"_target_": TRACKS, "source": {"reader": "levelx", "root": "d"}, "windows": {"seq_len": 8},
-                    "pairs": {}, "loader": {"batch_size": 2}}),
+                    "pairs": {}, "loader": {"batch_size": 2, "eval_batch_size": 8}}),
 }
 
 
@@ -141,3 +141,19 @@ def test_the_source_says_how_its_data_set_is_split():
         TracksDataModule(source={"path": "t.csv"}, split=[19, 7, 7])
     with pytest.raises(ConfigError, match=r"data.split=\[2, 0.5, 1\]: give recording counts"):
         TracksDataModule(source={"reader": "levelx"}, split=[2, 0.5, 1])
+    with pytest.raises(ConfigError, match=r"data.split=5: "):
+        TracksDataModule(source={"path": "t.csv"}, split=5)
+
+
+def test_the_preflight_checks_the_source_and_split_of_the_data_sets_of_long_tracks(make_cfg):
+    """Before a run folder is opened: the source's settings by its reader's class, the split's form."""
+    problems = settings_problems(OmegaConf.to_container(make_cfg(
+        ["data=ind", "data.source.background_scale=0", "data.source.reader=levelx", "data.split=[0.5,0.5]"]).data),
+        "data")
+    assert any(p.startswith("data.source.background_scale=0: ") for p in problems), problems
+    assert any(p.startswith("data.split=[0.5, 0.5]: ") for p in problems), problems
+    table = OmegaConf.to_container(make_cfg(["data=table", "+data.source.provider=x"]).data)
+    assert settings_problems(table, "data") == [
+        "data.source.provider: no such setting (expected one of ['reader', 'path', 'columns', 'frame_rate'])"]
+    springs = OmegaConf.to_container(make_cfg(["data=springs", "data.source.num_balls=1"]).data)  # a clip source too
+    assert settings_problems(springs, "data") == ["data.source.num_balls=1: must be >= 2"]

@@ -1,5 +1,6 @@
 """What every data config and experiment feeds the model, as hashes: each split's tensors (states, mask, edges,
-packing, source ids, agent ids and classes, consistency pairs), the normaliser, the step and the source names.
+packing, source ids, agent ids and classes, consistency pairs) and the prediction set's, the normaliser, the step
+and the source names.
 
 The guard of a rewrite of the data layer: run it before and after on the same machine and compare the two files
 (``--compare``); equal hashes are byte-identical windows, splits and normalised tensors. Real formats read small
@@ -8,9 +9,10 @@ inputs generated here (the tests' fixture writers); the synthetic sets are gener
     python docs/journal/windows_check.py --out /tmp/windows_before.json
     python docs/journal/windows_check.py --out /tmp/windows_after.json --compare /tmp/windows_before.json
 
-``windows_baseline.json`` beside it is the output of the data layer of two modules (clips, tracks; 29 cases, all
-built) on an AMD EPYC CPU with AVX-512. It equals the seven-DataModule layer's output on every tensor both have; the
-tracks module's datasets add ``window_start``, ``window_scene`` and ``scenes`` and name levelX's ``track_id``
+``windows_baseline.json`` beside it is the output of the data layer of two modules (clips, tracks; 30 cases, all
+built, with the prediction sets) on an AMD EPYC CPU with AVX-512. It equals the seven-DataModule layer's output on
+every tensor both have (the prediction sets and the capped levelX case were compared with that code's); the tracks
+module's datasets add ``window_start``, ``window_scene`` and ``scenes`` and name levelX's ``track_id``
 ``agent_ids``. On another CPU take a baseline of that code first.
 """
 
@@ -76,6 +78,7 @@ def cases(p: dict[str, str]) -> dict[str, list[str]]:
         "ind": ["data=ind", *levelx], "ind200": ["data=ind200", *levelx, "data.windows.seq_len=60",
                                               "protocol.horizons=[1,20]"],
         "round": ["data=round", *levelx], "unid": ["data=unid", *levelx],
+        "ind_capped": ["data=ind", *levelx, "data.num_train=5", "data.num_val=2", "data.num_test=3"],
     }
     for exp in ("demo", "smoke", "synth_cpu_table", "synth_claims", "synth_protocol", "synth_long", "synth_table",
                 "springs_nri", "springs_dynamic"):
@@ -112,6 +115,11 @@ def fingerprint(overrides: list[str], cache: Path) -> dict[str, Any]:
                            "dt": getattr(dm, "dt", None), "source_names": digest(dm.source_names)}
     for split, ds in sorted(dm.datasets.items()):
         out[split] = digest({k: v for k, v in vars(ds).items() if not k.startswith("_")})
+    if dm.predicts:  # every clip of the input, with the trained normaliser
+        again = instantiate(cfg.data, _convert_="all")
+        again.use_normalizer(dm.normalizer)
+        again.setup("predict")
+        out["predict"] = digest({k: v for k, v in vars(again.datasets["predict"]).items() if not k.startswith("_")})
     return out
 
 

@@ -162,9 +162,30 @@ def _problems(rules: Mapping[str, Rule | type], values: Mapping[str, Any], prefi
         rule = rules.get(name)
         if isinstance(rule, type):
             found += node_problems(rule, value, f"{prefix}{name}")
+        elif isinstance(rule, PickedBy):
+            found += rule.problems(value, f"{prefix}{name}")
         elif rule is not None and (why := rule(value)) is not None:
             found.append(f"{prefix}{name}={value!r}: {why}")
     return found
+
+
+@dataclasses.dataclass(frozen=True)
+class PickedBy:
+    """The rule of a nested node whose settings class one of its keys picks (a data set's ``source`` by its
+    ``reader``): ``classes()`` maps the key's values to classes; a value it lacks takes ``fallback`` (None: refused)."""
+
+    key: str
+    classes: Callable[[], Mapping[str, type]]
+    default: str | None = None  # the key's value where the node has none
+    fallback: type | None = None
+
+    def problems(self, node: Any, where: str) -> list[str]:
+        if not isinstance(node, Mapping):
+            return [] if node is None else [f"{where}={node!r}: expected a mapping"]
+        value, classes = node.get(self.key, self.default), self.classes()
+        if (cls := classes.get(value, self.fallback)) is None:
+            return [f"{where}.{self.key}={value!r}: expected one of {sorted(classes)}"]
+        return node_problems(cls, node, where)
 
 
 def node_problems(cls: type, node: Any, where: str) -> list[str]:

@@ -1,6 +1,6 @@
-"""A clip source's parts made into the three splits and their datasets: the splits of a file of clips (seeded
-fractions), a validation split carved from the training clips, the caps on each split's clips, the normaliser's
-ranges and the normalised, padded clips."""
+"""The three splits, and a clip source's parts made into datasets: the splits of a file of clips or of a table's
+windows (seeded fractions), recordings split in order (counts or fractions), a validation split carved from the
+training clips, the caps on each split's clips, the normaliser's ranges and the normalised, padded clips."""
 
 from __future__ import annotations
 
@@ -73,20 +73,27 @@ def clip_datasets(parts: Mapping[str, Clips], normalizer: Normalizer) -> dict[st
     return out
 
 
+def counts_problem(split: object) -> str | None:
+    """The rule of ``data.split`` for scenes split in order (recordings): three counts (integers >= 1, e.g. DNRI's
+    [19, 7, 7]) or three fractions (all in (0, 1), e.g. [0.6, 0.2, 0.2])."""
+    if not (isinstance(split, Sequence) and not isinstance(split, str) and len(split) == 3
+            and all(isinstance(f, (int, float)) and not isinstance(f, bool) for f in split)):
+        return "expected three numbers (train, val, test): recording counts or fractions"
+    if all(0 < f < 1 for f in split) or all(f >= 1 and f == int(f) for f in split):
+        return None
+    return "give recording counts (integers >= 1) or fractions (all in (0, 1))"
+
+
 def split_counts(split: Sequence[float], available: int) -> tuple[int, int, int]:
-    """Recordings (scenes split in order) per split from counts (ints, e.g. DNRI's [19, 7, 7]) or fractions (all
-    < 1, e.g. [0.6, 0.2, 0.2]; val and test get at least one each, train the rest). Counts may leave recordings
-    unused."""
-    if len(split) != 3:
-        raise ValueError(f"data.split={list(split)}: expected three entries (train, val, test)")
+    """Recordings per split in order (``split`` as :func:`counts_problem` asks) of ``available``: fractions give val
+    and test at least one each, train the rest; counts may leave recordings unused."""
+    if why := counts_problem(split):
+        raise ValueError(f"data.split={list(split) if isinstance(split, Sequence) else split!r}: {why}")
     if all(0 < float(s) < 1 for s in split):
         val, test = (max(1, round(float(s) * available)) for s in split[1:])
         counts = (available - val - test, val, test)
-    elif all(float(s) == int(s) for s in split):
-        counts = tuple(int(s) for s in split)
     else:
-        raise ValueError(f"data.split={list(split)}: give recording counts (ints) or fractions (all in "
-                         f"(0, 1))")
+        counts = tuple(int(s) for s in split)
     if min(counts) < 1:
         raise ValueError(f"data.split={list(split)}: every split needs >= 1 recording (got {list(counts)} "
                          f"from {available} recordings)")

@@ -20,7 +20,7 @@ from dider.data.clip_source import Clips, ClipSource
 from dider.data.clip_splits import RANGES, capped, carve, clip_datasets, fit_ranges, fractions_problem, split_indices
 from dider.data.common import SPLITS, BaseDataModule, source_node
 from dider.data.readers import clip_sources
-from dider.validation import ConfigError, Rule, check_settings, integer, one_of, optional, within_open
+from dider.validation import ConfigError, PickedBy, Rule, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +37,10 @@ class ClipsDataModule(BaseDataModule):
     ClipDataset per split); ``setup("predict")`` serves every clip of a source that has a prediction set (``.npz``
     trajectories, DNRI's files), normalised with the trained model's normaliser."""
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {
-        "normalization": one_of(*RANGES), "split": fractions_problem, "val_fraction": within_open(0, 1),
-        "seed": integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1), "train_len": optional(integer(2))}
+    SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
+        "source": PickedBy("reader", clip_sources), "normalization": one_of(*RANGES), "split": fractions_problem,
+        "val_fraction": within_open(0, 1), "seed": integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1),
+        "train_len": optional(integer(2))}
 
     def __init__(
         self,

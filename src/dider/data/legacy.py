@@ -48,8 +48,9 @@ def nest_args(target: str, args: Mapping[str, Any]) -> tuple[str, dict[str, Any]
     keys under ``source`` (NRI's ``simulate`` node: the simulation's) with the reader they were read with, the cut's
     under ``windows``; arguments already nested are kept."""
     new_target, source_keys, reader = FLAT[target]
-    if target == LEVELX:
-        args = {**args, **{k: v for k, v in LEVELX_DEFAULTS.items() if args.get(k) is None}}
+    if target == LEVELX:  # key by key under what the config gives
+        args = {**args, "loader": {**LEVELX_DEFAULTS["loader"], **dict(args.get("loader") or {})},
+                "pairs": dict(LEVELX_DEFAULTS["pairs"]) if args.get("pairs") is None else args["pairs"]}
     if target == NRI and args.get("simulate") is not None:
         args = {k: v for k, v in args.items() if k not in ("simulate", "root", "suffix")} | {
             "source": {"reader": "particles", **dict(args["simulate"]), **dict(args.get("source") or {})}}

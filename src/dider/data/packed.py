@@ -17,9 +17,10 @@ WINDOW_KEYS = ("start", "scene", "frame", "clip")  # [W] long; clip only once nu
 
 
 def join(parts: Sequence[dict[str, Any]], seq_len: int) -> dict[str, Any]:
-    """The windows of several parts (scenes, recordings) in order: offsets shifted, class codes remapped to the sorted
-    union of the parts' class names (None where the parts have no classes). An empty list gives no window of
-    ``seq_len`` steps."""
+    """The windows of several parts (scenes, recordings; each a cut) in order, as one cut: states [P, T, 4], mask
+    [P, T], agent and agent_class [P], offsets [W+1] (shifted), start, scene, frame [W]; class codes remapped to the
+    sorted union of the parts' class names (None where the parts have no classes). No part: no window of ``seq_len``
+    steps."""
     if not parts:
         return {"states": torch.zeros(0, seq_len, 4), "mask": torch.zeros(0, seq_len, dtype=torch.bool),
                 "offsets": torch.zeros(1, dtype=torch.long), "agent": torch.zeros(0, dtype=torch.long),
@@ -28,7 +29,7 @@ def join(parts: Sequence[dict[str, Any]], seq_len: int) -> dict[str, Any]:
     shifts = torch.tensor([0, *(int(p["offsets"][-1]) for p in parts)]).cumsum(0)
     out = {k: torch.cat([p[k] for p in parts]) for k in ("states", "mask", "agent", "start", "scene", "frame")}
     out["offsets"] = torch.cat([torch.zeros(1, dtype=torch.long),
-                                *(p["offsets"][1:] + shift for p, shift in zip(parts, shifts, strict=False))])
+                                *(p["offsets"][1:] + shift for p, shift in zip(parts, shifts[:-1], strict=True))])
     if parts[0]["class_names"] is None:
         out["agent_class"] = out["class_names"] = None
         return out

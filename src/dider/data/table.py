@@ -1,7 +1,7 @@
 """Cutting a table of long tracks into windows: a ``.csv`` or ``.parquet`` table (``data.source.path``), one row per
 agent per frame, or what a reader reads into the same rows (``data.source.reader``: :mod:`dider.data.track_sources`,
-e.g. ETH/UCY text files, a soccer provider's tracking data through kloppy). :class:`~dider.data.tracks.
-TracksDataModule` splits and serves the windows.
+e.g. ETH/UCY text files, a soccer provider's tracking data through kloppy), as the scenes of
+:class:`~dider.data.tracks.TracksDataModule`, which splits and serves the windows.
 
 A table's columns are named in ``data.source.columns``: ``agent``, ``frame`` (integer frame numbers), ``x``, ``y``
 (required), ``scene`` (null: a column called ``scene`` if the file has one, else the whole file is one scene),
@@ -36,9 +36,6 @@ from dider.data.table_reading import id_name
 from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows
 
 log = logging.getLogger(__name__)
-
-# -- windows
-
 
 def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: np.ndarray,
                rate: float) -> tuple[np.ndarray, np.ndarray]:
@@ -157,32 +154,42 @@ class TableTracks:
 
     @property
     def table(self) -> dict[str, Any]:
+        """The rows (:func:`~dider.data.table_reading.read_table`'s dict), read on first use."""
         if self._rows is None:
             self._rows = self._read()
         return self._rows[0]
 
     @property
     def frame_rate(self) -> float:
+        """Frames per second of the frame column: the source's, or what it read (a soccer provider's)."""
         self.table  # noqa: B018 (a source may read its rate from the files)
         return self._rows[1]
 
     @property
     def scenes(self) -> list[str]:
+        """The scenes' names, in id order."""
         names = self.names.get("scene")
         return [str(i) if names is None else names[i] for i in self.table["scene_ids"].tolist()]
 
     @property
     def scene_ids(self) -> torch.Tensor:
+        """[Z] long: the scene column's ids (or codes into ``names["scene"]``); [0] without one."""
         return torch.from_numpy(self.table["scene_ids"])
 
     @property
     def names(self) -> dict[str, list[str]]:
+        """The names of string ids: scene, agent, agent_class."""
         return self.table["names"]
 
     @property
     def has_scene(self) -> bool:
         return self.table["has_scene"]
 
+    @property
+    def has_classes(self) -> bool:
+        return self.table["agent_class"] is not None
+
     def cut(self, groups: Mapping[str, tuple[Sequence[int], int]]) -> dict[str, dict[str, Any]]:
+        """group -> (scene indices, stride) to the group's windows (:func:`table_windows`)."""
         return {group: table_windows(self.table, self.where(), self.frame_rate, self.windows, scenes, stride)
                 for group, (scenes, stride) in groups.items()}

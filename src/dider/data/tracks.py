@@ -27,14 +27,14 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.clip_splits import fractions_problem, split_counts, split_indices
+from dider.data.clip_splits import counts_problem, fractions_problem, split_counts, split_indices
 from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.packed import select_windows
 from dider.data.pairs import PairRules, find_pairs
-from dider.data.track_sources import track_source
+from dider.data.track_sources import SOURCES, FileSource, track_source
 from dider.data.windowing import Windows
 from dider.protocol import fill_absent
-from dider.validation import ConfigError, Rule, check_settings
+from dider.validation import PickedBy, Rule, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -45,9 +45,11 @@ class Tracks(Protocol):
     ``cut`` returns, per group, the packed windows of its scenes in scene order (raw units): states [P, T, 4] float32
     (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
     by id), agent [P] long (ids, or codes into ``names["agent"]``), agent_class [P] long or None (codes into
-    class_names), class_names, start [W] long (the window's first step in its scene), scene [W] long (index into
-    ``scenes``), frame [W] long (the source's frame of the window's step 0). Optional: ``prepare(groups)`` (cache
-    the groups' cuts; rank 0 under DDP) and ``background(scene)`` (an image to draw the scene's windows on)."""
+    class_names), class_names, start [W] long (the window's first step on its scene's grid of steps), scene [W] long
+    (index into ``scenes``), frame [W] long (the source's frame of the window's step 0: a table's steps count from
+    the scene's first frame, its first step dropped where velocities are differenced; a recording's from frame 0).
+    Optional: ``prepare(groups)`` (cache the groups' cuts; rank 0 under DDP) and ``background(scene)`` (an image to
+    draw the scene's windows on)."""
 
     scenes: list[str]  # the scenes' names, in reading order
     scene_ids: torch.Tensor  # [Z] long: each scene's source id (its number, or a code into names["scene"])
@@ -59,18 +61,25 @@ class Tracks(Protocol):
         """group -> (scene indices, stride) to the group's windows."""
         ...
 
+    @property
+    def has_classes(self) -> bool:
+        """Whether the agents have classes (``agent_class`` in the cuts)."""
+        ...
+
 
 class TracksDataModule(BaseDataModule):
     """Windows of a data set of long tracks (module docstring). After ``setup``: ``normalizer``, ``datasets`` (a
-    PackedClipDataset per split, with ``window_start``, ``window_scene`` (index into ``scenes``), ``scenes`` and,
-    where the source has classes, ``agent_class`` and ``class_names``), ``source_names``, ``dt`` (seconds per step)
-    and ``frame_step`` (source frames per step)."""
+    PackedClipDataset per split, with ``window_start`` and ``window_scene`` (the window's first step and its scene,
+    an index into ``scenes``), ``scenes`` and, where the source has classes, ``agent_class`` and ``class_names``),
+    ``source_names``, ``dt`` (seconds per step) and ``frame_step`` (source frames per step)."""
 
     predicts = True
     collate_fn = staticmethod(pad_collate)
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = BaseDataModule.SETTINGS | {"windows": Windows}
-    WINDOWS = Windows()  # what the config schema shows under windows; a null node takes the source's WINDOWS
+    SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
+        "source": PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource), "windows": Windows,
+        "split": lambda v: None if v is None or not fractions_problem(v) or not counts_problem(v)
+        else "three fractions of a table's scenes summing to 1, or recordings in order (counts or fractions)"}
 
     def __init__(
         self,
@@ -88,39 +97,32 @@ class TracksDataModule(BaseDataModule):
         """source: what is read (:mod:`dider.data.track_sources`): ``reader`` (``table``: a .csv / .parquet file's
         columns; a format's reader of :mod:`dider.data.readers`, e.g. ``eth_ucy``; ``kloppy``: a soccer provider's
         files; ``levelx``: inD / rounD / uniD recordings) and that reader's settings.
-        windows: how scenes are cut (:class:`~dider.data.windowing.Windows`) over the source's defaults.
+        windows: how scenes are cut (:class:`~dider.data.windowing.Windows`) over the source's defaults (``WINDOWS``).
         split: train / val / test: fractions of a table's scenes (or windows), or recordings in order (counts or
-        fractions); null: the source's default. seed: the seed of a table's split.
+        fractions); null: the source's (``SPLIT``). seed: the seed of a table's split.
         pairs: the consistency check on the test split (agent pairs whose edge type should stay the same all along:
         :class:`dider.data.pairs.PairRules` fields over its defaults; test batches carry ``pair_kind``); needs agent
         classes; null: no check."""
         super().__init__()
         self.source = track_source(source)
         cls = type(self.source)
-        split = list(cls.SPLIT if split is None else split)
-        check_settings(self, locals(), {"split": (split, self._split_problem)}, key="data")
+        split = cls.SPLIT if split is None else split
+        in_order = "splits its recordings in order; the seed is a table's"
+        check_settings(self, locals(), {
+            "split": (split, counts_problem if cls.IN_ORDER else fractions_problem),
+            "seed": (seed, lambda v: f"data.source.reader={self.source.reader} {in_order}" if cls.IN_ORDER and v != 1
+                     else None)}, key="data")
         self.windows = Windows.of(cls.WINDOWS, windows, cls.UNUSED)
-        if cls.IN_ORDER and seed != 1:
-            raise ConfigError(f"data.seed={seed}: data.source.reader={self.source.reader} splits its recordings in "
-                              f"order; the seed is a table's")
         self.pair_rules = None if pairs is None else _pair_rules(pairs)
         self.save_hyperparameters(logger=False)
         h = self.hparams
-        h["source"], h["windows"], h["split"] = asdict(self.source), asdict(self.windows), split  # as read
+        h["source"], h["windows"], h["split"] = asdict(self.source), asdict(self.windows), list(split)  # as read
         self.init_shared()
         self.units = cls.UNITS
         self.frame_step = self.windows.downsample
-        self.dt: float | None = None
+        rate = getattr(self.source, "frame_rate", None)  # a table's; levelX recordings say theirs as they are read
+        self.dt: float | None = None if rate is None else self.windows.downsample / rate
         self._tracks: Tracks | None = None
-
-    def _split_problem(self, split: object) -> str | None:
-        if type(self.source).IN_ORDER:
-            try:
-                split_counts(split, available=10**9)  # form only; the recording count is known once opened
-            except (ValueError, TypeError) as e:
-                return str(e).split(": ", 1)[-1]
-            return None
-        return fractions_problem(split)
 
     def tracks(self) -> Tracks:
         """The source opened (once): its scenes, read or found."""
@@ -129,20 +131,22 @@ class TracksDataModule(BaseDataModule):
         return self._tracks
 
     def _groups(self, stage: str | None) -> dict[str, tuple[list[int], int]]:
-        """What is cut, each group with its stride: every scene for prediction (as val and test are cut) or a
-        table's split; each split's recordings for a split in order."""
-        w, scenes = self.windows, range(len(self.tracks().scenes))
-        eval_stride = (w.eval_stride or w.seq_len) if type(self.source).IN_ORDER else (w.stride or w.seq_len)
+        """What is cut, each group with its stride: a table's every scene (split after the cut); each split's
+        recordings in order (val and test every ``eval_stride``); for prediction every scene, as val and test are
+        cut."""
+        w, scenes = self.windows, list(range(len(self.tracks().scenes)))
+        stride = w.stride or w.seq_len
+        in_order = type(self.source).IN_ORDER
         if stage == "predict":
-            return {"predict": (list(scenes), eval_stride)}
-        if not type(self.source).IN_ORDER:
-            return {"all": (list(scenes), w.stride or w.seq_len)}
+            return {"predict": (scenes, (w.eval_stride or w.seq_len) if in_order else stride)}
+        if not in_order:
+            return {"all": (scenes, stride)}
         counts = split_counts(self.hparams.split, len(scenes))
         if sum(counts) < len(scenes):
             log.info("%s: using %d of %d recordings (data.split=%s)", self.source.where(), sum(counts), len(scenes),
                      list(self.hparams.split))
         bounds = np.cumsum([0, *counts]).tolist()
-        return {s: (list(range(bounds[i], bounds[i + 1])), w.stride or w.seq_len if s == "train" else eval_stride)
+        return {s: (scenes[bounds[i]:bounds[i + 1]], stride if s == "train" else (w.eval_stride or w.seq_len))
                 for i, s in enumerate(SPLITS)}
 
     def prepare_data(self) -> None:
@@ -156,56 +160,55 @@ class TracksDataModule(BaseDataModule):
         # prediction: every window, no split, the trained model's normalisation (checked before anything is read)
         normalizer = self.predict_normalizer(self.source.where()) if stage == "predict" else None
         tracks = self.tracks()
+        if normalizer is None and self.pair_rules is not None and not tracks.has_classes:
+            raise ValueError(f"data.pairs: the consistency check needs the agents' classes, and "
+                             f"{self.source.where()} has none (a table's: data.source.columns.agent_class)")
         cuts = tracks.cut(self._groups(stage))
-        for cut in cuts.values():  # a window's number among those cut with it: the table's, or its split's
-            cut["clip"] = torch.arange(len(cut["frame"]))
-            if self.pair_rules is not None and cut["agent_class"] is None:
-                raise ValueError(f"data.pairs: the consistency check needs the agents' classes, and "
-                                 f"{self.source.where()} has none (a table's: data.source.columns.agent_class)")
         if getattr(self.source, "frame_rate", 0) is None:  # a source that reads its rate: the checkpoint carries it
             self.source = replace(self.source, frame_rate=tracks.frame_rate)
             self.hparams["source"] = asdict(self.source)
         self.dt = self.windows.downsample / tracks.frame_rate
         self.source_names = {k: v for k, v in tracks.names.items() if k in ("scene", "agent")}
         if normalizer is not None:
-            self.datasets["predict"] = self._dataset(cuts["predict"], normalizer, "predict")
+            self.datasets["predict"] = self._dataset(_numbered(cuts["predict"]), normalizer, "predict")
+            log.info("%s: %d windows to predict", self.source.where(), len(self.datasets["predict"]))
             return
         parts, by = self._split(cuts)
+        train = parts["train"]
         try:
-            self.normalizer = self.train_normalizer(
-                lambda: Normalizer.fit(parts["train"]["states"], parts["train"]["mask"]))
+            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"]))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
-            raise ValueError(f"{self.source.where()}: cannot fit the normalisation on the train split: {e}") from None
+            scenes = [tracks.scenes[i] for i in torch.unique(train["scene"]).tolist()]
+            raise ValueError(f"{self.source.where()}: cannot fit the normalisation on the train split (scenes "
+                             f"{scenes}): {e}") from None
         for split in SPLITS:
             self.datasets[split] = self._dataset(parts[split], self.normalizer, split)
-        log.info("%s: %d scenes, split by %s: %s windows", self.source.where(), len(tracks.scenes), by,
-                 {s: len(d) for s, d in self.datasets.items()})
+        used = len(torch.unique(torch.cat([p["scene"] for p in parts.values()])))
+        log.info("%s: %d windows of %d scenes, split by %s: %s", self.source.where(),
+                 sum(len(d) for d in self.datasets.values()), used, by, {s: len(d) for s, d in self.datasets.items()})
 
     def _split(self, cuts: dict[str, dict[str, Any]]) -> tuple[dict[str, dict[str, Any]], str]:
-        """The windows of each split, capped: a table's split by scene when >= 3 scenes have windows, else by
-        window; recordings split in order come cut by split."""
+        """The windows of each split, capped (``num_*``) and numbered (``clip``): a table's windows numbered over the
+        table, then split by scene when >= 3 scenes have windows, else by window; recordings come cut by split, each
+        split's windows numbered after its cap."""
         h = self.hparams
-        if "all" in cuts:
-            cut = cuts["all"]
-            scenes = torch.unique(cut["scene"])
-            by = "scene" if len(scenes) >= 3 else "window"
-            try:
-                idx = split_indices(len(scenes) if by == "scene" else len(cut["frame"]), h.split, h.seed)
-            except ValueError as e:
-                raise ValueError(f"{self.source.where()}: {len(cut['frame'])} windows: {e}") from None
-            if by == "scene":
-                idx = {s: torch.isin(cut["scene"], scenes[p]).nonzero().squeeze(1) for s, p in idx.items()}
-            if by == "window" and (self.windows.stride or self.windows.seq_len) < self.windows.seq_len:
-                log.warning("data.windows.stride=%d < data.windows.seq_len=%d with a split by window: val / test "
-                            "windows share steps with training windows", self.windows.stride, self.windows.seq_len)
-        else:
-            cut, by = None, "recording, in order"
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
-        parts = {}
-        for split in SPLITS:
-            whole = cuts[split] if cut is None else select_windows(cut, idx[split])
-            parts[split] = select_windows(whole, spread_indices(len(whole["frame"]), caps[split]))
-        return parts, by
+        capped = lambda cut, split: select_windows(cut, spread_indices(len(cut["frame"]), caps[split]))  # noqa: E731
+        if type(self.source).IN_ORDER:
+            return {split: _numbered(capped(cuts[split], split)) for split in SPLITS}, "recording, in order"
+        cut = _numbered(cuts["all"])
+        scenes = torch.unique(cut["scene"])
+        by = "scene" if len(scenes) >= 3 else "window"
+        try:
+            idx = split_indices(len(scenes) if by == "scene" else len(cut["frame"]), h.split, h.seed)
+        except ValueError as e:
+            raise ValueError(f"{self.source.where()}: {len(cut['frame'])} windows: {e}") from None
+        if by == "scene":
+            idx = {s: torch.isin(cut["scene"], scenes[p]).nonzero().squeeze(1) for s, p in idx.items()}
+        elif (self.windows.stride or self.windows.seq_len) < self.windows.seq_len:
+            log.warning("data.windows.stride=%d < data.windows.seq_len=%d with a split by window: val / test windows "
+                        "share steps with training windows", self.windows.stride, self.windows.seq_len)
+        return {split: capped(select_windows(cut, idx[split]), split) for split in SPLITS}, by
 
     def _dataset(self, cut: dict[str, Any], normalizer: Normalizer, split: str) -> PackedClipDataset:
         """A split's windows, normalised, with their source ids (and the test split's pairs)."""
@@ -232,6 +235,11 @@ class TracksDataModule(BaseDataModule):
         if not hasattr(tracks, "background"):
             return None
         return tracks.background(int(self.datasets[split].window_scene[index]))
+
+
+def _numbered(cut: dict[str, Any]) -> dict[str, Any]:
+    """The cut with ``clip`` [W] long: each window's number among the cut's windows."""
+    return {**cut, "clip": torch.arange(len(cut["frame"]))}
 
 
 def _pair_rules(given: Mapping[str, Any]) -> PairRules:

@@ -23,6 +23,7 @@ from omegaconf import MISSING
 
 from dider.data.clips import ClipsDataModule
 from dider.data.levelx.source import LevelXSource
+from dider.data.pairs import PairRules
 from dider.data.readers import clip_sources
 from dider.data.track_sources import FileSource, KloppySource
 from dider.data.tracks import TracksDataModule
@@ -48,6 +49,10 @@ DATA = (ClipsDataModule, TracksDataModule)
 # The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``):
 # the track sources' and every clip source's.
 SOURCES = (FileSource, KloppySource, LevelXSource, *clip_sources().values())
+# Nodes of their own under a data set: the consistency check's rules (``- /schema@pairs: PairRules``), and each track
+# source's window defaults (``- /schema@windows: <Source>Windows``), so the YAML shows every key its class defaults.
+DATA_NODES = {"PairRules": PairRules(), **{f"{cls.__name__}Windows": cls.WINDOWS
+                                        for cls in (FileSource, KloppySource, LevelXSource)}}
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
@@ -105,5 +110,7 @@ def register_schemas() -> None:
     store.store(group="schema", name=RelationalVAEModule.__name__, node=module_schema())
     for cls in SOURCES:
         store.store(group="schema", name=cls.__name__, node=schema(cls, target=False))
+    for name, node in DATA_NODES.items():
+        store.store(group="schema", name=name, node=_plain(dataclasses.asdict(node)))
     for cls in NODES.values():  # the app's own nodes (protocol, eval, predict): dataclasses already
         store.store(group="schema", name=cls.__name__, node=cls)

@@ -1,8 +1,8 @@
-"""Finding the recordings of a levelX data set and splitting them into train / val / test.
+"""Finding the recordings of a levelX data set.
 
 A recording is found by its tracks file, whose name matches a pattern with one ``{id}`` placeholder
 (``{id}_tracks.csv`` by default); its tracksMeta and recordingMeta files must exist next to it. Recordings
-are ordered by id (numerically when every id is a number) and split in that order.
+are ordered by id (numerically when every id is a number); the data module splits them in that order.
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def discover_recordings(
             rid = str(r) if str(r) in found else by_int.get(int(r)) if str(r).isdigit() else None
             if rid is None:
                 raise FileNotFoundError(
-                    f"data.recordings: recording {r!r} has no {tracks_pattern.format(id=r)} in {root}")
+                    f"data.source.recordings: recording {r!r} has no {tracks_pattern.format(id=r)} in {root}")
             chosen.append(rid)
         ids = _sort_ids(list(dict.fromkeys(chosen)))
     if not ids:

@@ -36,6 +36,7 @@ class LevelXTracks:
     """The recordings of ``source`` (found on first use), cut by ``windows``, cached under ``cache_dir``."""
 
     has_scene = True
+    has_classes = True  # tracksMeta's class column
 
     def __init__(self, source: LevelXSource, windows: Windows, cache_dir: Path) -> None:
         self.source, self.windows, self.cache_dir = source, windows, cache_dir
@@ -65,8 +66,9 @@ class LevelXTracks:
     def scene_ids(self) -> torch.Tensor:
         """Recording ids as source scene ids: the number itself for numeric ids ("07" -> 7), else the position in
         ``names["scene"]``."""
+        scenes = self.scenes  # found first: finding them names ids that are not numbers
         numeric = "scene" not in self.names
-        return torch.tensor([int(r) if numeric else i for i, r in enumerate(self.scenes)], dtype=torch.long)
+        return torch.tensor([int(r) if numeric else i for i, r in enumerate(scenes)], dtype=torch.long)
 
     def params(self, stride: int) -> WindowParams:
         """What changes a recording's windows (its cache key: the field names are the cache's)."""
