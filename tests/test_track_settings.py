@@ -143,6 +143,11 @@ def test_the_source_says_how_its_data_set_is_split():
         TracksDataModule(source={"reader": "levelx"}, split=[2, 0.5, 1])
     with pytest.raises(ConfigError, match=r"data.split=5: "):
         TracksDataModule(source={"path": "t.csv"}, split=5)
+    with pytest.raises(ConfigError, match=r"data.split=\[inf, 1, 1\]: give recording counts"):
+        TracksDataModule(source={"reader": "levelx"}, split=[float("inf"), 1, 1])
+    with pytest.raises(ConfigError) as told:  # one message, the source's
+        TracksDataModule(source={"path": "t.csv"}, split=[0.5, 0.5])
+    assert str(told.value).count("data.split") == 1, told.value
 
 
 def test_the_preflight_checks_the_source_and_split_of_the_data_sets_of_long_tracks(make_cfg):

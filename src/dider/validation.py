@@ -5,7 +5,8 @@ settings' rules in ``SETTINGS``: its constructor applies them to the values it r
 naming the class, ``RelationalVAE: num_edges=1: must be >= 2 (...)``, or the key, ``data.num_train=0: must be
 >= 1``) and ``dider.training.preflight.validate_config`` applies them to the node before any work starts
 (:func:`settings_problems`, naming the key: ``model.num_edges=1: ...``). A setting that is a node of its own
-(the data's ``loader``) names its class as its rule. The app's own keys (the seed, the trainer, the
+(the data's ``loader``) names its class as its rule, or a :class:`PickedBy` where one of its keys picks the class
+(a data set's ``source`` by its ``reader``). The app's own keys (the seed, the trainer, the
 LightningModule's) have theirs in :data:`RULES`, applied by :func:`require` and the preflight alike. Every
 problem is listed at once.
 """
@@ -141,7 +142,8 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
 def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None,
                    *, key: str | None = None) -> None:
     """Check a constructor's arguments (``locals()`` at its top) by the rules its class declares once
-    (``SETTINGS``: name -> rule, or name -> a class with ``SETTINGS`` of its own for a nested node; arguments
+    (``SETTINGS``: name -> rule, or name -> a class with ``SETTINGS`` of its own (or a :class:`PickedBy`) for a
+    nested node; arguments
     without one are left alone), and ``related`` ones whose rule depends on another argument (name -> (value,
     rule)); raises :class:`ConfigError` listing every setting that fails, named by the class
     (``RelationalVAE: num_edges=1: ...``) or, given ``key``, by the config key (``data.num_train=0: ...``). The
@@ -155,7 +157,7 @@ def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[st
                           else f"{type(owner).__name__}: " + "; ".join(found))
 
 
-def _problems(rules: Mapping[str, Rule | type], values: Mapping[str, Any], prefix: str) -> list[str]:
+def _problems(rules: Mapping[str, Rule | type | PickedBy], values: Mapping[str, Any], prefix: str) -> list[str]:
     """``values`` checked by ``rules`` (see :func:`check_settings`): ``"prefix+name=value: why"`` for each."""
     found = []
     for name, value in values.items():
@@ -180,6 +182,7 @@ class PickedBy:
     fallback: type | None = None
 
     def problems(self, node: Any, where: str) -> list[str]:
+        """The node's problems (``where``: its key) as its picked class's node; null is left to the owner."""
         if not isinstance(node, Mapping):
             return [] if node is None else [f"{where}={node!r}: expected a mapping"]
         value, classes = node.get(self.key, self.default), self.classes()

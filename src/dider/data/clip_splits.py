@@ -4,6 +4,7 @@ training clips, the caps on each split's clips, the normaliser's ranges and the 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -79,9 +80,17 @@ def counts_problem(split: object) -> str | None:
     if not (isinstance(split, Sequence) and not isinstance(split, str) and len(split) == 3
             and all(isinstance(f, (int, float)) and not isinstance(f, bool) for f in split)):
         return "expected three numbers (train, val, test): recording counts or fractions"
-    if all(0 < f < 1 for f in split) or all(f >= 1 and f == int(f) for f in split):
+    if all(0 < f < 1 for f in split) or all(math.isfinite(f) and f >= 1 and f == int(f) for f in split):
         return None
     return "give recording counts (integers >= 1) or fractions (all in (0, 1))"
+
+
+def split_problem(split: object) -> str | None:
+    """The form of ``data.split`` any data set of long tracks reads (the preflight's rule; its source checks which):
+    fractions (a table's) or counts or fractions in order (recordings); null: the source's."""
+    if split is None or fractions_problem(split) is None or counts_problem(split) is None:
+        return None
+    return "three fractions of a table's scenes summing to 1, or recordings in order (counts or fractions)"
 
 
 def split_counts(split: Sequence[float], available: int) -> tuple[int, int, int]:

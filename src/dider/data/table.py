@@ -37,6 +37,7 @@ from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows
 
 log = logging.getLogger(__name__)
 
+
 def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: np.ndarray,
                rate: float) -> tuple[np.ndarray, np.ndarray]:
     """One scene's rows on a dense steps x agents grid.

@@ -63,7 +63,8 @@ class FileSource(TableLayout):
     columns: Mapping[str, str | None] = field(default_factory=lambda: dict(DEFAULT_COLUMNS))
     frame_rate: float = 1.0  # frames per second of the frame column: differenced velocities are per second
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": reader_problem, "frame_rate": _rate}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": lambda v: reader_problem(v, tuple(SOURCES)),
+                                           "frame_rate": _rate}
     UNITS: ClassVar[str | None] = None  # unknown: the user's
 
     def __post_init__(self) -> None:

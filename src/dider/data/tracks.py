@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.clip_splits import counts_problem, fractions_problem, split_counts, split_indices
+from dider.data.clip_splits import counts_problem, fractions_problem, split_counts, split_indices, split_problem
 from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.packed import select_windows
 from dider.data.pairs import PairRules, find_pairs
@@ -53,17 +53,13 @@ class Tracks(Protocol):
 
     scenes: list[str]  # the scenes' names, in reading order
     scene_ids: torch.Tensor  # [Z] long: each scene's source id (its number, or a code into names["scene"])
-    names: dict[str, list[str]]  # the names of string ids: scene, agent
+    names: dict[str, list[str]]  # the names of string ids: scene, agent (agent_class)
     has_scene: bool  # whether the input names its scenes (a table without a scene column is one scene)
+    has_classes: bool  # whether the agents have classes (agent_class in the cuts)
     frame_rate: float  # frames per second of the source's frames (known once cut)
 
     def cut(self, groups: Mapping[str, tuple[Sequence[int], int]]) -> dict[str, dict[str, Any]]:
         """group -> (scene indices, stride) to the group's windows."""
-        ...
-
-    @property
-    def has_classes(self) -> bool:
-        """Whether the agents have classes (``agent_class`` in the cuts)."""
         ...
 
 
@@ -71,15 +67,15 @@ class TracksDataModule(BaseDataModule):
     """Windows of a data set of long tracks (module docstring). After ``setup``: ``normalizer``, ``datasets`` (a
     PackedClipDataset per split, with ``window_start`` and ``window_scene`` (the window's first step and its scene,
     an index into ``scenes``), ``scenes`` and, where the source has classes, ``agent_class`` and ``class_names``),
-    ``source_names``, ``dt`` (seconds per step) and ``frame_step`` (source frames per step)."""
+    ``source_names``, ``dt`` (seconds per step; a table's from the start, a levelX data set's once its recordings
+    are read) and ``frame_step`` (source frames per step)."""
 
     predicts = True
     collate_fn = staticmethod(pad_collate)
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
         "source": PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource), "windows": Windows,
-        "split": lambda v: None if v is None or not fractions_problem(v) or not counts_problem(v)
-        else "three fractions of a table's scenes summing to 1, or recordings in order (counts or fractions)"}
+        "split": split_problem}
 
     def __init__(
         self,
@@ -108,7 +104,7 @@ class TracksDataModule(BaseDataModule):
         cls = type(self.source)
         split = cls.SPLIT if split is None else split
         in_order = "splits its recordings in order; the seed is a table's"
-        check_settings(self, locals(), {
+        check_settings(self, {**locals(), "split": None}, {  # the split by its source's rule alone
             "split": (split, counts_problem if cls.IN_ORDER else fractions_problem),
             "seed": (seed, lambda v: f"data.source.reader={self.source.reader} {in_order}" if cls.IN_ORDER and v != 1
                      else None)}, key="data")
@@ -193,7 +189,10 @@ class TracksDataModule(BaseDataModule):
         split's windows numbered after its cap."""
         h = self.hparams
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
-        capped = lambda cut, split: select_windows(cut, spread_indices(len(cut["frame"]), caps[split]))  # noqa: E731
+
+        def capped(cut: dict[str, Any], split: str) -> dict[str, Any]:
+            return select_windows(cut, spread_indices(len(cut["frame"]), caps[split]))
+
         if type(self.source).IN_ORDER:
             return {split: _numbered(capped(cuts[split], split)) for split in SPLITS}, "recording, in order"
         cut = _numbered(cuts["all"])

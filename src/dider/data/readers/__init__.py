@@ -43,9 +43,10 @@ def clip_sources() -> dict[str, type]:
     return {name: module.CLIPS for name, module in _modules().items() if hasattr(module, "CLIPS")}
 
 
-def reader_problem(reader: object) -> str | None:
-    """The setting rule of ``data.source.reader``: ``table`` or a track reader's name."""
-    known = ["table", *sorted(track_readers())]
+def reader_problem(reader: object, others: tuple[str, ...] = ()) -> str | None:
+    """The setting rule of ``data.source.reader``: ``table``, a track reader's name or one of ``others`` (the
+    sources with settings of their own)."""
+    known = ["table", *sorted(track_readers()), *others]
     return None if reader in known else f"expected one of {known}"
 
 
