@@ -362,3 +362,4 @@ def test_background_image_and_extent(root, tmp_path):
     meters = 0.0081464 * 12  # the fixture's orthoPxToMeter x the default background_scale
     assert image.shape[:2] == (90, 120)
     assert extent == pytest.approx((0.0, 120 * meters, -90 * meters, 0.0))
+    assert dm.background("test", 1)[0] is image  # one read per recording: the figures draw many of its clips

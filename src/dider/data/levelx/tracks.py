@@ -43,6 +43,8 @@ class LevelXTracks:
         self._files: list[RecordingFiles] | None = None
         self.frame_rate: float | None = None  # known once cut
         self.names: dict[str, list[str]] = {}
+        # each recording's background image, read once: the figures draw many clips of one recording
+        self._backgrounds: dict[int, tuple[np.ndarray, tuple[float, float, float, float]]] = {}
 
     @property
     def files(self) -> list[RecordingFiles]:
@@ -137,6 +139,11 @@ class LevelXTracks:
 
         A pixel is orthoPxToMeter * background_scale metres (the released images are downscaled) and the image's y
         axis points down while the tracks' points up."""
+        if scene not in self._backgrounds and (found := self._read_background(scene)) is not None:
+            self._backgrounds[scene] = found
+        return self._backgrounds.get(scene)
+
+    def _read_background(self, scene: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
         files = self.files[scene]
         image = files.tracks.parent / self.source.files.background.format(id=files.id)
         if not image.is_file() or "orthoPxToMeter" not in csv_header(files.recording_meta):
