@@ -8,6 +8,7 @@ from dider.data.pairs import OPPOSITE, PARKED, PairRules, find_pairs, pair_kind_
 from dider.data.tracks import TracksDataModule
 from dider.evaluation.metrics import PairConsistency
 from dider.graph import edge_index
+from dider.training.preflight import validate_config
 from helpers.fixtures import write_ind_root
 
 T = 10
@@ -72,7 +73,7 @@ def test_pair_consistency_metric():
     assert torch.isnan(empty.compute()[0]).all()
 
 
-def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
+def test_ind_test_batches_carry_the_parked_pairs(tmp_path, make_cfg):
     # The fixture's tracks 0 and 1 are parked cars present in every window; the other tracks move.
     root = write_ind_root(tmp_path / "inD")
     dm = TracksDataModule(source={"reader": "levelx", "root": str(root)}, windows={"seq_len": 20}, pairs={},
@@ -88,5 +89,7 @@ def test_ind_test_batches_carry_the_parked_pairs(tmp_path):
     assert "pair_kind" not in next(iter(dm.train_dataloader()))
     with pytest.raises(ValueError, match="data.pairs"):
         TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_speed": 0.0})
-    with pytest.raises(ValueError, match="data.pairs.*fields"):
+    with pytest.raises(ValueError, match=r"data.pairs.parked_sped: no such setting \(expected one of \['parked_speed'"):
         TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_sped": 1.0})
+    with pytest.raises(ValueError, match=r"data.pairs.parked_sped: no such setting"):  # and before a run starts
+        validate_config(make_cfg(["data=ind", "+data.pairs.parked_sped=1.0"]))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, fields, replace
+from dataclasses import asdict, replace
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -75,7 +75,7 @@ class TracksDataModule(BaseDataModule):
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
         "source": PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource), "windows": Windows,
-        "split": split_problem}
+        "split": split_problem, "pairs": PairRules}
 
     def __init__(
         self,
@@ -242,8 +242,5 @@ def _numbered(cut: dict[str, Any]) -> dict[str, Any]:
 
 
 def _pair_rules(given: Mapping[str, Any]) -> PairRules:
-    """``data.pairs`` over :class:`PairRules`' defaults; an unknown key names the fields."""
-    try:
-        return PairRules(**{k: tuple(v) if isinstance(v, list | tuple) else v for k, v in dict(given).items()})
-    except TypeError as e:
-        raise ValueError(f"data.pairs: {e} (fields: {[f.name for f in fields(PairRules)]})") from None
+    """``data.pairs`` (its keys checked by ``SETTINGS``) over :class:`PairRules`' defaults; lists as tuples."""
+    return PairRules(**{k: tuple(v) if isinstance(v, list | tuple) else v for k, v in dict(given).items()})
