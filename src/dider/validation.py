@@ -181,14 +181,21 @@ class PickedBy:
     default: str | None = None  # the key's value where the node has none
     fallback: type | None = None
 
+    def pick(self, node: Mapping[str, Any], where: str) -> type:
+        """The settings class of ``node`` (``where``: its key); an unknown value raises naming it."""
+        value, classes = node.get(self.key, self.default), self.classes()
+        if (cls := classes.get(value, self.fallback)) is None:
+            raise ConfigError(f"{where}.{self.key}={value!r}: expected one of {sorted(classes)}")
+        return cls
+
     def problems(self, node: Any, where: str) -> list[str]:
         """The node's problems (``where``: its key) as its picked class's node; null is left to the owner."""
         if not isinstance(node, Mapping):
             return [] if node is None else [f"{where}={node!r}: expected a mapping"]
-        value, classes = node.get(self.key, self.default), self.classes()
-        if (cls := classes.get(value, self.fallback)) is None:
-            return [f"{where}.{self.key}={value!r}: expected one of {sorted(classes)}"]
-        return node_problems(cls, node, where)
+        try:
+            return node_problems(self.pick(node, where), node, where)
+        except ConfigError as e:
+            return [str(e)]
 
 
 def node_problems(cls: type, node: Any, where: str) -> list[str]:

@@ -32,13 +32,16 @@ WHO_READS = {"split": "a source of one file of clips (reader trajectories)",
              "seed": "the sources that split or carve (readers trajectories, basketball)"}
 
 
+PICK = PickedBy("reader", clip_sources)  # a clip source's settings class by its reader
+
+
 class ClipsDataModule(BaseDataModule):
     """Fixed-length clips from a clip source (module docstring). After ``setup``: ``normalizer``, ``datasets`` (a
     ClipDataset per split); ``setup("predict")`` serves every clip of a source that has a prediction set (``.npz``
     trajectories, DNRI's files), normalised with the trained model's normaliser."""
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
-        "source": PickedBy("reader", clip_sources), "normalization": one_of(*RANGES), "split": fractions_problem,
+        "source": PICK, "normalization": one_of(*RANGES), "split": fractions_problem,
         "val_fraction": within_open(0, 1), "seed": integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1),
         "train_len": optional(integer(2))}
 
@@ -64,9 +67,7 @@ class ClipsDataModule(BaseDataModule):
         num_train, num_val, num_test: a simulator's split sizes (required); else a cap on each split's clips."""
         super().__init__()
         given = dict(source or {})
-        sources = clip_sources()
-        if (cls := sources.get(given.get("reader"))) is None:
-            raise ConfigError(f"data.source.reader={given.get('reader')!r}: expected one of {sorted(sources)}")
+        cls = PICK.pick(given, "data.source")
         self.source: ClipSource = source_node(cls(), given)
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
         self.generated = getattr(cls, "GENERATED", False)  # num_* are the sizes to simulate, not caps

@@ -153,18 +153,20 @@ class TableTracks:
         self._read, self.where, self.windows = read, where, windows
         self._rows: tuple[dict[str, Any], float] | None = None
 
+    def _loaded(self) -> tuple[dict[str, Any], float]:
+        if self._rows is None:
+            self._rows = self._read()
+        return self._rows
+
     @property
     def table(self) -> dict[str, Any]:
         """The rows (:func:`~dider.data.table_reading.read_table`'s dict), read on first use."""
-        if self._rows is None:
-            self._rows = self._read()
-        return self._rows[0]
+        return self._loaded()[0]
 
     @property
     def frame_rate(self) -> float:
         """Frames per second of the frame column: the source's, or what it read (a soccer provider's)."""
-        self.table  # noqa: B018 (a source may read its rate from the files)
-        return self._rows[1]
+        return self._loaded()[1]
 
     @property
     def scenes(self) -> list[str]:

@@ -26,7 +26,7 @@ from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows
 from dider.data.table import TableTracks
 from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, read_table
 from dider.data.windowing import Windows
-from dider.validation import Rule, above, boolean, finite, one_of
+from dider.validation import PickedBy, Rule, above, boolean, finite, one_of
 
 log = logging.getLogger(__name__)
 
@@ -125,10 +125,11 @@ class KloppySource(TableLayout):
 TrackSource = FileSource | KloppySource | LevelXSource
 # the readers with settings of their own; any other: FileSource
 SOURCES: dict[str, type] = {"kloppy": KloppySource, "levelx": LevelXSource}
+PICK = PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource)  # a source's class by its reader
 
 
 def track_source(given: Mapping[str, Any] | None) -> TrackSource:
     """The ``data.source`` node as its reader's settings, checked: unknown keys and bad values raise naming them."""
     given = dict(given or {})
-    cls = SOURCES.get(given.get("reader", "table"), FileSource)
+    cls = PICK.pick(given, "data.source")
     return cls.of(given) if hasattr(cls, "of") else source_node(cls(), given)

@@ -31,7 +31,7 @@ from dider.data.clip_splits import counts_problem, fractions_problem, split_coun
 from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.packed import select_windows
 from dider.data.pairs import PairRules, find_pairs
-from dider.data.track_sources import SOURCES, FileSource, track_source
+from dider.data.track_sources import PICK, track_source
 from dider.data.windowing import Windows
 from dider.protocol import fill_absent
 from dider.validation import PickedBy, Rule, check_settings
@@ -74,7 +74,7 @@ class TracksDataModule(BaseDataModule):
     collate_fn = staticmethod(pad_collate)
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
-        "source": PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource), "windows": Windows,
+        "source": PICK, "windows": Windows,
         "split": split_problem, "pairs": PairRules}
 
     def __init__(
@@ -133,8 +133,9 @@ class TracksDataModule(BaseDataModule):
         w, scenes = self.windows, list(range(len(self.tracks().scenes)))
         stride = w.stride or w.seq_len
         in_order = type(self.source).IN_ORDER
+        eval_stride = (w.eval_stride or w.seq_len) if in_order else stride  # a table's val and test: its one cut
         if stage == "predict":
-            return {"predict": (scenes, (w.eval_stride or w.seq_len) if in_order else stride)}
+            return {"predict": (scenes, eval_stride)}
         if not in_order:
             return {"all": (scenes, stride)}
         counts = split_counts(self.hparams.split, len(scenes))
@@ -142,7 +143,7 @@ class TracksDataModule(BaseDataModule):
             log.info("%s: using %d of %d recordings (data.split=%s)", self.source.where(), sum(counts), len(scenes),
                      list(self.hparams.split))
         bounds = np.cumsum([0, *counts]).tolist()
-        return {s: (scenes[bounds[i]:bounds[i + 1]], stride if s == "train" else (w.eval_stride or w.seq_len))
+        return {s: (scenes[bounds[i]:bounds[i + 1]], stride if s == "train" else eval_stride)
                 for i, s in enumerate(SPLITS)}
 
     def prepare_data(self) -> None:

@@ -112,7 +112,8 @@ class LevelXTracks:
         out, rates, seen = {}, {}, set()
         w, classes = self.windows, self.source.classes
         for group, (scenes, stride) in groups.items():
-            blobs = [self.recording(self.files[i], self.params(stride)) for i in scenes]
+            params = self.params(stride)
+            blobs = [self.recording(self.files[i], params) for i in scenes]
             rates.update({b["recording"]: b["frame_rate"] for b in blobs})
             seen.update(*(b["class_names"] for b in blobs))
             out[group] = join([_part(b, i, w.downsample) for b, i in zip(blobs, scenes, strict=True)], w.seq_len)
