@@ -6,7 +6,8 @@ import ast
 from pathlib import Path
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "dider"
-CORE = {"graph", "io", "perf", "protocol", "settings", "validation"}  # modules at the package root every room may use
+# modules at the package root every room may use
+CORE = {"graph", "io", "perf", "protocol", "settings", "targets", "validation"}
 # A room may import its own modules and any room of a lower layer; data and models know nothing of each other.
 LAYERS = {"core": 0, "shipped": 0, "data": 1, "models": 1, "evaluation": 2,
           "training": 3, "outputs": 3, "trained": 4, "run": 5,

@@ -41,7 +41,9 @@ def test_edge_evidence_is_the_receivers_nll_with_the_edge_at_none_minus_at_its_b
                 costs.append(_nll(pred[:, s, recv[e]], target[:, s, recv[e]]))
             best = torch.stack(costs[1:], -1).amin(-1)
             expected[:, s, e] = (costs[0] - best) * (mask[:, s, send[e]] & mask[:, s, recv[e]])
-    assert torch.allclose(got, expected, atol=1e-5)
+    # each evidence is a difference of NLLs in the hundreds (variance 1e-2): fp32 keeps ~1e-5 of them, and CPUs'
+    # kernels differ in the last bits
+    assert torch.allclose(got, expected, atol=2e-4)
     assert (got != 0).any()
 
 

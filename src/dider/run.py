@@ -38,6 +38,7 @@ from dider.outputs.run_record import (
 from dider.outputs.summary import run_summary
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
+from dider.targets import named_targets
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
 from dider.training.checkpoint import AtomicCheckpointIO
 from dider.training.module import RelationalVAEModule
@@ -108,10 +109,9 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     """The prediction itself, under the folder's lock: the names of the files written into ``staging`` and moved
     to ``final`` (None on a rank other than zero) and the writer (its forecast scores)."""
     ckpt = find_checkpoint(str(cfg.ckpt_path))  # a checkpoint file or a run folder, as dider.load takes
-    trained = load(ckpt)  # named errors for a foreign, older or damaged checkpoint, before the data are read
+    trained = load(ckpt, trust=trusted(cfg))  # named errors for a foreign, older, damaged or unsafe checkpoint
     datamodule = _prediction_data(cfg, trained)
-    module = RelationalVAEModule.from_config(trained.config)
-    module.model.load_state_dict(trained.network.state_dict())
+    module = RelationalVAEModule.from_checkpoint(ckpt, trust=trained.trust)
     burn_in = cfg.predict.burn_in or module.hparams.burn_in
     datamodule.prepare_data()  # the clips are read and checked before the trainer starts
     datamodule.setup("predict")
@@ -193,7 +193,7 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
         version = check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
     if cfg.mode == "eval":
         out_dir = eval_folder(out_dir, _eval_name(cfg))
-        trained = load(ckpt)  # named errors for a damaged or older checkpoint, before the data are read
+        trained = load(ckpt, trust=trusted(cfg))  # named errors for a damaged, older or unsafe checkpoint, first
         with open_dict(cfg):  # every path of the run (checkpoints, logs, figures, exports) follows output_dir
             cfg.output_dir = str(out_dir)
             for path, value in _checkpoint_features(cfg, trained, "eval.force").items():
@@ -204,6 +204,13 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
             check_fresh(out_dir)
         open_run_folder(out_dir, cfg)
         return _fit_and_test(cfg, ckpt, out_dir, started, version, trained)
+
+
+def trusted(cfg: DictConfig) -> tuple[str, ...]:
+    """The classes of the user's own that a checkpoint's config may build (:mod:`dider.targets`): those ``trust``
+    lists and those the run's own ``model`` config names (the user chose both)."""
+    own = named_targets(OmegaConf.to_container(cfg.model, resolve=True))
+    return tuple(sorted({*(cfg.get("trust") or ()), *own}))
 
 
 def eval_checkpoint(ckpt_path: str | None, folder: Path) -> Path:

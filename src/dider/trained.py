@@ -31,6 +31,7 @@ from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
 from dider.shipped import resolve, unknown
+from dider.targets import Untrusted, check
 from dider.training.preflight import input_warnings, version_problem
 from dider.validation import above, check_arguments, integer, optional
 
@@ -100,6 +101,7 @@ class TrainedModel:
     data: dict[str, Any] = field(default_factory=dict)
     version: str = ""
     path: Path | None = None
+    trust: tuple[str, ...] = ()  # the classes of the user's own that its config was allowed to build
 
     @property
     def device(self) -> torch.device:
@@ -250,17 +252,25 @@ def _numpy(value: ArrayLike, name: str) -> np.ndarray:
     return out
 
 
-def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
-    """A trained model from a run folder or a checkpoint file, ready on ``device`` in eval mode."""
+def load(path: str | Path, device: str | torch.device = "cpu", trust: Collection[str] = ()) -> TrainedModel:
+    """A trained model from a run folder or a checkpoint file, ready on ``device`` in eval mode.
+
+    The checkpoint's model config is data: it builds dider's own classes only, each where its kind goes, and any
+    other ``_target_`` is refused naming the file, the key and the target, before anything is imported or called
+    (:mod:`dider.targets`). ``trust``: dotted paths of classes of your own the checkpoint may build (a plugin in
+    your package, ``["mypkg.encoders.MyEncoder"]``)."""
     ckpt_path = find_checkpoint(path)
     ckpt = read_checkpoint(ckpt_path)
     hparams: Mapping[str, Any] = ckpt["hyper_parameters"]
+    check(hparams, "module", ckpt_path, "hyper_parameters", trust)  # before anything is built: Untrusted names it
     try:  # a damaged or hand-edited checkpoint: named with the file and the part that does not fit
         net = hparams["net"]
         config = ({k: v for k, v in hparams.items() if k != "net"}
                   | {"name": net.get("name"), "num_edges": net.get("num_edges"), "net": net})
-        network = RelationalVAE.from_config(net)
-    except Exception as e:  # noqa: BLE001 (hydra, a plugin's checks or a missing key: any of them)
+        network = RelationalVAE.from_file_config(net, ckpt_path, trust=trust)
+    except Untrusted:
+        raise
+    except Exception as e:  # noqa: BLE001 (a plugin's checks or a missing key: any of them)
         raise ValueError(f"{ckpt_path}: its model config (hyper_parameters) does not build a model "
                          f"({type(e).__name__}: {e})") from e
     state = {k.removeprefix("model."): v for k, v in ckpt["state_dict"].items()}
@@ -277,4 +287,4 @@ def load(path: str | Path, device: str | torch.device = "cpu") -> TrainedModel:
     except (TypeError, ValueError, KeyError) as e:
         raise ValueError(f"{ckpt_path}: its data normaliser ({data['state']['normalizer']!r}) is damaged: {e}") from e
     return TrainedModel(network.to(device).eval(), normalizer, config, dict(data.get("args", {})),
-                        ckpt["dider"].get("version", ""), ckpt_path)
+                        ckpt["dider"].get("version", ""), ckpt_path, tuple(trust))

@@ -17,7 +17,7 @@ import dataclasses
 import importlib
 import math
 import numbers
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from dider.perf import ALLOCATORS
@@ -111,6 +111,13 @@ def folder_name(value: Any) -> str | None:
     return None if ok else "expected a folder name (no path separators)"
 
 
+def class_paths(value: Any) -> str | None:
+    """A list of dotted class paths (``[mypkg.encoders.MyEncoder]``)."""
+    ok = isinstance(value, Sequence) and not isinstance(value, str) and all(
+        isinstance(v, str) and "." in v.strip(".") for v in value)
+    return None if ok else "expected a list of dotted class paths, e.g. [mypkg.encoders.MyEncoder]"
+
+
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 
 # The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare theirs
@@ -121,6 +128,7 @@ RULES: dict[str, Rule] = {
     "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
     "threads": optional(integer(1, " (null: torch's default)")),
+    "trust": class_paths,
     "trainer.max_epochs": integer(-1, " (-1: no limit)"),
     "model.optimizer.lr": above(0),
     "model.burn_in_mode": one_of(*BURN_IN_MODES, None),

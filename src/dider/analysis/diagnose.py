@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from dider.data.legacy import upgrade_data_node
@@ -37,6 +36,7 @@ from dider.graph import edge_mask
 from dider.io import atomic_write_text
 from dider.models.vae import RelationalVAE
 from dider.outputs.run_record import command_line
+from dider.targets import build
 from dider.trained import find_checkpoint
 
 STATS = ("segments_per_edge", "steps_per_segment")
@@ -88,6 +88,12 @@ def score(net: RelationalVAE, batch: dict[str, torch.Tensor], cut: torch.Tensor 
                    "steps_per_segment": float(stats["steps_per_segment"])}
 
 
+def run_config_file(run: Path) -> Path:
+    """The file :func:`run_config` reads."""
+    record = run / "metrics.json"
+    return record if record.is_file() and "config" in json.loads(record.read_text()) else run / ".hydra" / "config.yaml"
+
+
 def run_config(run: Path) -> DictConfig:
     """A run folder's config: the one its ``metrics.json`` records, else Hydra's ``.hydra/config.yaml``."""
     record, hydra = run / "metrics.json", run / ".hydra" / "config.yaml"
@@ -100,13 +106,16 @@ def run_config(run: Path) -> DictConfig:
 
 
 def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequence[int] = (3, 5, 10),
-             seed: int = 0) -> dict[str, Any]:
-    """Score every segmentation on the first ``clips`` test clips of a run folder -> {"rows": {name: terms}}."""
+             seed: int = 0, trust: Collection[str] = ()) -> dict[str, Any]:
+    """Score every segmentation on the first ``clips`` test clips of a run folder -> {"rows": {name: terms}}.
+    The checkpoint's and the run folder's configs are data: they build dider's classes and the ``trust``-ed ones
+    only (:mod:`dider.targets`)."""
     run = Path(run)
     cfg = run_config(run)
     ckpt = find_checkpoint(run)
-    net = RelationalVAE.from_checkpoint(ckpt).eval()
-    datamodule = instantiate(upgrade_data_node(OmegaConf.to_container(cfg.data, resolve=True)), _convert_="all")
+    net = RelationalVAE.from_checkpoint(ckpt, trust).eval()
+    data = upgrade_data_node(OmegaConf.to_container(cfg.data, resolve=True))
+    datamodule = build(data, "data", run_config_file(run), "data", trust)
     datamodule.setup("test")
     batches, seen = [], 0
     for batch in datamodule.test_dataloader():

@@ -24,6 +24,7 @@ from typing import Any
 
 from dider.io import atomic_torch_save, atomic_write_text
 from dider.shipped import HERE, catalog
+from dider.targets import check
 from dider.trained import find_checkpoint, read_checkpoint
 
 # Overrides that say where and how a run wrote, not what it trained: left out of the recorded command.
@@ -34,8 +35,10 @@ KEPT = ("state_dict", "hyper_parameters", "dider", "pytorch-lightning_version", 
 
 
 def slim(source: Path) -> dict[str, Any]:
-    """The checkpoint at ``source`` without its optimiser, scheduler, callback and loop states."""
+    """The checkpoint at ``source`` without its optimiser, scheduler, callback and loop states; its model config
+    checked as every door that loads it checks it (only dider's classes: what the package ships, anyone loads)."""
     ckpt = read_checkpoint(source)
+    check(ckpt["hyper_parameters"], "module", source, "hyper_parameters")
     return {k: ckpt[k] for k in KEPT if k in ckpt}
 
 

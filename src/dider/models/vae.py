@@ -12,13 +12,12 @@ R LSTM width, P predicted steps.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch import nn
 
@@ -41,6 +40,7 @@ from dider.models.plugins import (
 )
 from dider.models.segments import Segmentation, entries
 from dider.protocol import fill_absent, observed_inputs
+from dider.targets import build, check, named_targets
 from dider.validation import Rule, above, boolean, check_settings, integer, one_of
 
 
@@ -106,16 +106,28 @@ class RelationalVAE(nn.Module):
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAE:
-        """Build the network from a model config (``cfg.model`` of the Hydra app: its ``net`` node), or from a
-        network's config (a checkpoint's ``hyper_parameters["net"]``)."""
-        return instantiate(network_config(plain_config(cfg)), _convert_="all")
+        """Build the network from the caller's own model config (``cfg.model`` of the Hydra app: its ``net`` node,
+        or a network's config): every class it names is the caller's choice. A config read from a file is built by
+        :meth:`from_file_config`."""
+        node = network_config(plain_config(cfg))
+        return build(node, "network", "model config", "model.net", trust=named_targets(node))
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path) -> RelationalVAE:
+    def from_file_config(cls, node: Mapping[str, Any], where: str | Path, path: str = "hyper_parameters.net",
+                         trust: Collection[str] = ()) -> RelationalVAE:
+        """The network a file's config describes (a checkpoint's ``hyper_parameters["net"]``), built only from
+        dider's own classes and the ``trust``-ed ones (:mod:`dider.targets`); ``where`` and ``path`` name the
+        file and the node in a refusal."""
+        return build(node, "network", where, path, trust)
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, trust: Collection[str] = ()) -> RelationalVAE:
         """The network a training checkpoint (``checkpoints/*.ckpt`` of a run, any format) holds, with its weights,
-        read once."""
+        read once; its config is checked whole (``trust``: classes of your own it may name) before anything is
+        built."""
         ckpt = read(path)
-        return cls.from_config(ckpt["hyper_parameters"]["net"])._load_state(ckpt["state_dict"])
+        check(ckpt["hyper_parameters"], "module", path, "hyper_parameters", trust)
+        return cls.from_file_config(ckpt["hyper_parameters"]["net"], path, trust=trust)._load_state(ckpt["state_dict"])
 
     def load_checkpoint(self, path: str | Path) -> RelationalVAE:
         """Load the weights of a training checkpoint (``checkpoints/*.ckpt`` of a run, any format) into this model."""

@@ -1,21 +1,20 @@
 """The Lightning shell around :class:`~dider.models.vae.RelationalVAE`: the optimiser, the schedules' clock,
 the forecast protocol of validation and test, and logging. The maths lives in the plain model.
 
-Built from the model config alone, so ``RelationalVAEModule.load_from_checkpoint(path)`` rebuilds it.
+Built from the model config alone; :meth:`RelationalVAEModule.from_checkpoint` rebuilds it from a checkpoint's.
 Shapes: B batch, T frames, N agents, D features, E edges, K edge types, P predicted steps.
 """
 
 from __future__ import annotations
 
 import inspect
-import io
 import logging
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import lightning as L
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torchmetrics import Metric
 
@@ -38,8 +37,9 @@ from dider.graph import edge_mask
 from dider.models.baselines import ConstantVelocity
 from dider.models.checkpoint_format import network_config, read, stamp, upgrade
 from dider.models.plugins import Progress
-from dider.models.vae import Inference, RelationalVAE, plain_config
+from dider.models.vae import Inference, plain_config
 from dider.protocol import agent_horizons, scored_targets
+from dider.targets import build, check, named_targets
 from dider.training.callbacks import EvalRandomState, FiniteGuard, ProtocolFits, ResumeMidEpoch, SaveOnTerminate
 from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
@@ -62,25 +62,25 @@ class RelationalVAEModule(L.LightningModule):
         check_finite: bool = True,
         samples: int = 0,
         miss_threshold: float | None = None,
+        *,
+        trust: Collection[str] | None = None,
     ) -> None:
-        """net: the network's config (``_target_`` and plugins: the ``net`` node of ``conf/model``), built as
-        ``self.model``. optimizer,
-        scheduler: configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the
-        forecast protocol (``conf/model`` interpolates the ``protocol`` node; a None burn_in_mode, in
-        hyper-parameters saved before it was, is ``global``: ``load_from_checkpoint(path,
-        burn_in_mode="per_agent")`` sets another). eval_seed: validation and test draw from it, so their metrics
-        depend on the weights only. check_finite: stop on a NaN/inf loss term or gradient. samples, miss_threshold:
-        the sampled futures each test pass scores (``protocol.samples``, ``protocol.miss_threshold``;
-        :mod:`dider.evaluation.sampled`)."""
+        """net: the network's config (the ``net`` node of ``conf/model``), built as ``self.model``. optimizer,
+        scheduler: configs of partial factories (``_partial_: true``). burn_in, horizons, burn_in_mode: the forecast
+        protocol (``conf/model`` interpolates the ``protocol`` node; None: ``global``). eval_seed: validation and
+        test draw from it. check_finite: stop on a NaN/inf loss term or gradient. samples, miss_threshold: the
+        sampled futures each test pass scores (:mod:`dider.evaluation.sampled`). trust (not a hyper-parameter):
+        None when the config is the caller's own (every class it names may be built), else the user's classes a
+        file's config may build beside dider's (:mod:`dider.targets`)."""
         super().__init__()
         if net is None:
             raise TypeError("RelationalVAEModule: net, the network's config, is required")
         net = plain_config(net)
         require({"model.burn_in_mode": burn_in_mode, "model.check_finite": check_finite, "model.samples": samples,
                  "model.miss_threshold": miss_threshold})
-        # Configs only (plain containers): the checkpoint rebuilds the module and loads with weights_only.
-        self.save_hyperparameters(logger=False)
-        self.model = RelationalVAE.from_config(net)
+        self.save_hyperparameters(logger=False, ignore=["trust"])
+        self.trust = named_targets([net, optimizer, scheduler]) if trust is None else frozenset(trust)
+        self.model = build(net, "network", "model config", "model.net", self.trust)
         self.val_mse = HorizonMSE(horizons)
         # the forecast in data units beside constant velocity's, so that a recipe is chosen on validation
         self.val_ade = torch.nn.ModuleDict({k: HorizonDisplacement(horizons) for k in ("model", "cv")})
@@ -88,13 +88,11 @@ class RelationalVAEModule(L.LightningModule):
         self.val_cut = OwnCut(tolerance=2)
         self.test_metrics = TestMetrics(horizons, self.model.num_types, samples, miss_threshold)
         self.constant_velocity = ConstantVelocity()  # no parameters: scored beside the model at test
-        # Prediction's optional forecast: (burn_in, steps) from each clip's first frames, or None (set by
-        # ``mode=predict``, not a hyper-parameter: it does not change the model).
+        # mode=predict's optional forecast, (burn_in, steps) from each clip's first frames (not a hyper-parameter)
         self.predict_forecast: tuple[int, int] | None = None
         self.predict_samples = 0  # with predict_forecast: that many sampled futures of each clip too
         self.predict_scores: torch.nn.ModuleDict | None = None  # set at the start of each prediction
-        # Training steps replayed from one CUDA graph (the run's top-level ``cuda_graph``: auto, true, false;
-        # dider.training.graphed); not a hyper-parameter: it changes how a step runs, not what it computes.
+        # Training steps replayed from one CUDA graph (``cuda_graph``; dider.training.graphed): how a step runs
         self.cuda_graph: bool | str = False
         self._graphed: GraphedSteps | None = None
         self._epoch_means = EpochMeans()  # the training epoch's logged values, kept on the device
@@ -108,20 +106,28 @@ class RelationalVAEModule(L.LightningModule):
     @classmethod
     def setting_names(cls) -> list[str]:
         """The module's settings, the keys of a model config's top level: its constructor's arguments."""
-        return [k for k in inspect.signature(cls.__init__).parameters if k != "self"]
+        return [k for k in inspect.signature(cls.__init__).parameters if k not in ("self", "trust")]
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, trust: Collection[str] = (), **settings: Any) -> RelationalVAEModule:
+        """The module a training checkpoint holds, with its weights, its hyper-parameters checked whole first
+        (:mod:`dider.targets`); ``settings`` replace the checkpoint's (``burn_in_mode="per_agent"``)."""
+        ckpt = read(path)
+        hparams = {**ckpt["hyper_parameters"], **settings}
+        check(hparams, "module", path, "hyper_parameters", trust)
+        module = cls(**{k: v for k, v in hparams.items() if k in cls.setting_names()}, trust=trust)
+        module.on_load_checkpoint(ckpt)
+        module.load_state_dict(ckpt["state_dict"])
+        return module
 
     @classmethod
     def load_from_checkpoint(cls, checkpoint_path: Any, map_location: Any = None, strict: bool | None = None,
                              **kwargs: Any) -> RelationalVAEModule:
-        """Lightning's, with the checkpoint read in today's format first (:mod:`dider.models.checkpoint_format`):
-        its hyper-parameters build the module (``hparams_file`` is not taken: they are the checkpoint's)."""
-        if kwargs.get("hparams_file") is not None:
-            raise TypeError("RelationalVAEModule.load_from_checkpoint: hparams_file is not taken (the module is "
-                            "built from the checkpoint's own hyper-parameters)")
-        buffer = io.BytesIO()
-        torch.save(read(checkpoint_path), buffer)
-        buffer.seek(0)
-        return super().load_from_checkpoint(buffer, map_location=map_location or "cpu", strict=strict, **kwargs)
+        """Lightning's entry, read as :meth:`from_checkpoint` reads (``hparams_file`` is not taken: the module is
+        built from the checkpoint's own, checked, hyper-parameters; ``strict`` is always true)."""
+        if kwargs.pop("hparams_file", None) is not None or strict is False:
+            raise TypeError("RelationalVAEModule.load_from_checkpoint: hparams_file and strict=False are not taken")
+        return cls.from_checkpoint(checkpoint_path, **kwargs).to(map_location or "cpu")
 
     @property
     def burn_in_mode(self) -> str:
@@ -139,8 +145,7 @@ class RelationalVAEModule(L.LightningModule):
         return not wanted(self.cuda_graph, self._trainer)
 
     def _infer(self, batch: Batch, hard: bool) -> Inference:
-        # Only the step count here: asking the Trainer for the run's length during a test sets up the
-        # training loader, which draws from the random state; the loss asks after the forward pass.
+        # the step count only: the run's length, asked in a test, sets up the training loader (a random draw)
         return self.model.infer(batch, hard, Progress(self.global_step))
 
     def loss_terms(self, batch: Batch, hard: bool = False) -> dict[str, torch.Tensor]:
@@ -249,8 +254,7 @@ class RelationalVAEModule(L.LightningModule):
         out = self._infer(batch, hard=True)
         progress = self.progress()
         terms = self.model.loss(out, progress)
-        # Checkpoints are chosen by ``val/select``: the negative ELBO once the KL weight has reached 1, inf
-        # inside the warm-up, where a posterior not yet held to the prior fits the data best.
+        # val/select: the negative ELBO once the KL weight is 1; inf in the warm-up (the posterior not yet held)
         warm = self.model.schedule(progress)["kl_weight"] >= 1.0
         terms["select"] = terms["nelbo"] if warm else torch.full_like(terms["nelbo"], float("inf"))
         self.log_dict({f"val/{k}": v for k, v in terms.items()}, batch_size=batch["states"].shape[0], sync_dist=True)
@@ -288,8 +292,7 @@ class RelationalVAEModule(L.LightningModule):
         terms = self.model.loss(out, self.progress())
         bs = batch["states"].shape[0]
         self.log_dict({f"test/{k}": v for k, v in terms.items() if k != "loss"}, batch_size=bs, sync_dist=True)
-        # The model's own cut (its duration slots), beside the type switches that test/segments_per_edge counts:
-        # one-step slots holding the same type look like one long segment there.
+        # the model's own cut (its slots), beside the type switches test/segments_per_edge counts (runs of one type)
         self._log_segments("test", out, batch)
         present = edge_mask(batch["mask"][:, :-1]).transpose(1, 2)  # [B, E, T-1]
         posterior, prior = out.posterior_types(), self.model.online_types(out.h_fwd, present)
@@ -352,9 +355,8 @@ class RelationalVAEModule(L.LightningModule):
         self.predict_scores = torch.nn.ModuleDict(scores).to(self.device)
 
     def _score_forecast(self, x: torch.Tensor, mask: torch.Tensor, forecast: torch.Tensor) -> None:
-        """Where the input holds the forecast's future, score the forecast [B, P, N, D] and constant
-        velocity's in data units, at the frames of agents present since the burn-in's last frame
-        (:func:`~dider.protocol.scored_targets`, as the test pass scores them)."""
+        """Where the input holds the forecast's future, score the forecast [B, P, N, D] and constant velocity's in
+        data units, at the frames of agents present since the burn-in's last frame (as the test pass does)."""
         burn_in, steps = self.predict_forecast
         if x.shape[1] < burn_in + steps:
             return
@@ -366,10 +368,8 @@ class RelationalVAEModule(L.LightningModule):
             self.predict_scores[name].update(units(pred), target, scored)
 
     def prediction_scores(self) -> dict[str, torch.Tensor]:
-        """After ``mode=predict``: what each edge type means (``predict/typeK/...``, :func:`profile_values`)
-        and, with a forecast on inputs that hold its future, ``predict/ade/hXX``, ``predict/cv/ade/hXX``,
-        ``predict/ade_vs_cv/hXX``, ... (:func:`displacement_values`). Every rank calls it (the metrics reduce
-        over ranks)."""
+        """After ``mode=predict``: what each edge type means (``predict/typeK/...``) and, with a forecast on inputs
+        that hold its future, ``predict/ade/hXX``, ``predict/ade_vs_cv/hXX``, ... Every rank calls it."""
         scores, out = self.predict_scores or {}, {}
         if "types" in scores and scores["types"].update_count:
             out |= profile_values("predict", scores["types"])
@@ -378,8 +378,7 @@ class RelationalVAEModule(L.LightningModule):
         return out
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        # What a checkpoint needs to be used on new data on its own (dider.load): the package version and
-        # the data's description and normaliser; the model config is in the hyper-parameters.
+        # what dider.load needs beside the hyper-parameters: the package version, the data's description and normaliser
         dm = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
         stamp(checkpoint, version=__version__, data=data_description(dm))
 
@@ -388,13 +387,14 @@ class RelationalVAEModule(L.LightningModule):
         upgrade(checkpoint)
 
     def configure_optimizers(self) -> Any:
-        make = instantiate(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True})
-        # On a GPU the optimiser keeps its step count on the device (``capturable``): the update then reads nothing
-        # back to the host, and a CUDA graph can hold it. The arithmetic is the same.
+        make = build(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True}, "optimizer",
+                     "model config", "model.optimizer", self.trust)
+        # on a GPU the step count stays on the device (``capturable``): a CUDA graph can hold the update, same maths
         capturable = self.device.type == "cuda" and "capturable" in inspect.signature(make.func).parameters
         opt = make(params=self.parameters(), **({"capturable": True} if capturable else {}))
         if self.hparams.scheduler is None:
             return opt
-        scheduler = instantiate(self.hparams.scheduler)(optimizer=opt)
+        make = build(self.hparams.scheduler, "scheduler", "model config", "model.scheduler", self.trust)
+        scheduler = make(optimizer=opt)
         # name: the tag LearningRateMonitor logs the rate under (callbacks.lr_monitor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": scheduler, "interval": "epoch", "name": "train/lr"}}

@@ -199,7 +199,7 @@ def _store_problem(uri: str) -> str | None:
 # The top-level keys the app reads (experiments may add lookup tables such as edges_per_model).
 TOP_LEVEL_KEYS = {"seed", "mode", "ckpt_path", "deterministic", "threads", "allocator", "compile", "cuda_graph",
                   "output_dir", "optimized_metric", "eval", "predict", "protocol", "data", "model", "trainer", "logger",
-                  "callbacks", "hydra", "hparams_search", "edges_per_model"}
+                  "callbacks", "hydra", "hparams_search", "edges_per_model", "trust"}
 
 
 def config_warnings(cfg: DictConfig) -> list[str]:

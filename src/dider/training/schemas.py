@@ -94,11 +94,11 @@ def _plain(value: Any) -> Any:
 
 
 def module_schema() -> type:
-    """The model config's top: the LightningModule's arguments (``net`` holds the network's config; ``model``,
-    that config's older name, is for checkpoints only), with the network's ``name`` and ``num_edges``, which the
-    model's top holds so that users type ``model.num_edges`` (``net`` interpolates them)."""
+    """The model config's top: the LightningModule's settings (``net`` holds the network's config; ``trust`` is the
+    caller's, not a setting), with the network's ``name`` and ``num_edges``, which the model's top holds so that
+    users type ``model.num_edges`` (``net`` interpolates them)."""
     network = inspect.signature(RelationalVAE.__init__).parameters
-    return schema(RelationalVAEModule, exclude=("model",), target=False,
+    return schema(RelationalVAEModule, exclude=("trust",), target=False,
                   extra={k: network[k].default for k in ("name", "num_edges")})
 
 
