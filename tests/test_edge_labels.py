@@ -1,60 +1,53 @@
-"""The label alignment, pinned through the metrics: the batch labels transition t -> t+1 with the push that
-produced x_{t+1}; the ground truth scores 1.0 against itself, and labels one step late (the public DNRI
-code's alignment, which scores transition t against the push that produced x_t) score what that implies."""
+"""Ground-truth edge labels and the model's types are matched before any work: labels beyond ``model.num_edges``
+are refused once the data are read, naming the file, the largest label and the key, in training and in eval."""
 
-import torch
+from __future__ import annotations
 
-from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2
-from dider.evaluation.metrics import BoundaryF1, EdgeAccuracy
-from helpers.flat import flat
+import numpy as np
+import pytest
 
+from dider.run import train
+from tests.helpers.fixtures import write_trajectories
 
-def first_test_batch(tmp_path) -> dict[str, torch.Tensor]:
-    dm = flat("synth", num_train=8, num_val=4, num_test=200, loader={"eval_batch_size": 200},
-                         cache_dir=str(tmp_path), seed=5)
-    dm.prepare_data()
-    dm.setup()
-    return next(iter(dm.test_dataloader()))
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def test_labels_mark_the_transition_they_drive(tmp_path):
-    batch = first_test_batch(tmp_path)
-    vel = batch["states"][..., 2:]  # normalised: an affine map per feature, so a change stays a change
-    dv = (vel[:, 1:, 2] - vel[:, :-1, 2]).norm(dim=-1)  # [S, T-1]: particle 2's velocity change over t -> t+1
-    pushed = (batch["edges"][..., [EDGE_0_TO_2, EDGE_1_TO_2]] > 0).any(-1)  # [S, T-1]
-    assert pushed.any() and (~pushed).any()
-    assert (dv[pushed] > 1e-5).all() and (dv[~pushed] < 1e-5).all()
+def _labelled(path, top: int):
+    """An npz of random walks whose edge labels take every value 0..top."""
+    arrays = write_trajectories(path, num=48, steps=16, agents=3)
+    rng = np.random.default_rng(1)
+    edges = rng.integers(0, top + 1, (48, 16, 6))
+    edges[0, 0, 0] = top
+    np.savez(path, **arrays, edges=edges)
+    return path
 
 
-def test_truth_scores_one_and_a_late_copy_scores_what_the_shift_implies(tmp_path):
-    edges = first_test_batch(tmp_path)["edges"]  # [S, T-1, E]
-    perfect = EdgeAccuracy()
-    perfect.update(edges, edges)
-    assert perfect.compute().tolist() == [1.0, 1.0]
+def _data(path) -> list[str]:
+    return ["data=trajectories", f"data.source.path={path}", "protocol.burn_in=4", "protocol.horizons=[1,4]",
+            "logger=none", "callbacks.timelines.num_clips=0"]
 
-    late = torch.cat([torch.zeros_like(edges[:, :1]), edges[:, :-1]], dim=1)  # transition t gets label t-1
-    acc = EdgeAccuracy()
-    acc.update(late, edges)
-    truth, guess = (edges > 0), (late > 0)
-    # recall by class, counted by hand: every step of a push but its first is still covered
-    none = (~truth & ~guess).sum().item() / (~truth).sum().item()
-    interaction = (truth & guess).sum().item() / truth.sum().item()
-    assert acc.compute().tolist() == [float(torch.tensor(none, dtype=torch.float32)),
-                                      float(torch.tensor(interaction, dtype=torch.float32))]
-    pushes = (truth[:, 1:] & ~truth[:, :-1]).sum().item() + truth[:, 0].sum().item()  # one first step each
-    assert interaction == 1 - pushes / truth.sum().item()
-    assert 0.5 < interaction < 1.0  # pushes last several steps: one step late still finds most of each
 
-    # Clips whose pushes keep off both ends: there a one-step-late copy moves every switch by exactly one.
-    inner = ~(truth[:, :1] | truth[:, -2:]).flatten(1).any(1)
-    truth_t, late_t = edges[inner].transpose(1, 2), late[inner].transpose(1, 2)
-    assert (truth_t > 0).any()
-    f1 = BoundaryF1(tolerance=2)
-    f1.update(truth_t, truth_t)
-    assert f1.compute().item() == 1.0
-    f1 = BoundaryF1(tolerance=1)
-    f1.update(late_t, truth_t)
-    assert f1.compute().item() == 1.0  # every switch found within one step
-    f1 = BoundaryF1(tolerance=0)
-    f1.update(late_t, truth_t)
-    assert f1.compute().item() < 0.05  # exact only where a one-step push's late start meets its true end
+def test_labels_beyond_the_types_are_refused_before_training(make_cfg, tmp_path):
+    path = _labelled(tmp_path / "three_types.npz", 2)
+    run = tmp_path / "run"
+    with pytest.raises(ValueError) as refused:
+        train(make_cfg([*_data(path), "model.num_edges=2"], out=run))
+    message = str(refused.value)
+    assert str(path) in message and "up to 2" in message and "model.num_edges=2" in message
+    assert "model.num_edges=3" in message  # the way out
+    assert not list(run.glob("checkpoints/*.ckpt"))  # nothing trained
+
+
+def test_labels_within_the_types_train_and_score(make_cfg, tmp_path):
+    path = _labelled(tmp_path / "three_types.npz", 2)
+    metrics = train(make_cfg([*_data(path), "model.num_edges=3"], out=tmp_path / "run"))
+    assert 0.0 <= metrics["test/edge_acc/posterior/matched"] <= 1.0
+
+
+def test_eval_of_a_checkpoint_on_labels_beyond_its_types_is_refused(make_cfg, tmp_path):
+    run = tmp_path / "run"
+    train(make_cfg([*_data(_labelled(tmp_path / "two_types.npz", 1)), "model.num_edges=2"], out=run))
+    path = _labelled(tmp_path / "four_types.npz", 3)
+    with pytest.raises(ValueError, match=r"four_types.npz: the test split's edge labels go up to 3, and the model "
+                                         r"has model.num_edges=2"):
+        train(make_cfg([*_data(path), "mode=eval", f"ckpt_path={run}"], out=tmp_path / "eval"))

@@ -32,8 +32,9 @@ L = torch.long
 
 
 def assert_values(actual: torch.Tensor, expected: float | Sequence[float]) -> None:
-    """compute() divides float64 sums, then casts to float32: compare against the float32 of the hand value."""
-    torch.testing.assert_close(actual, torch.tensor(expected, dtype=torch.float32))
+    """compute() divides float64 sums (the error metrics keep float64; the shares cast to float32): compare in the
+    metric's dtype."""
+    torch.testing.assert_close(actual, torch.tensor(expected, dtype=actual.dtype))
 
 
 def compute_quietly(metric: Metric) -> torch.Tensor | tuple[torch.Tensor, ...]:

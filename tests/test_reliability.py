@@ -153,6 +153,27 @@ def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers
     assert "test/mse/h01" in whole and identical(resumed, whole)
 
 
+def test_terminated_during_validation_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path):
+    """SIGTERM at validation batch 1 of epoch 1 of 3: the resumed run validates epoch 1 again (a best-checkpoint
+    candidate like the uninterrupted run's), trains epoch 2 in the uninterrupted order, and every test metric and
+    every validation log line equals the uninterrupted run's."""
+    base = ["seed=3", "logger=none", "trainer.max_epochs=3", "data.num_train=64", "data.num_val=48",
+            "data.loader.eval_batch_size=16"]  # 3 validation batches an epoch
+    whole = train(make_cfg(base, out=tmp_path / "whole"))
+    stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=1",
+            "+callbacks.stop.batch=1", "+callbacks.stop.loop=val"]
+    with pytest.raises(SystemExit) as stopped:
+        train(make_cfg(base + stop, out=tmp_path / "run"))
+    assert stopped.value.code == 143
+    resumed = train(make_cfg(base + ["ckpt_path=last"], out=tmp_path / "run"))
+    assert "test/mse/h01" in whole and identical(resumed, whole)
+    epochs = lambda run: [line.split("] - ", 1)[1].rsplit("(", 1)[0] for line in  # noqa: E731
+                          (run / "run.log").read_text().splitlines() if "] - epoch " in line]
+    assert epochs(tmp_path / "run")[-3:] == epochs(tmp_path / "whole")[-3:]
+    assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == sorted(
+        p.name for p in (tmp_path / "whole" / "checkpoints").iterdir())
+
+
 # ------------------------------------------------------------------------------------------ determinism
 
 

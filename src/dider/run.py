@@ -303,6 +303,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         raise SystemExit(TERMINATED) from None
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
+    metrics |= getattr(trainer.lightning_module, "test_values", {})  # the test metrics unrounded (the log's float32)
     if trainer.is_global_zero:
         log_results(loggers, cfg, metrics, trainer.global_step)
     objective = _objective(cfg, trainer, callbacks, metrics)

@@ -135,7 +135,7 @@ class TrainedModel:
             if frame_rate is None:
                 raise ValueError("frame_rate: needed for finite-difference velocities (the training data did not "
                                  "record one); pass frame_rate=... or velocities=...")
-        data = trajectory_states(arrays, "input", float(frame_rate or 1.0))
+        data = trajectory_states(arrays, "input", float(frame_rate or 1.0), self.normalizer.origin)
         if (steps := data["states"].shape[1]) < MIN_STEPS:
             how = "" if velocities is not None else " with finite-difference velocities"
             raise ValueError(f"positions: {arrays['positions'].shape[1]} frame(s) a clip give {steps} step(s) of "
@@ -194,7 +194,7 @@ class TrainedModel:
             pred = self.network.forecast_after(states, m, burn_in, steps, samples=samples)
         if samples:  # [S, K, ...] -> [K, S, ...]
             pred = pred.transpose(0, 1)
-        xy = self.normalizer.denormalize(pred.float().cpu())[..., :2]
+        xy = self.normalizer.to_user(self.normalizer.denormalize(pred.float().cpu()))[..., :2]
         return xy.masked_fill(~m[:, burn_in - 1, None, :, None].cpu(), float("nan")).numpy()
 
 

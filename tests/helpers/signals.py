@@ -10,13 +10,22 @@ import lightning as L
 
 
 class TerminateAt(L.Callback):
-    """Sends SIGTERM to this process after training batch ``batch`` of epoch ``epoch`` (0-based), once."""
+    """Sends SIGTERM to this process after batch ``batch`` of epoch ``epoch`` (0-based) of ``loop``: ``train``, or
+    ``val`` (the epoch's validation, not the sanity check), once."""
 
-    def __init__(self, epoch: int, batch: int) -> None:
-        self.epoch, self.batch, self.sent = epoch, batch, False
+    def __init__(self, epoch: int, batch: int, loop: str = "train") -> None:
+        self.epoch, self.batch, self.loop, self.sent = epoch, batch, loop, False
+
+    def _at(self, trainer: L.Trainer, loop: str, batch_idx: int) -> None:
+        if (not self.sent and loop == self.loop and trainer.current_epoch == self.epoch and batch_idx == self.batch
+                and not trainer.sanity_checking):
+            self.sent = True
+            os.kill(os.getpid(), signal.SIGTERM)
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
-        if not self.sent and trainer.current_epoch == self.epoch and batch_idx == self.batch:
-            self.sent = True
-            os.kill(os.getpid(), signal.SIGTERM)
+        self._at(trainer, "train", batch_idx)
+
+    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                                batch_idx: int, dataloader_idx: int = 0) -> None:
+        self._at(trainer, "val", batch_idx)

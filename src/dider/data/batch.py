@@ -33,25 +33,49 @@ class Normalizer:
     """Maps positions and velocities separately to [-1, 1] with scalar min/max (DNRI's scheme).
 
     Scalar (not per-axis) ranges keep the geometry isotropic, so distances stay comparable in x and y.
+
+    "Raw" states (what :meth:`normalize` takes and :meth:`denormalize` gives, what data modules hold and metrics
+    in data units read) are positions relative to ``origin`` (x0, y0), which the reader subtracted in float64
+    before its float32 cast: tracks in UTM-sized coordinates (5e6 m) keep their centimetres, which float32 rounds
+    to 0.5 m. :meth:`to_user` adds it back where positions leave (predictions, the explorer, the API);
+    :meth:`from_user` takes the user's coordinates in.
     """
 
-    def __init__(self, pos_range: tuple[float, float], vel_range: tuple[float, float]) -> None:
+    def __init__(self, pos_range: tuple[float, float], vel_range: tuple[float, float],
+                 origin: tuple[float, float] = (0.0, 0.0)) -> None:
         for name, (lo, hi) in {"pos_range": pos_range, "vel_range": vel_range}.items():
             if not hi > lo:
                 raise ValueError(f"Normalizer {name}={(lo, hi)}: max must exceed min")
         self.pos_range = (float(pos_range[0]), float(pos_range[1]))
         self.vel_range = (float(vel_range[0]), float(vel_range[1]))
+        self.origin = (float(origin[0]), float(origin[1]))
 
     @classmethod
-    def fit(cls, states: torch.Tensor, mask: torch.Tensor | None = None) -> Normalizer:
-        """states: [..., N, 4] raw; mask: [..., N] bool (present agents) or None."""
+    def fit(cls, states: torch.Tensor, mask: torch.Tensor | None = None,
+            origin: tuple[float, float] = (0.0, 0.0)) -> Normalizer:
+        """states: [..., N, 4] raw (relative to ``origin``); mask: [..., N] bool (present agents) or None."""
         flat = states.reshape(-1, 4)
         if mask is not None:
             flat = flat[mask.reshape(-1)]
         if flat.numel() == 0:
             raise ValueError("Normalizer.fit: no present agent states to fit on")
         pos, vel = flat[:, :2], flat[:, 2:]
-        return cls((pos.min().item(), pos.max().item()), (vel.min().item(), vel.max().item()))
+        return cls((pos.min().item(), pos.max().item()), (vel.min().item(), vel.max().item()), origin)
+
+    def _shift(self, states: torch.Tensor, sign: float) -> torch.Tensor:
+        """[..., 4] float64 with ``sign`` x origin added to the positions."""
+        states = states.double()
+        if self.origin == (0.0, 0.0):
+            return states
+        return states + states.new_tensor([sign * self.origin[0], sign * self.origin[1], 0.0, 0.0])
+
+    def from_user(self, states: torch.Tensor) -> torch.Tensor:
+        """[..., 4] in the user's coordinates (float64 keeps large ones) -> [..., 4] float32 raw."""
+        return self._shift(states, -1.0).float()
+
+    def to_user(self, states: torch.Tensor) -> torch.Tensor:
+        """[..., 4] raw (e.g. :meth:`denormalize`'s) -> [..., 4] float64 in the user's coordinates."""
+        return self._shift(states, 1.0)
 
     def _lo_span(self, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lo = torch.tensor([self.pos_range[0]] * 2 + [self.vel_range[0]] * 2, dtype=ref.dtype, device=ref.device)
@@ -69,4 +93,4 @@ class Normalizer:
         return (states + 1.0) * (span / 2.0) + lo
 
     def state_dict(self) -> dict[str, tuple[float, float]]:
-        return {"pos_range": self.pos_range, "vel_range": self.vel_range}
+        return {"pos_range": self.pos_range, "vel_range": self.vel_range, "origin": self.origin}

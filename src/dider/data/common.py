@@ -331,6 +331,11 @@ class BaseDataModule(L.LightningDataModule):
         """Each built split's clip length in steps (after ``setup``), which the forecast protocol must fit."""
         return {split: int(ds.states.shape[1]) for split, ds in self.datasets.items()}
 
+    def largest_edge_label(self) -> dict[str, int]:
+        """Each built split's largest ground-truth edge type (after ``setup``), for the splits that have labels."""
+        labelled = {split: getattr(ds, "edges", None) for split, ds in self.datasets.items()}
+        return {split: int(e.max()) for split, e in labelled.items() if e is not None and e.numel()}
+
     def background(self, split: str, index: int) -> tuple[object, tuple[float, float, float, float]] | None:
         """An image to draw clip ``index`` of ``split`` on, with its extent in the data's raw units (for
         ``imshow``), or None (the default: no scene image)."""

@@ -17,8 +17,10 @@ does). A step whose speed exceeds ``max_speed`` (data units per second) is a jum
 track re-acquired), not motion: the agent is absent there, so the track breaks instead of feeding an impossible
 velocity to the model and to the normalisation's range. Windows of ``seq_len`` steps start every ``stride`` steps of
 a scene; a window keeps the agents present in >= ``min_agent_steps`` of its steps (ordered by id) and is dropped with
-fewer than ``min_agents``. A window's ``frame`` is the table's frame of its step 0. Bad input raises before any
-windowing, naming the file, the column and the CSV line (parquet: the row).
+fewer than ``min_agents``. A window's ``frame`` is the table's frame of its step 0. Positions are held relative
+to the table's centre (subtracted in float64 before the windows' one float32 rounding, so coordinates of any size,
+UTM's 5e6 m included, keep their precision; a trained model keeps its origin, and predictions add it back). Bad
+input raises before any windowing, naming the file, the column and the CSV line (parquet: the row).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import torch
 
 from dider.data.packed import join
 from dider.data.table_reading import id_name
-from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows
+from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows, midpoint
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +57,7 @@ def scene_grid(xy: np.ndarray, vel: np.ndarray | None, step: np.ndarray, agent: 
     if vel is not None:
         grid[step, agent, 2:] = vel
         return grid, present
-    # Differences in float64 before the float32 cast: large coordinates (e.g. UTM) keep their precision.
+    # Differences in float64, before the origin is subtracted and the windows are cast to float32.
     grid[1:, :, 2:] = (grid[1:, :, :2] - grid[:-1, :, :2]) * rate
     both = present[1:] & present[:-1]  # a velocity needs the agent at both ends of the step
     return grid[1:] * both[..., None], both
@@ -81,10 +83,11 @@ def _too_few_frames(path: Path | str, seq_len: int, downsample: int, drop: int, 
 
 
 def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, w: Windows, scenes: Sequence[int],
-                  stride: int) -> dict[str, Any]:
+                  stride: int, origin: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
     """Cut the ``scenes`` (indices, in order) of a read table (:func:`~dider.data.table_reading.read_table`'s dict;
-    ``path`` names it in messages) into packed windows (raw units) starting every ``stride`` steps: a cut of
-    :class:`~dider.data.tracks.Tracks`. Steps faster than ``w.max_speed`` are absent (a warning counts them)."""
+    ``path`` names it in messages) into packed windows (raw units: positions less ``origin``) starting every
+    ``stride`` steps: a cut of :class:`~dider.data.tracks.Tracks`. Steps faster than ``w.max_speed`` are absent (a
+    warning counts them)."""
     lo_hi, first_frame, keep, step, hint = _scene_steps(t, path, w.downsample)
     drop = 1 if t["vel"] is None else 0
     parts: list[dict[str, Any]] = []
@@ -104,7 +107,7 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, w: Win
         steps_kept, steps_fast = steps_kept + int(present.sum()), steps_fast + fast
         longest = max(longest, present.shape[0])
         states, mask, counts, starts, agent = grid_windows(grid, present, w.seq_len, stride, w.min_agent_steps,
-                                                           w.min_agents, w.max_agents)
+                                                           w.min_agents, w.max_agents, origin)
         parts.append({
             "states": torch.from_numpy(states), "mask": torch.from_numpy(mask),
             "offsets": torch.from_numpy(np.concatenate([[0], np.cumsum(counts)])),
@@ -175,6 +178,11 @@ class TableTracks:
         return [str(i) if names is None else names[i] for i in self.table["scene_ids"].tolist()]
 
     @property
+    def origin(self) -> tuple[float, float]:
+        """The centre of the table's positions (float64): what its windows are relative to when cut for training."""
+        return midpoint(self.table["xy"])
+
+    @property
     def scene_ids(self) -> torch.Tensor:
         """[Z] long: the scene column's ids (or codes into ``names["scene"]``); [0] without one."""
         return torch.from_numpy(self.table["scene_ids"])
@@ -192,7 +200,8 @@ class TableTracks:
     def has_classes(self) -> bool:
         return self.table["agent_class"] is not None
 
-    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]]) -> dict[str, dict[str, Any]]:
-        """group -> (scene indices, stride) to the group's windows (:func:`table_windows`)."""
-        return {group: table_windows(self.table, self.where(), self.frame_rate, self.windows, scenes, stride)
+    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
+            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+        """group -> (scene indices, stride) to the group's windows (:func:`table_windows`), relative to ``origin``."""
+        return {group: table_windows(self.table, self.where(), self.frame_rate, self.windows, scenes, stride, origin)
                 for group, (scenes, stride) in groups.items()}

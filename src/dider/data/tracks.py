@@ -42,8 +42,8 @@ log = logging.getLogger(__name__)
 class Tracks(Protocol):
     """A source's scenes once opened (``source.open(windows, cache_dir)``), as :class:`TracksDataModule` reads them.
 
-    ``cut`` returns, per group, the packed windows of its scenes in scene order (raw units): states [P, T, 4] float32
-    (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
+    ``cut`` returns, per group, the packed windows of its scenes in scene order (raw units: positions less the
+    ``origin`` it is given, subtracted before any float32 rounding): states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
     by id), agent [P] long (ids, or codes into ``names["agent"]``), agent_class [P] long or None (codes into
     class_names), class_names, start [W] long (the window's first step on its scene's grid of steps), scene [W] long
     (index into ``scenes``), frame [W] long (the source's frame of the window's step 0: a table's steps count from
@@ -57,9 +57,11 @@ class Tracks(Protocol):
     has_scene: bool  # whether the input names its scenes (a table without a scene column is one scene)
     has_classes: bool  # whether the agents have classes (agent_class in the cuts)
     frame_rate: float  # frames per second of the source's frames (known once cut)
+    origin: tuple[float, float]  # (x0, y0) the windows of a training run are relative to: the source's centre
 
-    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]]) -> dict[str, dict[str, Any]]:
-        """group -> (scene indices, stride) to the group's windows."""
+    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
+            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+        """group -> (scene indices, stride) to the group's windows, positions relative to ``origin``."""
         ...
 
 
@@ -160,7 +162,10 @@ class TracksDataModule(BaseDataModule):
         if normalizer is None and self.pair_rules is not None and not tracks.has_classes:
             raise ValueError(f"data.pairs: the consistency check needs the agents' classes, and "
                              f"{self.source.where()} has none (a table's: data.source.columns.agent_class)")
-        cuts = tracks.cut(self._groups(stage))
+        # A trained model's windows are relative to its training origin; a new run's to the source's centre.
+        trained = normalizer if normalizer is not None else self.normalizer
+        origin = trained.origin if trained is not None else tracks.origin
+        cuts = tracks.cut(self._groups(stage), origin)
         if getattr(self.source, "frame_rate", 0) is None:  # a source that reads its rate: the checkpoint carries it
             self.source = replace(self.source, frame_rate=tracks.frame_rate)
             self.hparams["source"] = asdict(self.source)
@@ -173,7 +178,7 @@ class TracksDataModule(BaseDataModule):
         parts, by = self._split(cuts)
         train = parts["train"]
         try:
-            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"]))
+            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"], origin))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
             scenes = [tracks.scenes[i] for i in torch.unique(train["scene"]).tolist()]
             raise ValueError(f"{self.source.where()}: cannot fit the normalisation on the train split (scenes "

@@ -89,15 +89,29 @@ def cut_windows(present: np.ndarray, seq_len: int, stride: int, min_agent_steps:
 
 
 def grid_windows(grid: np.ndarray, present: np.ndarray, seq_len: int, stride: int, min_agent_steps: int,
-                 min_agents: int, max_agents: int | None = None
+                 min_agents: int, max_agents: int | None = None, origin: tuple[float, float] = (0.0, 0.0)
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One scene's windows, packed (:func:`cut_windows` decides which).
 
-    grid: [S, K, 4] (x, y, vx, vy; any float dtype), present: [S, K] bool -> states [P, T, 4] float32 (rounded
-    once from the grid's values), mask [P, T] bool, counts [W] (agents per window), starts [W] and agent [P]
-    int64 (each row's column in the grid), rows by window then agent.
+    grid: [S, K, 4] (x, y, vx, vy; any float dtype), present: [S, K] bool -> states [P, T, 4] float32 (positions
+    less ``origin``, taken in the grid's dtype before the one rounding to float32, so that large coordinates keep
+    their precision; zeros where absent), mask [P, T] bool, counts [W] (agents per window), starts [W] and agent
+    [P] int64 (each row's column in the grid), rows by window then agent.
     """
     starts, window, agent = cut_windows(present, seq_len, stride, min_agent_steps, min_agents, max_agents)
     steps = starts[window][:, None] + np.arange(seq_len)[None, :]  # [P, T]
-    states = grid[steps, agent[:, None]].astype(np.float32, copy=False)
-    return states, present[steps, agent[:, None]], np.bincount(window, minlength=len(starts)), starts, agent
+    states, mask = grid[steps, agent[:, None]], present[steps, agent[:, None]]
+    if origin != (0.0, 0.0):
+        states = states - np.array([origin[0], origin[1], 0.0, 0.0]) * mask[..., None]
+    return (states.astype(np.float32, copy=False), mask, np.bincount(window, minlength=len(starts)), starts,
+            agent)
+
+
+def midpoint(xy: np.ndarray) -> tuple[float, float]:
+    """The centre of the bounding box of positions xy [R, 2] (float64): the origin a source's windows are
+    relative to (:class:`~dider.data.batch.Normalizer`)."""
+    if not len(xy):
+        return (0.0, 0.0)
+    lo, hi = xy.min(0).astype(np.float64), xy.max(0).astype(np.float64)
+    mid = lo / 2 + hi / 2  # halves first: no overflow near float64's range
+    return (float(mid[0]), float(mid[1]))

@@ -61,7 +61,7 @@ class HorizonMSE(Metric):
     def compute(self) -> torch.Tensor:
         """[H] MSE per horizon; NaN for a horizon no present agent reached (an empty metric is not a perfect
         0; :func:`dider.evaluation.scoring.horizon_values` warns naming it)."""
-        return (self.sum_sq / self.count).float()
+        return self.sum_sq / self.count  # float64: squares of large coordinates overflow float32
 
 
 class HorizonDisplacement(Metric):
@@ -101,7 +101,7 @@ class HorizonDisplacement(Metric):
 
     def compute(self) -> torch.Tensor:
         """[2, H]: ADE and FDE per horizon."""
-        return (self.sums / self.counts).float()  # 0 / 0 = NaN for an empty horizon
+        return self.sums / self.counts  # float64; 0 / 0 = NaN for an empty horizon
 
 
 class EdgeAccuracy(Metric):

@@ -204,8 +204,9 @@ def seeded_forecast(pl_module: Any, states: torch.Tensor, mask: torch.Tensor, bu
 
 
 def data_units(normalizer: Normalizer | None) -> Callable[[torch.Tensor], torch.Tensor]:
-    """Maps model states [..., D] to the data's units in float64 (identity without a normaliser): coordinates far
-    from 0 (UTM metres, say) keep their last digits, which fp32 (a 0.5 m step at 5e6) and bf16 would round."""
+    """Maps model states [..., D] to the data's units in float64, relative to the normaliser's origin (identity
+    without a normaliser): errors and distances are the same relative to any origin, and float64 keeps the digits
+    that bf16 would round and the squares that float32 would overflow."""
     return (lambda states: normalizer.denormalize(states.double())) if normalizer is not None else (lambda s: s)
 
 

@@ -31,7 +31,12 @@ def pair_features(states: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tenso
     """states [B, T, N, >=4] (positions, velocities, data units), mask [B, T, N] bool -> features
     [B, E, T-1, F] (:data:`PAIR_FEATURES`) and present [B, E, T-1] bool (both agents at t, the receiver at t+1)."""
     send, recv = edge_index(states.shape[2], states.device)
-    x = states.float()  # float32: [B, T-1, E, 2] intermediates of large scenes (inD: E ~ 3500) stay affordable
+    # float32: [B, T-1, E, 2] intermediates of large scenes (inD: E ~ 3500) stay affordable. Positions and
+    # velocities are scaled by powers of two (exact) to at most 1 first, so that squares of coordinates of any size
+    # stay in float32's range; the features are scaled back in float64.
+    scale = states[..., :4].abs().amax(dim=(0, 1, 2)).view(2, 2).amax(1).double()  # [2]: positions, velocities
+    scale = torch.exp2(torch.ceil(torch.log2(scale.clamp_min(1.0))))
+    x = (states[..., :4].double() / scale.repeat_interleave(2)).float()
     pos, vel = x[:, :-1, :, :2], x[:, :-1, :, 2:4]  # [B, T-1, N, 2]
     rel, rel_vel = pos[:, :, recv] - pos[:, :, send], vel[:, :, recv] - vel[:, :, send]  # [B, T-1, E, 2]
     distance = rel.norm(dim=-1)
@@ -40,7 +45,8 @@ def pair_features(states: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tenso
     cross = v_s[..., 0] * v_r[..., 1] - v_s[..., 1] * v_r[..., 0]
     heading = torch.rad2deg(torch.atan2(cross, (v_s * v_r).sum(-1)).abs())
     accel = (x[:, 1:, recv, 2:4] - v_r).norm(dim=-1)
-    features = torch.stack([distance, closing, heading, accel], dim=-1).transpose(1, 2)
+    unit = torch.stack([scale[0], scale[1], scale.new_ones(()), scale[1]])  # distance, closing, heading, accel
+    features = (torch.stack([distance, closing, heading, accel], dim=-1).double() * unit).transpose(1, 2)
     present = (edge_mask(mask[:, :-1]) & mask[:, 1:, recv]).transpose(1, 2)
     return features, present
 

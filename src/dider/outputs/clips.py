@@ -181,7 +181,7 @@ def write_table(frame: pd.DataFrame, path: Path) -> list[Path]:
 
 # The dtypes clips.npz stores each key in (compact; types fit int8 for up to 127 edge types).
 NPZ_DTYPES = {"segments": np.int8, "per_step": np.int8, "prior": np.int8, "truth": np.int8, "probs": np.float16,
-              "step_probs": np.float16, "positions": np.float32, "forecast": np.float32, "forecast_samples": np.float32,
+              "step_probs": np.float16, "positions": np.float64, "forecast": np.float64, "forecast_samples": np.float64,
               "mask": np.bool_}
 
 
@@ -195,19 +195,19 @@ def write_clips_npz(path: Path, arrays: Mapping[str, torch.Tensor], extra: Mappi
 
 
 def explore_arrays(arrays: Mapping[str, torch.Tensor], dm: Any) -> dict[str, torch.Tensor]:
-    """Stacked clips as ``clips.npz`` holds them: ``states`` become ``positions`` [S, T, N, 2] in the data's
-    units (the data module's normaliser undone; zeros where absent); other keys are kept."""
+    """Stacked clips as ``clips.npz`` holds them: ``states`` become ``positions`` [S, T, N, 2] float64 in the
+    user's coordinates (the data module's normaliser undone, its origin added; zeros where absent), the forecasts
+    too; other keys are kept."""
     out = {k: v for k, v in arrays.items() if k != "states"}
     if "clip" not in out:  # a data set without source ids (synthetic): the clip's position in its split
         out["clip"] = torch.arange(arrays["mask"].shape[0])
-    if "states" in arrays:
-        norm = getattr(dm, "normalizer", None)
-        states = norm.denormalize(arrays["states"]) if norm is not None else arrays["states"]
-        out["positions"] = states[..., :2] * arrays["mask"][..., None]
     norm = getattr(dm, "normalizer", None)
+    user = (lambda s: norm.to_user(norm.denormalize(s.double()))) if norm is not None else (lambda s: s.double())
+    if "states" in arrays:
+        out["positions"] = user(arrays["states"])[..., :2] * arrays["mask"][..., None]
     for key in ("forecast", "forecast_samples"):
         if key in arrays:
-            out[key] = (norm.denormalize(arrays[key]) if norm is not None else arrays[key])[..., :2]
+            out[key] = user(arrays[key])[..., :2]
     return out
 
 

@@ -237,7 +237,7 @@ class TimelineFigures(L.Callback):
             rows = {label: data[key][i] for key, label in self.LABELS.items() if key in data}
             fig = timeline_figure(rows, num_types, title=f"test clip {index}", max_edges=self.max_edges)
             written.append(_add(trainer, f"test/timeline/{i:02d}", fig, self.output_dir / f"timeline_{i:02d}.png"))
-            states = norm.denormalize(data["states"][i]) if norm is not None else data["states"][i]
+            states = norm.to_user(norm.denormalize(data["states"][i])) if norm is not None else data["states"][i]
             background = dm.background("test", index) if dm is not None and hasattr(dm, "background") else None
             fig = trajectory_figure(states[..., :2], data["mask"][i], data["segments"][i], num_types,
                                     background, title=f"test clip {index}: interaction segments")
@@ -271,8 +271,9 @@ class TimelineFigures(L.Callback):
                 futures = model.forecast_after(x, m, burn_in, steps, samples=int(pl_module.hparams.samples))
             futures = futures[0].float().cpu()
         if norm is not None:
-            pred, cv = norm.denormalize(pred), norm.denormalize(cv)
-            futures = None if futures is None else norm.denormalize(futures)
+            user = lambda s: norm.to_user(norm.denormalize(s))  # noqa: E731
+            pred, cv = user(pred), user(cv)
+            futures = None if futures is None else user(futures)
         return pred[..., :2], cv[..., :2], None if futures is None else futures[..., :2]
 
 

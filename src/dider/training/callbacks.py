@@ -26,17 +26,29 @@ class NonFiniteError(FloatingPointError):
 
 class ProtocolFits(L.Callback):
     """Once the data are read, before any step: the model's burn-in and horizons must fit the clips it forecasts
-    (validation's in a fit, the test's in a test), named by the model's keys. Training clips may be shorter (DNRI
-    trains basketball on 40-step crops); prediction checks its own forecast length."""
+    (validation's in a fit, the test's in a test), named by the model's keys; training clips may be shorter (DNRI
+    trains basketball on 40-step crops); prediction checks its own forecast length. And ground-truth edge labels
+    must be types the model has: a label beyond ``model.num_edges`` has no row to score against (nor an oracle
+    roll-out), so the run is refused here, not after its last epoch."""
 
     SPLITS = {"fit": ("val",), "validate": ("val",), "test": ("test",)}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        steps = getattr(trainer.datamodule, "clip_steps", dict)()
+        dm = trainer.datamodule
+        steps = getattr(dm, "clip_steps", dict)()
         h = pl_module.hparams
         for split in self.SPLITS.get(stage, ()):
             if split in steps:
                 check_horizons(h.horizons, steps[split], h.burn_in, where=f", the {split} split's", integers=True)
+        k = pl_module.model.num_types
+        for split, largest in getattr(dm, "largest_edge_label", dict)().items():
+            if largest >= k and (stage == "fit" or split in self.SPLITS.get(stage, ())):
+                where = dm.source.where() if hasattr(getattr(dm, "source", None), "where") else "the data"
+                fix = (f"set model.num_edges={largest + 1} or more to train and score against these labels"
+                       if stage == "fit" else f"this model cannot score them (train one with model.num_edges="
+                       f"{largest + 1} or more)")
+                raise ValueError(f"{where}: the {split} split's edge labels go up to {largest}, and the model has "
+                                 f"model.num_edges={k} types (0..{k - 1}): {fix}")
 
 
 class EvalRandomState(L.Callback):
@@ -218,7 +230,10 @@ class ResumeMidEpoch(L.Callback):
 
     def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         order = getattr(getattr(trainer, "datamodule", None), "train_order", None)
-        inside = 0 < self.done < trainer.num_training_batches  # an epoch's end needs no position: the next draws
+        # Saved after a batch of the epoch and before its end (inside it, or in its validation): the resumed run
+        # finishes the epoch in its order (maybe no batch left) with the saved random state, so the next epoch
+        # draws its order as the uninterrupted run's did.
+        inside = 0 < self.done <= trainer.num_training_batches
         if order is not None and order.seed is not None and inside:
             checkpoint[self.CHECKPOINT_KEY] = {"seed": order.seed, "done": self.done}
 
@@ -235,7 +250,26 @@ class ResumeMidEpoch(L.Callback):
 class SaveOnTerminate(L.Callback):
     """On SIGTERM (a scheduler's time limit, ``kill``), Lightning stops training with ``SIGTERMException``:
     save the run's state to the checkpoint folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it (mid-epoch
-    from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits non-zero."""
+    from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits non-zero.
+
+    A SIGTERM during an epoch's validation waits for the validation to end (a validation is short beside a
+    scheduler's grace period): its metrics, and the best checkpoints they pick, are then the uninterrupted run's.
+    Stopped halfway, the resumed run could not validate that epoch again (Lightning resumes an evaluation from its
+    next batch, the earlier batches' means lost)."""
+
+    def __init__(self) -> None:
+        self._deferred = False
+
+    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                                batch_idx: int, dataloader_idx: int = 0) -> None:
+        # Lightning reads the flag right after this hook; it sets it again (and raises) once validation is over.
+        connector = trainer._signal_connector
+        if trainer.state.fn == "fit" and not trainer.sanity_checking and connector.received_sigterm:
+            connector.received_sigterm, self._deferred = False, True
+
+    def on_validation_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if self._deferred:
+            trainer._signal_connector.received_sigterm, self._deferred = True, False
 
     def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
         folder = getattr(trainer.checkpoint_callback, "dirpath", None)

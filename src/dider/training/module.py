@@ -320,9 +320,9 @@ class RelationalVAEModule(L.LightningModule):
 
     def on_test_epoch_end(self) -> None:
         values = self.test_metrics.compute()
+        self.test_values = {k: float(v) for k, v in values.items()}  # float64: the log's float32 ends at 3.4e38
         self.log_dict(values)
-        if self.trainer.is_global_zero and (warning := degenerate_types({k: float(v) for k, v in values.items()},
-                                                                          "test")):
+        if self.trainer.is_global_zero and (warning := degenerate_types(self.test_values, "test")):
             log.warning(warning)
 
     def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:

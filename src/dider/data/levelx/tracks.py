@@ -107,8 +107,14 @@ class LevelXTracks:
                 if not self.cache_path(self.files[i], params).exists():
                     self.recording(self.files[i], params)
 
-    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]]) -> dict[str, dict[str, Any]]:
-        """Each group's windows; every recording must run at one frame rate (one downsample factor, one step)."""
+    # A levelX recording's positions are metres from its own local origin (its UTM origin is in its metadata):
+    # small numbers, which the reader reads as float32.
+    origin = (0.0, 0.0)
+
+    def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
+            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+        """Each group's windows, relative to ``origin`` (a trained model's); every recording must run at one frame
+        rate (one downsample factor, one step)."""
         out, rates, seen = {}, {}, set()
         w, classes = self.windows, self.source.classes
         for group, (scenes, stride) in groups.items():
@@ -132,6 +138,9 @@ class LevelXTracks:
                              f"{self.source.columns.frame_rate}); select recordings of one rate with "
                              f"data.source.recordings")
         self.frame_rate = next(iter(rates.values()))
+        if origin != (0.0, 0.0):
+            for cut in out.values():
+                cut["states"] = cut["states"] - cut["mask"][..., None] * torch.tensor([*origin, 0.0, 0.0])
         return out
 
     def background(self, scene: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:

@@ -97,10 +97,12 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, Any]:
     return trajectory_states(_read_npz(path), path, frame_rate)
 
 
-def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rate: float = 1.0) -> dict[str, Any]:
+def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rate: float = 1.0,
+                      origin: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
     """Validate arrays of the npz layout (module docstring; ``path`` names their origin in errors) -> states
-    [S, T', N, 4] float32 raw (zeros where absent), mask [S, T', N] bool, edges [S, T'-1, E] long if given, and
-    ``first_frame``: the input's time index of step 0."""
+    [S, T', N, 4] float32 raw (positions less ``origin``, subtracted in float64 before the cast; zeros where
+    absent), mask [S, T', N] bool, edges [S, T'-1, E] long if given, and ``first_frame``: the input's time index
+    of step 0."""
     if "positions" not in arrays:
         raise ValueError(f"{path}: no 'positions' [S, T, N, 2]")
     for key, a in arrays.items():
@@ -113,6 +115,9 @@ def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rat
     s, t, n, _ = pos.shape
     if n < 2:
         raise ValueError(f"{path}: key 'positions' has {n} agent(s) per clip; relations need >= 2")
+    if origin != (0.0, 0.0):
+        with np.errstate(over="ignore", invalid="ignore"):  # inf stays inf, for check_finite to name
+            pos = pos.astype(np.float64) - np.asarray(origin)
     pos, mask = _float32(pos), _mask(arrays, path, (s, t, n))
     hint = "" if "mask" in arrays else " (mark absent agents with a 'mask' key)"
     check_finite(f"{path}: key 'positions'{hint}", pos, mask[..., None])
