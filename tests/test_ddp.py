@@ -44,8 +44,8 @@ def test_ddp_sim_matches_single_process_eval(make_cfg, tmp_path, cache_dir):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Starting with 2 processes" in proc.stderr + proc.stdout
     record = json.loads((run_dir / "metrics.json").read_text())
-    ckpt = record["checkpoint"]
-    assert ckpt and os.path.isfile(ckpt)
+    ckpt = str(run_dir / record["checkpoint"])
+    assert record["checkpoint"] and os.path.isfile(ckpt)
 
     single = train(make_cfg([*COMMON, "mode=eval", f"ckpt_path={ckpt}"], tiny=False, out=tmp_path / "eval"))
     for key in ("test/mse/h01", "test/mse/h15", "test/edge_acc/posterior/interaction", "test/edge_acc/posterior/none",

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from tests.helpers.fixtures import write_trajectories
 
 from dider.run import train
-from tests.helpers.fixtures import write_trajectories
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -200,6 +200,26 @@ def test_script_end_tag_in_names_is_escaped(tmp_path: Path) -> None:
     assert embedded(page)["model"] == "</script><b>x"
 
 
+HOSTILE = "<!--<script>a & b</script>"  # "<!--<script" puts the HTML parser into script-data double-escaped state
+
+
+def test_browser_runs_the_page_whose_names_hold_markup(tmp_path: Path) -> None:
+    """A model and agents named with comment and script markup: the data block holds no <, > or &, the page's own
+    code runs in headless Chromium (it draws the arrows of the frame) and the names read back as given."""
+    path = tmp_path / "run" / "clips.npz"
+    write_clips(path, forecast=True)  # with agent names
+    with np.load(path) as npz:
+        data = dict(npz)
+    names = np.array([f"{HOSTILE}{i}" for i in range(len(data["agent_names"]))])
+    np.savez_compressed(path, **(data | {"model": np.array(HOSTILE), "agent_names": names}))
+    page = write_explorer(tmp_path / "run")
+    block = page.read_text().split("const DATA = ", 1)[1].split(";</script>", 1)[0]
+    assert not set("<>&") & set(block)
+    assert embedded(page)["model"] == HOSTILE and embedded(page)["agent_names"][0] == f"{HOSTILE}0"
+    dom = run_chromium(browser(), page.resolve().as_uri() + "#clip=0&frame=9", "--dump-dom")
+    assert read_arrows(dom).arrows == CLIP0_ARROWS[9]  # the explorer's script ran
+
+
 # ------------------------------------------------------------------------------------------------- CLI
 
 

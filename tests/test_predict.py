@@ -308,3 +308,67 @@ def test_predict_takes_the_threads_setting(run, new_data, tmp_path):
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_prediction_into_a_run_folder_goes_to_predict_name_and_leaves_the_runs_record(run, new_data, tmp_path):
+    """hydra.run.dir set to the training run: the prediction writes to predict/<data config>/ there; the run's
+    .hydra/ record (what report reads) and its run.log are byte for byte as they were."""
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(run, folder)
+    record = {p.relative_to(folder): p.read_bytes() for p in [*(folder / ".hydra").iterdir(), folder / "run.log"]}
+    assert len(record) == 4
+    predict(compose_cfg(["mode=predict", f"ckpt_path={folder}", "data=trajectories",
+                         f"data.source.path={new_data[0]}"], folder))
+    assert (folder / "predict" / "trajectories" / "predictions" / "clips.npz").is_file()
+    assert not (folder / "predictions").exists()
+    assert {k: (folder / k).read_bytes() for k in record} == record
+    # a fresh folder takes the prediction itself; predict.name picks the subfolder's name
+    predict(compose_cfg(["mode=predict", f"ckpt_path={folder}", "data=trajectories", "predict.name=new",
+                         f"data.source.path={new_data[0]}"], folder))
+    assert (folder / "predict" / "new" / "predictions" / "complete.json").is_file()
+
+
+def test_sampled_futures_without_a_forecast_are_refused(run, new_data, tmp_path):
+    with pytest.raises(ConfigError, match=r"predict.samples=3: sampled futures need predict.forecast_steps"):
+        predict(compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories", "predict.samples=3",
+                             f"data.source.path={new_data[0]}"], tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_copied_or_moved_run_folder_loads_its_own_best_checkpoint(run, tmp_path):
+    """metrics.json names the best checkpoint relative to the folder: a copy loads the copy's file, a moved folder
+    its best epoch (not last.ckpt)."""
+    import shutil
+
+    record = json.loads((run / "metrics.json").read_text())
+    assert not Path(record["checkpoint"]).is_absolute() and record["checkpoint"] != "checkpoints/last.ckpt"
+    copy = tmp_path / "copy"
+    shutil.copytree(run, copy)
+    assert dider.load(copy).path == copy / record["checkpoint"]
+    moved = tmp_path / "moved"
+    copy.rename(moved)
+    assert dider.load(moved).path == moved / record["checkpoint"]
+
+
+@pytest.mark.parametrize("content, why", [
+    ("[1, 2]", r"metrics.json: not a run's record \(a JSON object with a 'metrics' object\)"),
+    ('{"metrics": {"test/nll": 1.0}, "checkp', r"metrics.json: not JSON \(half-written"),
+])
+def test_an_unreadable_run_record_is_named(run, tmp_path, content, why):
+    import shutil
+
+    folder = tmp_path / "run"
+    shutil.copytree(run, folder)
+    (folder / "metrics.json").write_text(content)
+    with pytest.raises(ValueError, match=why):
+        dider.load(folder)
+
+
+def test_a_checkpoint_whose_format_mark_is_no_number_is_named(run, tmp_path):
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    ckpt["dider"]["format"] = "abc"
+    torch.save(ckpt, tmp_path / "odd.ckpt")
+    with pytest.raises(ValueError, match=r"odd.ckpt: not a dider checkpoint \(its format mark dider.format='abc' "):
+        dider.load(tmp_path / "odd.ckpt")

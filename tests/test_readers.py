@@ -43,7 +43,9 @@ def test_the_reader_makes_steps_of_frames_and_scenes_of_files(tmp_path):
 
 @pytest.mark.parametrize("line, why", [("10 1 2.0", "line 2 is not four numbers"),
                                        ("10 1 x 2.0", "line 2 is not four numbers"),
-                                       ("10 1 nan 2.0", "line 2 is not four numbers")])
+                                       ("10 1 nan 2.0", "line 2 is not four numbers"),
+                                       ("1.43 1 1.0 2.0", "line 2: the frame number 1.43 is not a whole number"),
+                                       ("10 2.5 1.0 2.0", "line 2: the agent number 2.5 is not a whole number")])
 def test_a_bad_line_is_named_with_its_file(tmp_path, line, why):
     (tmp_path / "bad.txt").write_text(f"0 1 1.0 2.0\n{line}\n")
     with pytest.raises(ValueError, match=f"bad.txt: {why}"):

@@ -133,24 +133,44 @@ def test_killed_run_resumes_to_the_same_metrics(tmp_path, cache_dir):
     assert identical(resumed_metrics, reference)
 
 
-def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path, capsys):
-    """A real SIGTERM (a scheduler's time limit) after batch 3 of epoch 2: exit status 143, last.ckpt saved with the
-    epoch's position, the resume command printed; ckpt_path=last then trains on exactly the batches the
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path, capsys, sig):
+    """A real SIGTERM (a scheduler's time limit) or Ctrl-C after batch 3 of epoch 2: exit status 143, last.ckpt saved
+    with the epoch's position, the resume command printed; ckpt_path=last then trains on exactly the batches the
     uninterrupted run trained on (the rest of the interrupted epoch in its order, the same random stream), and every
     test metric equals the uninterrupted run's."""
     base = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=96"]  # 6 batches an epoch
     whole = train(make_cfg(base, out=tmp_path / "whole"))
     stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=1",
-            "+callbacks.stop.batch=2"]
+            "+callbacks.stop.batch=2", f"+callbacks.stop.signal={sig}"]
     with pytest.raises(SystemExit) as stopped:
         train(make_cfg(base + stop, out=tmp_path / "run"))
     assert stopped.value.code == 143
-    assert "terminated (SIGTERM); resume with: python -m dider.run" in capsys.readouterr().err
+    assert "terminated (SIGTERM or Ctrl-C); resume with: python -m dider.run mode=train" in capsys.readouterr().err
+    assert "terminated (SIGTERM or Ctrl-C) at epoch 1, step 9: saved" in (tmp_path / "run" / "run.log").read_text()
     last = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["global_step"] == 9 and last["dider_epoch_position"]["done"] == 3
     assert not (tmp_path / "run" / "metrics.json").exists()
     resumed = train(make_cfg(base + ["ckpt_path=last"], out=tmp_path / "run"))
     assert "test/mse/h01" in whole and identical(resumed, whole)
+
+
+def test_an_interrupted_evaluation_prints_the_command_that_repeats_it(make_cfg, tmp_path, capsys):
+    """SIGTERM in an evaluation's test pass: the printed command is an evaluation (mode=eval, its checkpoint), and
+    followed it writes the evaluation's metrics, equal to an uninterrupted evaluation's."""
+    base = ["seed=3", "logger=none", "data.num_test=48", "data.loader.eval_batch_size=16"]
+    train(make_cfg(base, out=tmp_path / "train"))
+    ckpt = tmp_path / "train" / "checkpoints" / "last.ckpt"
+    whole = train(make_cfg([*base, "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "whole"))
+    stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=0",
+            "+callbacks.stop.batch=0", "+callbacks.stop.loop=test"]
+    with pytest.raises(SystemExit):
+        train(make_cfg([*base, "mode=eval", f"ckpt_path={ckpt}", *stop], out=tmp_path / "eval"))
+    command = capsys.readouterr().err.split("resume with: ", 1)[1].split()
+    assert command[:4] == ["python", "-m", "dider.run", "mode=eval"] and f"ckpt_path={ckpt}" in command
+    assert set(base) < set(command)  # the job's own overrides
+    again = [o for o in command[3:] if not o.startswith(("hydra.run.dir=", "+callbacks.stop"))]  # the probe off
+    assert identical(train(make_cfg(again, out=tmp_path / "eval")), whole)
 
 
 def test_terminated_during_validation_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path):
@@ -194,8 +214,9 @@ def test_eval_mode_recomputes_the_test_metrics(make_cfg, tmp_path):
     cfg = make_cfg(["seed=6", "logger=none", "trainer.max_epochs=2"], out=tmp_path / "train")
     trained = train(cfg)
     record = json.loads((tmp_path / "train" / "metrics.json").read_text())
-    ckpt = record["checkpoint"]
-    assert ckpt and Path(ckpt).is_file() and identical(record["metrics"], trained)
+    ckpt = str(tmp_path / "train" / record["checkpoint"])  # relative to the run folder
+    assert record["checkpoint"].startswith("checkpoints/") and Path(ckpt).is_file()
+    assert identical(record["metrics"], trained)
     torch.manual_seed(123)  # a different random state going in: evaluation must not depend on it
     cfg = make_cfg(["seed=6", "logger=none", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval")
     evaluated = train(cfg)
@@ -330,6 +351,10 @@ BAD_CONFIGS = [
     (["model.net.encoder.hidden=abc"], r"model.net.encoder.hidden='abc': must be an integer"),
     (["seed=abc"], r"seed='abc': must be an integer"),
     (["threads=-1"], r"threads=-1: must be >= 1"),
+    (["deterministic=maybe"], r"deterministic='maybe': expected one of \[True, False, 'warn'\]"),
+    (["data=table", "data.source.path=/no/t.csv", "data.seed=abc"], r"data.seed='abc': must be an integer"),
+    (["data=table", "data.source.path=/no/t.csv", "data.source.columns=abc"],
+     r"data.source.columns='abc': expected a mapping of key -> column name"),
 ]
 
 
@@ -337,6 +362,12 @@ BAD_CONFIGS = [
 def test_config_errors_name_the_key(make_cfg, overrides, match):
     with pytest.raises(ConfigError, match=match):
         validate_config(make_cfg(overrides))
+
+
+def test_an_optimized_metric_the_model_never_logs_is_refused_before_training(make_cfg, tmp_path):
+    with pytest.raises(ConfigError, match=r"optimized_metric=val/nope: the model logs no such metric; e.g. val/"):
+        train(make_cfg(["optimized_metric=val/nope", "logger=none"], out=tmp_path / "run"))
+    assert not list((tmp_path / "run").glob("checkpoints/*.ckpt"))
 
 
 def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
@@ -539,6 +570,43 @@ def test_bad_input_fails_named_with_nothing_left_behind(tmp_path, make, named):
     assert re.search(named, proc.stderr), proc.stderr[-2000:]
     assert not (out / "metrics.json").exists() and not list(out.glob("checkpoints/*.ckpt"))
     assert not list((tmp_path / "cache").rglob("*.tmp"))  # no half-written cache
+
+
+def test_a_refused_config_leaves_no_folder_and_a_refused_sweep_job_says_why(tmp_path):
+    """The preflight refuses model.num_edges=1: a single run's new folder is gone (no 0-byte run.log either); a
+    sweep's job folder keeps failed.json with the reason, which report shows instead of "missing"."""
+    args = [sys.executable, "-m", "dider.run", "model.num_edges=1"]
+    single = subprocess.run([*args, f"hydra.run.dir={tmp_path / 'one'}"], capture_output=True, text=True,
+                            timeout=300, cwd=tmp_path)
+    assert single.returncode != 0 and "model.num_edges=1: must be >= 2" in single.stderr
+    assert not (tmp_path / "one").exists()
+    sweep = subprocess.run([*args[:3], "-m", args[3], f"hydra.sweep.dir={tmp_path / 'sweep'}"], capture_output=True,
+                           text=True, timeout=300, cwd=tmp_path)
+    assert sweep.returncode != 0
+    job = tmp_path / "sweep" / "model.num_edges=1"
+    assert sorted(p.name for p in job.iterdir()) == ["failed.json"]
+    assert "model.num_edges=1: must be >= 2" in json.loads((job / "failed.json").read_text())["error"]
+
+
+def test_a_success_clears_an_earlier_failure_and_a_failed_record_never_hides_the_error(make_cfg, tmp_path,
+                                                                                         monkeypatch, caplog):
+    from dider.training import runfolder
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "failed.json").write_text('{"status": "failed", "error": "an earlier attempt"}')
+    train(make_cfg(["logger=none", "callbacks.timelines.num_clips=0"], out=out))
+    assert (out / "metrics.json").is_file() and not (out / "failed.json").exists()
+
+    runfolder.OPENED.add(out.resolve())
+
+    def full(path, text):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(runfolder, "atomic_write_text", full)
+    with caplog.at_level("WARNING"):
+        runfolder.mark_failed(out, ValueError("the real error"))  # returns: the caller re-raises the real one
+    assert "could not record the failure in" in caplog.text and "failed.json" in caplog.text
 
 
 def test_a_full_disk_is_named(tmp_path, monkeypatch):

@@ -62,7 +62,7 @@ def old_horizon_mse(horizons, pred, target, mask):
     idx = torch.tensor([h - 1 for h in horizons])
     sq = (pred.index_select(1, idx) - target.index_select(1, idx)).pow(2).sum(-1)
     m = mask.index_select(1, idx).to(sq.dtype)
-    return ((sq * m).sum(dim=(0, 2)).double() / (m.sum(dim=(0, 2)) * pred.shape[-1]).double().clamp_min(1)).float()
+    return (sq * m).sum(dim=(0, 2)).double() / (m.sum(dim=(0, 2)) * pred.shape[-1]).double().clamp_min(1)
 
 
 @pytest.mark.parametrize("model", ["dnri", "dider"])

@@ -325,6 +325,10 @@ def test_bad_input(tmp_path, table):
     df[df.t % 2 == 0].to_csv(p, index=False)  # frames 0, 2, 4, ...: no two consecutive steps for a velocity
     with pytest.raises(ValueError, match=r"no window .* \(frames step by 2: set data.windows.downsample=2\?\)"):
         windows(p, seq_len=2)
+    df[df.t <= 1].to_csv(p, index=False)  # two frames a scene: one step once the velocities are differenced
+    with pytest.raises(ValueError, match=r"the longest scene has 2 step\(s\): no scene is long enough for the "
+                                         r"shortest window \(data.windows.seq_len=2\)$"):
+        windows(p, seq_len=2)  # not "set data.windows.seq_len <= 1", below the setting's minimum
     p.write_bytes(b"\x00\xff\xfe garbage")
     with pytest.raises(ValueError, match="bad.csv"):
         windows(p)

@@ -70,7 +70,7 @@ def test_run_writes_metrics_tensorboard_and_figures(make_cfg, tmp_path):
     assert sorted(["train/x", "val/x", *tests])[-1].startswith("~results/")
     (point,) = acc.Scalars("~results/ade_vs_cv/h25")
     assert point.value == pytest.approx(record["metrics"]["test/ade_vs_cv/h25"]) and point.step > 0  # not step 0
-    assert str(record["checkpoint"]).startswith(str(out / "checkpoints"))
+    assert str(record["checkpoint"]).startswith("checkpoints/")  # relative to the run folder
     assert any(t.startswith("test/timeline/") for t in tags["images"])
     assert any(t.startswith("test/forecast/") for t in tags["images"])
     # HParams tab: the session start info names the hyper-parameters and the metric tags
@@ -207,7 +207,7 @@ def test_metrics_json_records_objective_and_provenance(make_cfg, tmp_path):
     out = tmp_path / "run"
     train(make_cfg(["model=dnri", "trainer.max_epochs=2", "logger=none"], out=out))
     record = json.loads((out / "metrics.json").read_text())
-    ckpt = torch.load(record["checkpoint"], map_location="cpu", weights_only=True)
+    ckpt = torch.load(out / record["checkpoint"], map_location="cpu", weights_only=True)
     best = next(v["best_model_score"] for k, v in ckpt["callbacks"].items() if k.startswith("ModelCheckpoint"))
     assert record["config"]["optimized_metric"] == "val/select"
     assert record["objective"] == pytest.approx(float(best)) and record["objective"] < float("inf")

@@ -1,4 +1,5 @@
-"""Atomic file writing: a killed process never leaves a half-written file behind.
+"""Atomic file writing: a killed process never leaves a half-written file behind; and the one reader of a run's
+record (``metrics.json``), which names the file when it is not one.
 
 Every writer goes through :func:`atomic_write`: the content goes to a temporary file in the target's
 folder, which is flushed to disk and then renamed over the target, so readers (a cache lookup, a resumed
@@ -7,6 +8,7 @@ run, a report) see either the old file or the complete new one.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import tempfile
@@ -78,3 +80,15 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def atomic_torch_save(obj: Any, path: Path) -> None:
     atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def read_run_record(path: Path) -> dict[str, Any]:
+    """A run's ``metrics.json`` as a dict; ValueError naming ``path`` for one that is not JSON (half-written, or
+    another file) or not a run's record (a JSON object with a ``metrics`` object)."""
+    try:
+        record = json.loads(Path(path).read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not JSON (half-written, or not a run's record): {e}") from None
+    if not isinstance(record, dict) or not isinstance(record.get("metrics"), dict):
+        raise ValueError(f"{path}: not a run's record (a JSON object with a 'metrics' object)")
+    return record

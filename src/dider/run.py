@@ -42,6 +42,7 @@ from dider.targets import named_targets
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
 from dider.training.checkpoint import AtomicCheckpointIO
 from dider.training.module import RelationalVAEModule
+from dider.training.overrides import override_problem
 from dider.training.preflight import clip_problem, input_warnings, validate_config
 from dider.training.quiet import silence_library_chatter
 from dider.training.runfolder import (
@@ -49,12 +50,15 @@ from dider.training.runfolder import (
     RunRefused,
     check_checkpoint,
     check_fresh,
+    clear_failed,
     close_run_log,
     eval_folder,
     is_rank_zero,
     log_failure,
     mark_failed,
+    mark_refused,
     open_run_folder,
+    predict_folder,
     resolve_ckpt,
 )
 from dider.validation import ConfigError
@@ -85,10 +89,15 @@ def predict(cfg: DictConfig) -> list[Path]:
     ``predictions/`` (with ``complete.json`` listing them) only once all are written: a killed prediction
     leaves no mix of two predictions' files."""
     validate_config(cfg)
+    if cfg.predict.samples and not cfg.predict.forecast_steps:
+        raise ConfigError(f"predict.samples={cfg.predict.samples}: sampled futures need predict.forecast_steps (how "
+                          f"many steps to forecast)")
     started = time.time()
     apply_threads(cfg)
     L.seed_everything(cfg.seed, workers=True, verbose=False)
-    out_dir = Path(cfg.output_dir)
+    out_dir = predict_folder(Path(cfg.output_dir), _result_name(cfg, "predict"))
+    with open_dict(cfg):
+        cfg.output_dir = str(out_dir)
     final, staging = out_dir / "predictions", out_dir / ".predictions.partial"
     with RunLock(out_dir):  # first: a second prediction into the folder is refused before it does any work
         if final.exists() and is_rank_zero():
@@ -146,6 +155,7 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
         "files": names, "clips": len(clips), "checkpoint": str(ckpt), "checkpoint_version": trained.version,
         "provenance": provenance(started, str(trainer.strategy.root_device))}, indent=2))
     os.replace(staging, final)  # the complete set appears at once
+    clear_failed(out_dir)
     return names, writer
 
 
@@ -192,7 +202,7 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
     if ckpt is not None:  # before any work: a checkpoint of another model fails naming both sides
         version = check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
     if cfg.mode == "eval":
-        out_dir = eval_folder(out_dir, _eval_name(cfg))
+        out_dir = eval_folder(out_dir, _result_name(cfg, "eval"))
         trained = load(ckpt, trust=trusted(cfg))  # named errors for a damaged, older or unsafe checkpoint, first
         with open_dict(cfg):  # every path of the run (checkpoints, logs, figures, exports) follows output_dir
             cfg.output_dir = str(out_dir)
@@ -226,11 +236,11 @@ def eval_checkpoint(ckpt_path: str | None, folder: Path) -> Path:
     return find_checkpoint(str(ckpt_path))
 
 
-def _eval_name(cfg: DictConfig) -> str:
-    """The folder an evaluation writes to in a training run (``eval/<name>``): ``eval.name``, else the data
-    config's name."""
-    if cfg.eval.get("name"):
-        return str(cfg.eval.name)
+def _result_name(cfg: DictConfig, mode: str) -> str:
+    """The folder an evaluation or a prediction writes to in a run's folder (``eval/<name>``, ``predict/<name>``):
+    ``eval.name`` / ``predict.name``, else the data config's name."""
+    if cfg[mode].get("name"):
+        return str(cfg[mode].name)
     try:
         return str(HydraConfig.get().runtime.choices.get("data") or "test")
     except ValueError:  # composed outside a Hydra app
@@ -249,6 +259,27 @@ def _checkpoint_features(cfg: DictConfig, trained: TrainedModel, force_key: str)
         log.info("data.%s=%s: the checkpoint's (it shapes the features); data.%s=%s was the data config's",
                  path, value, path, OmegaConf.select(cfg.data, path))
     return take
+
+
+def _resume_command(cfg: DictConfig, out_dir: Path, ckpt: str | None) -> str:
+    """The command that repeats an interrupted job in its folder: its config (``--config-name eval``), its mode and
+    overrides, and the checkpoint to go on from (training: the folder's ``last``; evaluation: the one it tests)."""
+    try:
+        name = HydraConfig.get().job.config_name or "config"
+    except ValueError:  # composed outside a Hydra app
+        name = "config"
+    again = [o for o in overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path=", "mode="))]
+    resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
+    head = "python -m dider.run" + ("" if name == "config" else f" --config-name {name}")
+    return " ".join([head, f"mode={cfg.mode}", *again, f"hydra.run.dir={out_dir}", resume])
+
+
+def _in_sweep() -> bool:
+    """Whether this process runs a job of a Hydra multirun (its folder is the job's own)."""
+    try:
+        return str(HydraConfig.get().mode) == "RunMode.MULTIRUN"
+    except ValueError:
+        return False
 
 
 def _run_dir_given() -> bool:
@@ -296,10 +327,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt,
                      verbose=False)
     except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
-        again = [o for o in overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path="))]
-        resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
-        print(f"terminated (SIGTERM); resume with: python -m dider.run {' '.join(again)} "
-              f"hydra.run.dir={out_dir} {resume}", file=sys.stderr)
+        print(f"terminated (SIGTERM or Ctrl-C); resume with: {_resume_command(cfg, out_dir, ckpt)}", file=sys.stderr)
         raise SystemExit(TERMINATED) from None
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
@@ -310,6 +338,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     if trainer.is_global_zero:
         write_metrics(out_dir / "metrics.json", cfg, metrics, ckpt if cfg.mode == "eval" else (best or None),
                       ckpt_version, objective, provenance(started, str(trainer.strategy.root_device)))
+        clear_failed(out_dir)  # an earlier attempt's record no longer describes the folder
         print(f"\n{format_table(metrics)}\n")
         if verdict := cv_verdict(metrics):
             (log.info if verdict[1] else log.warning)(verdict[0])
@@ -332,6 +361,9 @@ def _check_monitors(model: RelationalVAEModule, cfg: DictConfig) -> None:
     """A checkpoint or early-stopping callback that monitors a metric the model never logs would fail only after the
     first epoch: named before training, with the key that sets it."""
     known = model.monitorable()
+    if (metric := cfg.get("optimized_metric")) and metric not in known:  # a search would score every trial inf
+        close = sorted(k for k in known if k.startswith("val/"))
+        raise ConfigError(f"optimized_metric={metric}: the model logs no such metric; e.g. {', '.join(close[:8])}")
     for name, node in (cfg.get("callbacks") or {}).items():
         monitor = node.get("monitor") if isinstance(node, DictConfig) else None
         if monitor and monitor not in known:
@@ -362,17 +394,28 @@ def main(cfg: DictConfig) -> float | None:
         tune_allocator(cfg.get("allocator"))
         if cfg.mode == "predict":
             predict(cfg)
-            return None
-        objective = fit_and_score(cfg)[1]
+            objective = None
+        else:
+            objective = fit_and_score(cfg)[1]
     except Exception as e:  # into the run's own log and a failed.json beside it (a folder it took), then out
         log_failure(e)  # Hydra prints it on the console, once
         if is_rank_zero():
             mark_failed(Path(cfg.output_dir), e)
+            mark_refused(Path(cfg.output_dir), e, sweep_job=_in_sweep())
         raise
     finally:
         close_run_log()
     return objective if cfg.mode == "train" else None
 
 
-if __name__ == "__main__":
+def cli() -> None:
+    """``python -m dider.run`` / ``dider-run``: the app, after a check that every override names a key (a moved or
+    misspelt one is answered with the nearest keys, not with Hydra's "Could not override")."""
+    if problem := override_problem(sys.argv[1:]):
+        print(f"invalid configuration:\n  - {problem}", file=sys.stderr)
+        raise SystemExit(2)
     main()
+
+
+if __name__ == "__main__":
+    cli()

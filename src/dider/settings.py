@@ -53,9 +53,12 @@ class EvalSettings:
 class PredictSettings:
     """``mode=predict``: what a checkpoint says about every clip of ``data``, written to ``predictions/``."""
 
+    # A prediction never writes over a run: in a folder that holds one (checkpoints or a metrics.json, e.g.
+    # hydra.run.dir set to the training run) it writes to predict/NAME there; null: the data config's name.
+    name: Any = None
     forecast_steps: Any = None  # also forecast this many steps after each clip's first burn_in frames (null: no)
     # with forecast_steps: that many sampled futures of each clip too, their online edges drawn from the prior
-    # (forecast.csv's rows of sample 1..K; sample 0 is the forecast itself)
+    # (forecast.csv's rows of sample 1..K; sample 0 is the forecast itself); needs forecast_steps
     samples: Any = 0
     burn_in: Any = None  # frames observed before the forecast (null: the model's burn_in)
     progress_s: Any = 30  # a progress line (clips done, time left) every this many seconds
@@ -64,8 +67,8 @@ class PredictSettings:
     force: Any = False
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
-        "forecast_steps": optional(integer(1, " step")), "burn_in": optional(integer(1, " frame")),
-        "progress_s": above(0), "force": boolean, "samples": integer(0),
+        "name": optional(folder_name), "forecast_steps": optional(integer(1, " step")),
+        "burn_in": optional(integer(1, " frame")), "progress_s": above(0), "force": boolean, "samples": integer(0),
     }
 
 

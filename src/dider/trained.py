@@ -13,7 +13,6 @@ Nothing here needs Lightning. Shapes: S clips, T frames, N agents, E = N(N-1) ed
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass, field
@@ -26,6 +25,7 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.readers.trajectories import trajectory_states
+from dider.io import read_run_record
 from dider.models.checkpoint_format import upgrade
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
@@ -50,10 +50,12 @@ def find_checkpoint(path: str | Path) -> Path:
             return shipped
         raise FileNotFoundError(f"{path}: no such checkpoint file or run folder, {unknown()}")
     record = path / "metrics.json"
-    if record.is_file():
-        best = json.loads(record.read_text()).get("checkpoint")
-        if best and Path(best).is_file():
-            return Path(best)
+    if record.is_file() and (best := read_run_record(record).get("checkpoint")):
+        # relative to the folder (a copied or moved folder finds its own best file); an absolute one (an evaluation's
+        # of another folder's checkpoint) is looked for by its name among the folder's checkpoints first
+        found = [path / best] if not Path(best).is_absolute() else [path / "checkpoints" / Path(best).name, Path(best)]
+        if files := [f for f in found if f.is_file()]:
+            return files[0]
     last = path / "checkpoints" / "last.ckpt"
     if last.is_file():
         return last

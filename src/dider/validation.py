@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import inspect
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
@@ -124,6 +125,7 @@ FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
 # (SETTINGS), and so do the protocol, eval and predict nodes (dider.settings).
 RULES: dict[str, Rule] = {
     "compile": boolean,
+    "deterministic": one_of(True, False, "warn"),  # Lightning acts on a bool or "warn" alone
     "cuda_graph": one_of("auto", True, False),
     "allocator": one_of(*ALLOCATORS),
     "seed": integer(0, " (the seeds torch, numpy and Python all accept)", 2**32 - 1),
@@ -225,12 +227,28 @@ def settings_problems(node: Any, path: str) -> list[str]:
         for i, item in enumerate(node):
             found += settings_problems(item, f"{path}[{i}]")
     elif isinstance(node, Mapping):
-        rules = getattr(_target_class(node.get("_target_")), "SETTINGS", {})
-        found += _problems(rules, node, f"{path}.")
+        cls = _target_class(node.get("_target_"))
+        rules = getattr(cls, "SETTINGS", {})
+        found += _problems(rules, node, f"{path}.") + _unknown_arguments(cls, node, path)
         for key, value in node.items():
             if key not in rules:
                 found += settings_problems(value, f"{path}.{key}")
     return found
+
+
+def _unknown_arguments(cls: type | None, node: Mapping[str, Any], path: str) -> list[str]:
+    """The keys of a node that its class's constructor does not take (it would fail with a TypeError once built)."""
+    if cls is None:
+        return []
+    try:
+        params = inspect.signature(cls).parameters
+    except (TypeError, ValueError):  # a builtin's signature: nothing to compare
+        return []
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return []
+    known = [k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_POSITIONAL]
+    return [f"{path}.{k}: no such setting of {cls.__name__} (expected some of {known})" for k in node
+            if not str(k).startswith("_") and k not in params]
 
 
 def _target_class(target: Any) -> type | None:

@@ -10,17 +10,17 @@ import lightning as L
 
 
 class TerminateAt(L.Callback):
-    """Sends SIGTERM to this process after batch ``batch`` of epoch ``epoch`` (0-based) of ``loop``: ``train``, or
-    ``val`` (the epoch's validation, not the sanity check), once."""
+    """Sends ``signal`` (SIGTERM, or SIGINT: Ctrl-C) to this process after batch ``batch`` of epoch ``epoch``
+    (0-based) of ``loop``: ``train``, ``val`` (the epoch's validation, not the sanity check) or ``test``, once."""
 
-    def __init__(self, epoch: int, batch: int, loop: str = "train") -> None:
-        self.epoch, self.batch, self.loop, self.sent = epoch, batch, loop, False
+    def __init__(self, epoch: int, batch: int, loop: str = "train", signal: str = "SIGTERM") -> None:
+        self.epoch, self.batch, self.loop, self.signal, self.sent = epoch, batch, loop, signal, False
 
     def _at(self, trainer: L.Trainer, loop: str, batch_idx: int) -> None:
         if (not self.sent and loop == self.loop and trainer.current_epoch == self.epoch and batch_idx == self.batch
                 and not trainer.sanity_checking):
             self.sent = True
-            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), getattr(signal, self.signal))
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                            batch_idx: int) -> None:
@@ -29,3 +29,7 @@ class TerminateAt(L.Callback):
     def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                                 batch_idx: int, dataloader_idx: int = 0) -> None:
         self._at(trainer, "val", batch_idx)
+
+    def on_test_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+                          batch_idx: int, dataloader_idx: int = 0) -> None:
+        self._at(trainer, "test", batch_idx)

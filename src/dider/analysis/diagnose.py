@@ -33,7 +33,7 @@ from omegaconf import DictConfig, OmegaConf
 from dider.data.legacy import upgrade_data_node
 from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
-from dider.io import atomic_write_text
+from dider.io import atomic_write_text, read_run_record
 from dider.models.vae import RelationalVAE
 from dider.outputs.run_record import command_line
 from dider.targets import build
@@ -91,13 +91,13 @@ def score(net: RelationalVAE, batch: dict[str, torch.Tensor], cut: torch.Tensor 
 def run_config_file(run: Path) -> Path:
     """The file :func:`run_config` reads."""
     record = run / "metrics.json"
-    return record if record.is_file() and "config" in json.loads(record.read_text()) else run / ".hydra" / "config.yaml"
+    return record if record.is_file() and "config" in read_run_record(record) else run / ".hydra" / "config.yaml"
 
 
 def run_config(run: Path) -> DictConfig:
     """A run folder's config: the one its ``metrics.json`` records, else Hydra's ``.hydra/config.yaml``."""
     record, hydra = run / "metrics.json", run / ".hydra" / "config.yaml"
-    if record.is_file() and "config" in (saved := json.loads(record.read_text())):
+    if record.is_file() and "config" in (saved := read_run_record(record)):
         return OmegaConf.create(saved["config"])
     if hydra.is_file():
         return OmegaConf.load(hydra)

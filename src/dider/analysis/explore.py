@@ -293,8 +293,11 @@ def page_payload(data: dict[str, np.ndarray], path: Path, rows: list[int], note:
 
 
 def render_html(payload: dict[str, Any], title: str) -> str:
-    # "</" would end the <script> early if a name or path held "</script>"; "<\/" is the same JSON string.
-    blob = json.dumps(payload, separators=(",", ":")).replace("</", "<\\/")
+    # Inside <script> the HTML parser reads "</script>", and "<!--" followed by "<script" (which switches it into the
+    # double-escaped state, where the page's own "</script>" no longer ends the block): with every <, > and & as
+    # a JSON \u escape (the same string to JSON.parse) a name or path can hold neither.
+    blob = (json.dumps(payload, separators=(",", ":"))
+            .replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026"))
     escaped = title.replace("&", "&amp;").replace("<", "&lt;")
     return PAGE.replace("__TITLE__", escaped).replace("/*__DATA__*/null", blob)
 

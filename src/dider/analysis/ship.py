@@ -22,7 +22,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from dider.io import atomic_torch_save, atomic_write_text
+from dider.io import atomic_torch_save, atomic_write_text, read_run_record
 from dider.shipped import HERE, catalog
 from dider.targets import check
 from dider.trained import find_checkpoint, read_checkpoint
@@ -50,7 +50,7 @@ def evaluate(name: str, overrides: list[str]) -> dict[str, float]:
         done = subprocess.run(cmd, capture_output=True, text=True)
         if done.returncode != 0:
             raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
-        return json.loads((Path(folder) / "metrics.json").read_text())["metrics"]
+        return read_run_record(Path(folder) / "metrics.json")["metrics"]
 
 
 def write_catalog(entries: dict[str, Any]) -> None:
@@ -63,7 +63,7 @@ def write_catalog(entries: dict[str, Any]) -> None:
 def ship(run: Path, name: str, what: str, overrides: list[str]) -> dict[str, Any]:
     """Write the slim checkpoint and its catalog record (both atomically); -> the record."""
     source = find_checkpoint(run)
-    record_of_run = json.loads((run / "metrics.json").read_text()) if (run / "metrics.json").is_file() else {}
+    record_of_run = read_run_record(run / "metrics.json") if (run / "metrics.json").is_file() else {}
     file = name.replace("/", "_") + ".ckpt"
     atomic_torch_save(slim(source), HERE / file)
     entries = dict(catalog())

@@ -13,8 +13,10 @@ from dider.data.batch import Normalizer
 from dider.data.clip_source import Clips
 from dider.data.common import ClipDataset, spread_indices
 from dider.protocol import fill_absent
+from dider.validation import integer
 
 RANGES = ("separate", "same", "none")  # data.normalization
+SPLIT_SEED = integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1)  # data.seed: the split's permutation
 
 
 def fractions_problem(fractions: object) -> str | None:

@@ -17,7 +17,16 @@ from dataclasses import asdict
 from typing import Any, ClassVar
 
 from dider.data.clip_source import Clips, ClipSource
-from dider.data.clip_splits import RANGES, capped, carve, clip_datasets, fit_ranges, fractions_problem, split_indices
+from dider.data.clip_splits import (
+    RANGES,
+    SPLIT_SEED,
+    capped,
+    carve,
+    clip_datasets,
+    fit_ranges,
+    fractions_problem,
+    split_indices,
+)
 from dider.data.common import SPLITS, BaseDataModule, source_node
 from dider.data.readers import clip_sources
 from dider.validation import ConfigError, PickedBy, Rule, check_settings, integer, one_of, optional, within_open
@@ -42,7 +51,7 @@ class ClipsDataModule(BaseDataModule):
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
         "source": PICK, "normalization": one_of(*RANGES), "split": fractions_problem,
-        "val_fraction": within_open(0, 1), "seed": integer(-(2**63) + 1, " (magnitude < 2**63)", 2**63 - 1),
+        "val_fraction": within_open(0, 1), "seed": SPLIT_SEED,
         "train_len": optional(integer(2))}
 
     def __init__(

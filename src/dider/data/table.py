@@ -75,10 +75,13 @@ def drop_jumps(grid: np.ndarray, present: np.ndarray, max_speed: float | None) -
 def _too_few_frames(path: Path | str, seq_len: int, downsample: int, drop: int, longest: int) -> str:
     """The arithmetic of a window that no scene is long enough for (``drop``: the step finite differences use)."""
     need = (seq_len + drop - 1) * downsample + 1
+    shortest = Windows.MIN_SEQ_LEN
+    fix = (f"set data.windows.seq_len <= {longest}" if longest >= shortest
+           else f"no scene is long enough for the shortest window (data.windows.seq_len={shortest})")
     return (f"{path}: too few frames for one window of data.windows.seq_len={seq_len} steps: a window needs "
             f"{seq_len} step(s){' + 1 for the finite-difference velocities' if drop else ''} of "
             f"data.windows.downsample={downsample} frame(s), i.e. a scene spanning >= {need} frames, and the longest "
-            f"scene has {longest + drop} step(s): set data.windows.seq_len <= {longest}"
+            f"scene has {longest + drop} step(s): {fix}"
             + (", or lower data.windows.downsample" if downsample > 1 else ""))
 
 

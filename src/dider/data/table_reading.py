@@ -25,9 +25,23 @@ NUMERIC = ("frame", "x", "y", "vx", "vy")
 SUFFIXES = (".csv", ".parquet")
 
 
+def columns_problem(columns: Any) -> str | None:
+    """The rule of ``data.source.columns`` (the preflight's): a mapping whose entries :func:`check_columns` accepts."""
+    if columns is not None and not isinstance(columns, Mapping):
+        return (f"expected a mapping of key -> column name, e.g. {{agent: id, frame: t}} (keys: "
+                f"{list(DEFAULT_COLUMNS)})")
+    try:
+        check_columns(columns)
+    except ValueError as e:
+        return str(e)
+    return None
+
+
 def check_columns(columns: Mapping[str, Any] | None) -> dict[str, str | None]:
     """``data.source.columns`` merged over the defaults; raises naming the key of an unknown, missing or clashing
     entry."""
+    if columns is not None and not isinstance(columns, Mapping):
+        raise ValueError(f"data.source.columns={columns!r}: {columns_problem(columns)}")
     given = dict(columns or {})
     if unknown := sorted(set(given) - set(DEFAULT_COLUMNS)):
         raise ValueError(f"data.source.columns: unknown key(s) {unknown} (known: {list(DEFAULT_COLUMNS)})")

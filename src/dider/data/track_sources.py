@@ -24,7 +24,7 @@ from dider.data.levelx.source import LevelXSource
 from dider.data.readers import reader_problem
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows
 from dider.data.table import TableTracks
-from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, read_table
+from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, columns_problem, read_table
 from dider.data.windowing import Windows
 from dider.validation import PickedBy, Rule, above, boolean, finite, one_of
 
@@ -64,7 +64,7 @@ class FileSource(TableLayout):
     frame_rate: float = 1.0  # frames per second of the frame column: differenced velocities are per second
 
     SETTINGS: ClassVar[dict[str, Rule]] = {"reader": lambda v: reader_problem(v, tuple(SOURCES)),
-                                           "frame_rate": _rate}
+                                           "frame_rate": _rate, "columns": columns_problem}
     UNITS: ClassVar[str | None] = None  # unknown: the user's
 
     def __post_init__(self) -> None:

@@ -27,7 +27,14 @@ import numpy as np
 import torch
 
 from dider.data.batch import Normalizer
-from dider.data.clip_splits import counts_problem, fractions_problem, split_counts, split_indices, split_problem
+from dider.data.clip_splits import (
+    SPLIT_SEED,
+    counts_problem,
+    fractions_problem,
+    split_counts,
+    split_indices,
+    split_problem,
+)
 from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
 from dider.data.packed import select_windows
 from dider.data.pairs import PairRules, find_pairs
@@ -43,7 +50,8 @@ class Tracks(Protocol):
     """A source's scenes once opened (``source.open(windows, cache_dir)``), as :class:`TracksDataModule` reads them.
 
     ``cut`` returns, per group, the packed windows of its scenes in scene order (raw units: positions less the
-    ``origin`` it is given, subtracted before any float32 rounding): states [P, T, 4] float32 (zeros where absent), mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
+    ``origin`` it is given, subtracted before any float32 rounding): states [P, T, 4] float32 (zeros where absent),
+    mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
     by id), agent [P] long (ids, or codes into ``names["agent"]``), agent_class [P] long or None (codes into
     class_names), class_names, start [W] long (the window's first step on its scene's grid of steps), scene [W] long
     (index into ``scenes``), frame [W] long (the source's frame of the window's step 0: a table's steps count from
@@ -77,7 +85,8 @@ class TracksDataModule(BaseDataModule):
 
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
         "source": PICK, "windows": Windows,
-        "split": split_problem, "pairs": PairRules}
+        "split": split_problem, "pairs": PairRules,
+        "seed": SPLIT_SEED}
 
     def __init__(
         self,

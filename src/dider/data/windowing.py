@@ -33,8 +33,9 @@ class Windows:
     max_agents: int | None = None  # at most this many agents per window, those present longest (levelX)
     max_speed: float | None = None  # a faster step (data units per second) is a tracking jump: absent (tables)
 
+    MIN_SEQ_LEN: ClassVar[int] = 2  # a window needs one transition
     SETTINGS: ClassVar[dict[str, Rule]] = {
-        "seq_len": integer(2), "stride": optional(integer(1)), "eval_stride": optional(integer(1)),
+        "seq_len": integer(MIN_SEQ_LEN), "stride": optional(integer(1)), "eval_stride": optional(integer(1)),
         "downsample": integer(1), "min_agent_steps": integer(1), "min_agents": integer(1),
         "max_agents": optional(integer(1)), "max_speed": optional(above(0)),
     }

@@ -60,6 +60,10 @@ def stamp(checkpoint: dict[str, Any], **fields: Any) -> None:
 def upgrade(checkpoint: dict[str, Any], where: str | Path = "checkpoint") -> dict[str, Any]:
     """Bring a checkpoint (a loaded dict) to today's format, in place; returns it. A checkpoint of a newer format
     than this package reads is refused, naming ``where``."""
+    marks = checkpoint.get("dider") or {}
+    if not isinstance(marks, Mapping) or type(marks.get("format", 1)) is not int:
+        raise ValueError(f"{where}: not a dider checkpoint (its format mark dider.format="
+                         f"{(marks.get('format') if isinstance(marks, Mapping) else marks)!r} is no whole number)")
     found = format_of(checkpoint)
     if found > FORMAT:
         raise ValueError(f"{where}: written in checkpoint format {found} by a newer dider; this one reads formats "

@@ -158,7 +158,10 @@ def log_results(loggers: list[Logger], cfg: DictConfig, metrics: dict[str, float
 def write_metrics(path: Path, cfg: DictConfig, metrics: dict[str, float], checkpoint: str | None,
                   checkpoint_version: str | None, objective: float | None, provenance_: dict[str, Any]) -> None:
     """``metrics.json``: the test metrics, the overrides, seed and model, the checkpoint tested and the package
-    version that wrote it (eval, resume), the objective, the provenance and the resolved config."""
+    version that wrote it (eval, resume), the objective, the provenance and the resolved config. A checkpoint in the
+    run's folder is recorded relative to it, so the folder copied or moved still names its own."""
+    if checkpoint and (tested := Path(checkpoint).resolve()).is_relative_to(folder := path.parent.resolve()):
+        checkpoint = str(tested.relative_to(folder))
     record = {
         "metrics": metrics,
         "mode": str(cfg.get("mode", "train")),

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -26,23 +28,29 @@ class NonFiniteError(FloatingPointError):
 
 class ProtocolFits(L.Callback):
     """Once the data are read, before any step: the model's burn-in and horizons must fit the clips it forecasts
-    (validation's in a fit, the test's in a test), named by the model's keys; training clips may be shorter (DNRI
-    trains basketball on 40-step crops); prediction checks its own forecast length. And ground-truth edge labels
-    must be types the model has: a label beyond ``model.num_edges`` has no row to score against (nor an oracle
-    roll-out), so the run is refused here, not after its last epoch."""
+    (validation's in a fit, the test's in a test), named by the model's keys. Training clips may be shorter (DNRI
+    trains basketball on 40-step crops); prediction checks its own forecast length."""
 
     SPLITS = {"fit": ("val",), "validate": ("val",), "test": ("test",)}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        dm = trainer.datamodule
-        steps = getattr(dm, "clip_steps", dict)()
+        steps = getattr(trainer.datamodule, "clip_steps", dict)()
         h = pl_module.hparams
         for split in self.SPLITS.get(stage, ()):
             if split in steps:
                 check_horizons(h.horizons, steps[split], h.burn_in, where=f", the {split} split's", integers=True)
-        k = pl_module.model.num_types
+
+
+class EdgeLabelsFit(L.Callback):
+    """Once the data are read, before any step: ground-truth edge labels must be types the model has. A label
+    beyond ``model.num_edges`` has no row to score against (nor an oracle roll-out), so the run is refused here,
+    naming the file, the largest label and the key, not after its last epoch (a test: every split of a fit, the
+    test split of an evaluation)."""
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        dm, k = trainer.datamodule, pl_module.model.num_types
         for split, largest in getattr(dm, "largest_edge_label", dict)().items():
-            if largest >= k and (stage == "fit" or split in self.SPLITS.get(stage, ())):
+            if largest >= k and (stage == "fit" or split == stage):
                 where = dm.source.where() if hasattr(getattr(dm, "source", None), "where") else "the data"
                 fix = (f"set model.num_edges={largest + 1} or more to train and score against these labels"
                        if stage == "fit" else f"this model cannot score them (train one with model.num_edges="
@@ -248,9 +256,10 @@ class ResumeMidEpoch(L.Callback):
 
 
 class SaveOnTerminate(L.Callback):
-    """On SIGTERM (a scheduler's time limit, ``kill``), Lightning stops training with ``SIGTERMException``:
-    save the run's state to the checkpoint folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it (mid-epoch
-    from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits non-zero.
+    """On SIGTERM (a scheduler's time limit, ``kill``) or Ctrl-C (SIGINT, taken as SIGTERM), Lightning stops training
+    with ``SIGTERMException``: save the run's state to the checkpoint folder's ``last.ckpt`` first, so
+    ``ckpt_path=last`` resumes it (mid-epoch from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits
+    non-zero.
 
     A SIGTERM during an epoch's validation waits for the validation to end (a validation is short beside a
     scheduler's grace period): its metrics, and the best checkpoints they pick, are then the uninterrupted run's.
@@ -259,6 +268,22 @@ class SaveOnTerminate(L.Callback):
 
     def __init__(self) -> None:
         self._deferred = False
+        self._sigint: Any = None  # the SIGINT handler before this run's
+
+    def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        # Ctrl-C as SIGTERM: the run stops at the next batch's end and saves; a second Ctrl-C interrupts at once.
+        if threading.current_thread() is threading.main_thread():
+            self._sigint = signal.signal(signal.SIGINT, lambda *_: self._interrupt(trainer))
+
+    def _interrupt(self, trainer: L.Trainer) -> None:
+        trainer._signal_connector.received_sigterm = True
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        log.warning("Ctrl-C: stopping after this batch and saving (press it again to stop at once, unsaved)")
+
+    def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
+        if self._sigint is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self._sigint)
+            self._sigint = None
 
     def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
                                 batch_idx: int, dataloader_idx: int = 0) -> None:
@@ -277,7 +302,7 @@ class SaveOnTerminate(L.Callback):
             return
         path = f"{folder}/last.ckpt"
         trainer.save_checkpoint(path)
-        log.error("terminated by SIGTERM at epoch %d, step %d: saved %s", trainer.current_epoch,
+        log.error("terminated (SIGTERM or Ctrl-C) at epoch %d, step %d: saved %s", trainer.current_epoch,
                   trainer.global_step, path)
 
 

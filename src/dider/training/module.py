@@ -40,7 +40,14 @@ from dider.models.plugins import Progress
 from dider.models.vae import Inference, plain_config
 from dider.protocol import agent_horizons, scored_targets
 from dider.targets import build, check, named_targets
-from dider.training.callbacks import EvalRandomState, FiniteGuard, ProtocolFits, ResumeMidEpoch, SaveOnTerminate
+from dider.training.callbacks import (
+    EdgeLabelsFit,
+    EvalRandomState,
+    FiniteGuard,
+    ProtocolFits,
+    ResumeMidEpoch,
+    SaveOnTerminate,
+)
 from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
 from dider.training.step_metrics import EpochMeans
@@ -174,8 +181,7 @@ class RelationalVAEModule(L.LightningModule):
         segments = ["segments_per_edge", "steps_per_segment", "sigma"]
         val = {*(f"val/{k}" for k in [*terms, "select"]), *(f"val/segments/{k}" for k in segments),
                "val/segments/on_switch", "val/segments/boundary_f1", "val/segments/per_constant_edge",
-               "val/edge_acc/posterior/none",
-               "val/edge_acc/posterior/interaction"}
+               "val/edge_acc/posterior/none", "val/edge_acc/posterior/interaction"}
         val |= {f"val/{kind}/{h}" for kind in ("mse", "ade", "fde", "cv/ade", "cv/fde", "ade_vs_cv") for h in hs}
         train = {*(f"train/{k}_{when}" for k in terms for when in ("step", "epoch")),
                  *(f"train/segments/{k}" for k in segments), *(f"train/schedule/{k}" for k in self.model.schedule())}
@@ -183,7 +189,8 @@ class RelationalVAEModule(L.LightningModule):
 
     def configure_callbacks(self) -> list[L.Callback]:
         guard = [FiniteGuard()] if self.hparams.check_finite else []
-        return [ProtocolFits(), EvalRandomState(self.hparams.eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]
+        checks = [ProtocolFits(), EdgeLabelsFit(), EvalRandomState(self.hparams.eval_seed), *guard]
+        return [*checks, ResumeMidEpoch(), SaveOnTerminate()]
 
     def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
         """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""
@@ -326,11 +333,10 @@ class RelationalVAEModule(L.LightningModule):
             log.warning(warning)
 
     def predict_step(self, batch: Batch, batch_idx: int) -> dict[str, Any]:
-        """What the model says about clips without ground truth: :meth:`RelationalVAE.describe` (each
-        [B, E, T-1], ``step_probs`` [B, E, T-1, K]), the batch's ``states``, ``mask`` and ``source``, and with
-        ``predict_forecast = (burn_in, steps)`` the ``forecast`` [B, steps, N, D] from each clip's first
-        burn_in frames (agents present at the burn-in's last frame carry on), and with ``predict_samples`` K the
-        ``forecast_samples`` [B, K, steps, N, D] (sampled futures)."""
+        """What the model says about clips without ground truth: :meth:`RelationalVAE.describe` (each [B, E, T-1],
+        ``step_probs`` [B, E, T-1, K]), the batch's ``states``, ``mask`` and ``source``, and with ``predict_forecast
+        = (burn_in, steps)`` the ``forecast`` [B, steps, N, D] from each clip's first burn_in frames (agents present
+        at the burn-in's last frame carry on), with ``predict_samples`` K ``forecast_samples`` [B, K, steps, N, D]."""
         x, mask = batch["states"], batch["mask"]
         out: dict[str, Any] = {"states": x, "mask": mask, "source": batch.get("source", {})}
         if self.predict_forecast is not None:  # first: its sampled edges are the first draws from eval_seed

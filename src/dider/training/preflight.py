@@ -20,6 +20,7 @@ from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
 from dider.settings import NODES
 from dider.shipped import resolve, unknown
+from dider.training.overrides import RENAMED
 from dider.validation import RULES, ConfigError, node_problems, problem, settings_problems
 
 log = logging.getLogger(__name__)
@@ -62,7 +63,9 @@ def validate_config(cfg: DictConfig) -> None:
         problems += _protocol_problems(get)
     problems += _path_problems(get) + _logger_problems(get) + _trainer_choice_problems(get)
     if problems:
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(_once(problems, cfg)))
+        moved = [f"{found}; 0.2 moved it to {RENAMED[key]}" if (key := found.split(":", 1)[0].split("=", 1)[0])
+                 in RENAMED else found for found in _once(problems, cfg)]
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(moved))
     for warning in config_warnings(cfg):
         log.warning(warning)
 

@@ -104,6 +104,14 @@ def newest_checkpoint(folder: Path) -> Path | None:
     return None if best is None else best[1]
 
 
+def predict_folder(folder: Path, name: str) -> Path:
+    """Where ``mode=predict`` writes (its ``predictions/``, ``.hydra/`` and ``run.log``): ``folder`` itself, unless
+    it holds a run (checkpoints or a ``metrics.json``), whose record a prediction never replaces: then
+    ``folder/predict/<name>``."""
+    held = any((folder / "checkpoints").glob("*.ckpt")) or (folder / "metrics.json").exists()
+    return folder / "predict" / name if held else folder
+
+
 def eval_folder(folder: Path, name: str) -> Path:
     """Where ``mode=eval`` writes its results: ``folder`` itself, unless it holds a training run (checkpoints, or a
     training's ``metrics.json``), whose results an evaluation never replaces: then ``folder/eval/<name>``. A
@@ -325,6 +333,37 @@ def mark_failed(folder: Path, error: BaseException) -> None:
     folder this process has taken (:func:`open_run_folder`), never in one it refused."""
     if folder.resolve() not in OPENED:
         return
+    _write_failed(folder, error)
+
+
+def _write_failed(folder: Path, error: BaseException) -> None:
+    """``failed.json`` in ``folder``; a write that fails too (a full disk) is only warned about: the run's own
+    error stays the one reported."""
     text = "".join(traceback.format_exception(error))
-    atomic_write_text(folder / "failed.json", json.dumps({"status": "failed", "error": repr(error),
-                                                          "traceback": text}, indent=2))
+    try:
+        atomic_write_text(folder / "failed.json", json.dumps({"status": "failed", "error": repr(error),
+                                                              "traceback": text}, indent=2))
+    except OSError as e:
+        log.warning("could not record the failure in %s (%s); the error follows", folder / "failed.json", e)
+
+
+def mark_refused(folder: Path, error: BaseException, sweep_job: bool) -> None:
+    """A run refused before it took its folder (its config, say), where the folder is still empty (made for this
+    run by Hydra): a sweep's job folder gets ``failed.json`` with the reason (``report`` then says why, not
+    "missing"); a single run's is removed, so a refusal leaves nothing behind. A folder with anything in it is
+    another run's, left as it was."""
+    try:
+        if folder.resolve() in OPENED or any(folder.iterdir()):
+            return
+        if sweep_job:
+            _write_failed(folder, error)
+        else:
+            folder.rmdir()
+    except OSError:  # gone, or not ours to change
+        return
+
+
+def clear_failed(folder: Path) -> None:
+    """A run that succeeded in ``folder`` removes an earlier attempt's ``failed.json``, which no longer describes
+    it."""
+    (folder / "failed.json").unlink(missing_ok=True)

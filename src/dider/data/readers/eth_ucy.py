@@ -24,7 +24,7 @@ def read(path: Path) -> pd.DataFrame:
 
 
 def _scene(file: Path) -> pd.DataFrame:
-    rows = []
+    rows, lines = [], []
     for n, line in enumerate(file.read_text().splitlines(), 1):
         if not (fields := line.split()):
             continue
@@ -35,9 +35,15 @@ def _scene(file: Path) -> pd.DataFrame:
         if len(values) != len(FIELDS) or not all(map(math.isfinite, values)):
             raise ValueError(f"{file}: line {n} is not four numbers (frame agent x y): {line.strip()!r}")
         rows.append(values)
+        lines.append(n)
     if not rows:
         raise ValueError(f"{file}: no rows (expected lines of frame agent x y)")
     table = np.array(rows)
+    for col, name in ((0, "frame"), (1, "agent")):  # numbers of frames and pedestrians: truncating would merge them
+        if (bad := np.flatnonzero(table[:, col] != np.round(table[:, col]))).size:
+            n = lines[bad[0]]
+            raise ValueError(f"{file}: line {n}: the {name} number {float(table[bad[0], col]):g} is not a whole number "
+                             f"({bad.size} such line(s))")
     frame = table[:, 0].astype(np.int64)
     step = int(np.gcd.reduce(np.diff(np.unique(frame)))) or 1
     return pd.DataFrame({"scene": file.stem, "agent": table[:, 1].astype(np.int64), "frame": frame // step,
