@@ -162,12 +162,12 @@ def test_no_payload_runs_through_diagnose(tmp_path, planted):
     (run / "checkpoints").mkdir(parents=True)
     path.rename(run / "checkpoints" / "last.ckpt")
     data = {"_target_": "dider.data.clips.ClipsDataModule"}
-    (run / "metrics.json").write_text(json.dumps({"config": {"data": data}}))
+    (run / "metrics.json").write_text(json.dumps({"metrics": {}, "config": {"data": data}}))
     with pytest.raises(Untrusted, match="unread"):
         diagnose(run)
     torch.save(read(SHIPPED), run / "checkpoints" / "last.ckpt")  # a clean checkpoint, the run's data node planted
     node = payloads(mark)["write_text"]
-    (run / "metrics.json").write_text(json.dumps({"config": {"data": node}}))
+    (run / "metrics.json").write_text(json.dumps({"metrics": {}, "config": {"data": node}}))
     with pytest.raises(Untrusted, match=r"metrics\.json: data\._target_='pathlib\.Path\.write_text'"):
         diagnose(run)
     assert not mark.exists()

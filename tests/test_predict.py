@@ -255,11 +255,12 @@ def test_a_second_prediction_into_a_live_folder_is_refused_before_any_work(run, 
     import os
     import socket
 
-    from dider.training.runfolder import LOCK, RunRefused
+    from dider.training.run_lock import LOCK
+    from dider.training.runfolder import RunRefused
 
     out = tmp_path / "shared"
     out.mkdir()
-    (out / LOCK).write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))  # a live writer
+    (out / LOCK).write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))  # a live writer
 
     def work(*args, **kwargs):
         raise AssertionError("the second prediction started working")
@@ -372,3 +373,50 @@ def test_a_checkpoint_whose_format_mark_is_no_number_is_named(run, tmp_path):
     torch.save(ckpt, tmp_path / "odd.ckpt")
     with pytest.raises(ValueError, match=r"odd.ckpt: not a dider checkpoint \(its format mark dider.format='abc' "):
         dider.load(tmp_path / "odd.ckpt")
+
+
+@pytest.mark.parametrize("planted", ["run.log", ".predictions.partial"])
+def test_a_planted_link_in_the_folder_is_refused_before_any_write(run, new_data, tmp_path, planted):
+    """A link in the run folder (to a file or folder outside it) would carry the prediction's writes there: refused,
+    naming it, and the link's target untouched."""
+    from dider.training.runfolder import RunRefused
+
+    out, outside = tmp_path / "out", tmp_path / "outside"
+    out.mkdir()
+    outside.mkdir()
+    target = outside / "victim" if planted == ".predictions.partial" else outside / "victim.txt"
+    target.mkdir() if planted == ".predictions.partial" else target.write_text("keep me")
+    (out / planted).symlink_to(target)
+    with pytest.raises(RunRefused, match=rf"holds link\(s\) \['{out / planted} -> {target}'\]"):
+        predict(compose_cfg(["mode=predict", f"ckpt_path={run}", "data=trajectories",
+                             f"data.source.path={new_data[0]}"], out))
+    assert sorted(p.name for p in outside.rglob("*")) == ["victim" if planted.startswith(".") else "victim.txt"]
+    assert planted.startswith(".") or target.read_text() == "keep me"
+
+
+def test_the_api_reads_clips_a_batch_at_a_time(run, new_data, caplog):
+    """batch_size 2 over 7 clips: four network calls, the same segments as one batch, the forecast's shape, and a
+    progress line for a long call (progress_s=0: after every batch)."""
+    _, arrays = new_data
+    whole = dider.load(run)
+    small = dider.load(run)
+    small.batch_size, small.progress_s = 2, 0.0
+    calls = []
+    infer = small.network.infer
+    small.network.infer = lambda batch, **kw: calls.append(batch["states"].shape[0]) or infer(batch, **kw)
+    with caplog.at_level("INFO", logger="dider.trained"):
+        segs = small.segments(arrays["positions"], mask=arrays["mask"])
+    assert calls == [2, 2, 2, 1] and "6 of 7 clips" in caplog.text
+    pd.testing.assert_frame_equal(segs, whole.segments(arrays["positions"], mask=arrays["mask"]))
+    assert small.forecast(arrays["positions"], burn_in=4, steps=5, mask=arrays["mask"]).shape == (7, 5, 4, 2)
+    small.batch_size = 0
+    with pytest.raises(ValueError, match=r"TrainedModel: batch_size=0: must be >= 1"):
+        small.segments(arrays["positions"], mask=arrays["mask"])
+
+
+@pytest.mark.parametrize("kwargs, named", [({"frame_rate": float("inf")}, r"frame_rate=inf: must be finite"),
+                                           ({"seed": 2**64}, r"seed=18446744073709551616: must lie in")])
+def test_api_arguments_are_named_as_the_caller_gave_them(run, new_data, kwargs, named):
+    _, arrays = new_data
+    with pytest.raises(ValueError, match=named):
+        dider.load(run).forecast(arrays["positions"], burn_in=4, steps=3, mask=arrays["mask"], **kwargs)

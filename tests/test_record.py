@@ -99,7 +99,7 @@ def test_broken_failed_and_running_jobs_are_named_and_left_out(tmp_path, caplog)
     (sweep / "failed").mkdir()
     (sweep / "failed" / "failed.json").write_text(json.dumps({"status": "failed", "error": "OSError('disk')"}))
     (sweep / "running" / ".hydra").mkdir(parents=True)
-    (sweep / "running" / ".dider.lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    (sweep / "running" / ".dider.lock").write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))
     with caplog.at_level("WARNING", logger="dider.analysis.record"):
         record = main([str(sweep), "--out", str(tmp_path / "r.json")])
     assert [j["folder"] for j in record["jobs"]] == [str(sweep / "ok")]
@@ -107,7 +107,7 @@ def test_broken_failed_and_running_jobs_are_named_and_left_out(tmp_path, caplog)
     assert states["list"].startswith("failed: ") and "not a run's record" in states["list"]
     assert "is not JSON (half-written?)" in states["half"]
     assert "failed.json says OSError('disk')" in states["failed"]
-    assert states["running"].startswith(f"running (pid {os.getpid()}")
+    assert states["running"].startswith(f"running (pid {os.getppid()}")
     for name in states:
         assert str(sweep / name) in caplog.text
     # only unfinished jobs: refused by name, not a crash on an empty set of overrides
@@ -148,3 +148,15 @@ def test_a_baseline_can_come_from_a_committed_record(tmp_path):
     assert all(set(j["metrics"]) == {"test/mse/h15"} for j in borrowed)
     with pytest.raises(ValueError, match="records no job of model 'nri'.*dnri"):
         main(["--out", str(tmp_path / "x.json"), "--jobs-from", f"{old}:nri"])
+
+
+def test_a_nan_metric_is_said_and_an_unknown_baseline_refused(tmp_path, caplog):
+    sweep = tmp_path / "sweep"
+    fake_job(sweep, "a1", "dider", 1, 1.0)
+    fake_job(sweep, "a2", "dider", 2, math.nan)  # no agent reached the horizon in that job
+    with caplog.at_level("WARNING", logger="dider.analysis.record"):
+        record = main([str(sweep), "--out", str(tmp_path / "r.json"), "--metric", "test/mse/h15"])
+    assert record["models"]["dider"]["test/mse/h15"]["n"] == 1
+    assert f"{sweep / 'a2'}: test/mse/h15 is NaN (no data); left out of model dider's mean" in caplog.text
+    with pytest.raises(ValueError, match=r"--baseline nope: no job of that model \(models: \['dider'\]\)"):
+        main([str(sweep), "--out", str(tmp_path / "r2.json"), "--baseline", "nope"])

@@ -34,6 +34,17 @@ def identical(a: dict, b: dict) -> bool:
         for k in a)
 
 
+def epoch_means(run: Path) -> dict[tuple[str, str], str]:
+    """(epoch, metric) -> value of every epoch mean (train/*_epoch, val/*) the run's CSV log holds (logger=csv; a
+    resumed run's log holds the epochs it ran)."""
+    import csv
+
+    with (run / "csv" / "metrics.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {(r["epoch"], k): v for r in rows for k, v in r.items()
+            if v not in (None, "") and (k.endswith("_epoch") or k.startswith("val/"))}
+
+
 def metrics_of(folder: Path) -> dict[str, float]:
     return json.loads((folder / "metrics.json").read_text())["metrics"]
 
@@ -139,7 +150,7 @@ def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers
     with the epoch's position, the resume command printed; ckpt_path=last then trains on exactly the batches the
     uninterrupted run trained on (the rest of the interrupted epoch in its order, the same random stream), and every
     test metric equals the uninterrupted run's."""
-    base = ["seed=3", "logger=none", "trainer.max_epochs=2", "data.num_train=96"]  # 6 batches an epoch
+    base = ["seed=3", "logger=csv", "trainer.max_epochs=2", "data.num_train=96"]  # 6 batches an epoch
     whole = train(make_cfg(base, out=tmp_path / "whole"))
     stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=1",
             "+callbacks.stop.batch=2", f"+callbacks.stop.signal={sig}"]
@@ -153,6 +164,9 @@ def test_terminated_mid_epoch_exits_143_and_resumes_to_the_uninterrupted_numbers
     assert not (tmp_path / "run" / "metrics.json").exists()
     resumed = train(make_cfg(base + ["ckpt_path=last"], out=tmp_path / "run"))
     assert "test/mse/h01" in whole and identical(resumed, whole)
+    # the interrupted epoch's logged means cover its batches before the stop too
+    logged = epoch_means(tmp_path / "run")
+    assert ("1", "train/loss_epoch") in logged and logged.items() <= epoch_means(tmp_path / "whole").items()
 
 
 def test_an_interrupted_evaluation_prints_the_command_that_repeats_it(make_cfg, tmp_path, capsys):
@@ -174,10 +188,10 @@ def test_an_interrupted_evaluation_prints_the_command_that_repeats_it(make_cfg, 
 
 
 def test_terminated_during_validation_resumes_to_the_uninterrupted_numbers(make_cfg, tmp_path):
-    """SIGTERM at validation batch 1 of epoch 1 of 3: the resumed run validates epoch 1 again (a best-checkpoint
-    candidate like the uninterrupted run's), trains epoch 2 in the uninterrupted order, and every test metric and
-    every validation log line equals the uninterrupted run's."""
-    base = ["seed=3", "logger=none", "trainer.max_epochs=3", "data.num_train=64", "data.num_val=48",
+    """SIGTERM at validation batch 1 of epoch 1 of 3: the validation finishes before the save (epoch 1 is a
+    best-checkpoint candidate as in the uninterrupted run), the resumed run trains epoch 2 in the uninterrupted order,
+    and every test metric and every logged epoch mean equals the uninterrupted run's."""
+    base = ["seed=3", "logger=csv", "trainer.max_epochs=3", "data.num_train=64", "data.num_val=48",
             "data.loader.eval_batch_size=16"]  # 3 validation batches an epoch
     whole = train(make_cfg(base, out=tmp_path / "whole"))
     stop = ["+callbacks.stop._target_=helpers.signals.TerminateAt", "+callbacks.stop.epoch=1",
@@ -187,9 +201,9 @@ def test_terminated_during_validation_resumes_to_the_uninterrupted_numbers(make_
     assert stopped.value.code == 143
     resumed = train(make_cfg(base + ["ckpt_path=last"], out=tmp_path / "run"))
     assert "test/mse/h01" in whole and identical(resumed, whole)
-    epochs = lambda run: [line.split("] - ", 1)[1].rsplit("(", 1)[0] for line in  # noqa: E731
-                          (run / "run.log").read_text().splitlines() if "] - epoch " in line]
-    assert epochs(tmp_path / "run")[-3:] == epochs(tmp_path / "whole")[-3:]
+    logged = epoch_means(tmp_path / "run")  # the resumed run's: epoch 2 (epoch 1 validated before the save)
+    assert ("2", "val/select") in logged and ("2", "train/loss_epoch") in logged
+    assert logged.items() <= epoch_means(tmp_path / "whole").items()
     assert sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir()) == sorted(
         p.name for p in (tmp_path / "whole" / "checkpoints").iterdir())
 
@@ -425,6 +439,85 @@ def test_a_live_run_locks_its_folder(make_cfg, tmp_path):
     assert (out / "metrics.json").exists() and not (out / ".dider.lock").exists()
 
 
+def test_terminated_while_drawing_the_figures_says_so_and_leaves_no_partial_file(make_cfg, tmp_path, monkeypatch,
+                                                                                  capsys):
+    """SIGTERM half-way through a figure's PNG (after metrics.json): exit 143 with a word (console and run.log), no
+    temporary file; the printed command draws them, the metrics unchanged."""
+    import matplotlib.figure
+
+    out = tmp_path / "run"
+    base = ["seed=3", "logger=none", "callbacks.timelines.num_clips=2"]
+    savefig, calls = matplotlib.figure.Figure.savefig, []
+
+    def interrupted(self, f, *args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            f.write(b"\x89PNG half")
+            os.kill(os.getpid(), signal.SIGTERM)
+        return savefig(self, f, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", interrupted)
+    with pytest.raises(SystemExit) as stopped:
+        train(make_cfg(base, out=out))
+    assert stopped.value.code == 143
+    assert "while drawing the figures (the results are written); draw them with:" in capsys.readouterr().err
+    assert "while drawing the figures" in (out / "run.log").read_text()
+    assert not list(out.rglob("*.tmp")) and (out / "metrics.json").is_file()
+    first = metrics_of(out)
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    train(make_cfg([*base, "ckpt_path=last"], out=out))
+    assert identical(metrics_of(out), first) and len(list((out / "figures").glob("*.png"))) >= 4
+
+
+def test_a_run_resumed_from_a_best_checkpoint_keeps_no_stray(make_cfg, tmp_path, caplog):
+    """last.ckpt lost (a kill during its write): ckpt_path=last resumes from the best epoch's file; once a better
+    epoch replaces it, that file goes too (Lightning keeps the file a run resumed from), leaving save_top_k + last."""
+    out = tmp_path / "run"
+    base = ["seed=2", "logger=none", "callbacks.timelines.num_clips=0", "model=dnri"]
+    train(make_cfg([*base, "trainer.max_epochs=1"], out=out))
+    (out / "checkpoints" / "last.ckpt").unlink()
+    (resumed,) = (out / "checkpoints").glob("epoch_*.ckpt")
+    with caplog.at_level("INFO", logger="dider.training.interrupt"):
+        train(make_cfg([*base, "trainer.max_epochs=4", "ckpt_path=last"], out=out))
+    files = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert len(files) == 2 and "last.ckpt" in files, files
+    if resumed.name not in files:  # displaced by a better epoch (this seed: yes)
+        assert f"removing {resumed}" in caplog.text
+
+
+def test_a_lock_that_cannot_be_taken_over_says_which_file_and_how_to_proceed(tmp_path, monkeypatch):
+    from dider.training.run_lock import LOCK, RunLock, _started
+
+    lock = tmp_path / LOCK
+    lock.write_text(json.dumps({"pid": 1, "host": "another-machine"}))
+    with pytest.raises(ConfigError, match=rf"pid 1 on another-machine, its lock {lock}\); wait for it, or use another "
+                                          rf"hydra.run.dir. If that run is gone .*remove {lock} and run again"):
+        RunLock(tmp_path).__enter__()
+    # our own pid, a lock we do not hold (a container restarted as the same pid): stale
+    lock.write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    with RunLock(tmp_path) as held:
+        assert held.held and json.loads(lock.read_text())["started"] == _started(os.getpid())
+        with pytest.raises(ConfigError, match="being written by another run"):  # held by us: live
+            RunLock(tmp_path).__enter__()
+    # a live pid that another process has since been given (its start time differs): stale
+    lock.write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname(), "started": -1}))
+    with RunLock(tmp_path) as held:
+        assert held.held
+    assert not lock.exists()
+
+
+def test_a_full_disk_at_the_start_names_the_lock_and_leaves_none(tmp_path, monkeypatch):
+    from dider.training.run_lock import LOCK, RunLock
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(json, "dump", full)
+    with pytest.raises(OSError, match=rf"{tmp_path / LOCK}: could not write the run folder's lock \(No space left"):
+        RunLock(tmp_path).__enter__()
+    assert not (tmp_path / LOCK).exists()
+
+
 def test_a_checkpoint_of_another_model_is_named(make_cfg, tmp_path):
     train(make_cfg(["logger=none", "model=dider"], out=tmp_path / "run"))
     ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
@@ -627,7 +720,7 @@ def test_a_full_disk_is_named(tmp_path, monkeypatch):
 def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
     """A run killed while writing its first last.ckpt leaves the best checkpoint and a temporary file: ckpt_path=last
     removes the temporary file and resumes from the newest complete checkpoint (the most optimiser steps)."""
-    from dider.training.runfolder import resolve_ckpt
+    from dider.training.runfolder import resolve_ckpt, sweep_partial_writes
 
     folder = tmp_path / "checkpoints"
     folder.mkdir()
@@ -635,9 +728,12 @@ def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
         torch.save({"global_step": step}, folder / name)
     (folder / "broken.ckpt").write_bytes(b"PK\x03\x04 half")
     (folder / ".last.ckpt.x1y2.tmp").write_bytes(b"PK\x03\x04 half a checkpoint")
+    (tmp_path / "figures").mkdir()
+    (tmp_path / "figures" / ".timeline_00.png.a1b2.tmp").write_bytes(b"\x89PNG half")  # a figure's write
     with caplog.at_level("WARNING", logger="dider.training.runfolder"):
         assert resolve_ckpt("last", tmp_path, folder_given=True) == str(folder / "epoch_001.ckpt")
-    assert not (folder / ".last.ckpt.x1y2.tmp").exists()
+        sweep_partial_writes(tmp_path)  # what the resumed run does under the folder's lock
+    assert not list(tmp_path.rglob("*.tmp"))
     assert "last.ckpt is missing" in caplog.text and "removing the temporary file" in caplog.text
 
 

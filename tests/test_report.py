@@ -309,7 +309,7 @@ def test_broken_running_and_evaluated_jobs(tmp_path: Path, caplog):
     (sweep / "model=dnri,e=2,seed=2" / "metrics.json").write_text("[]")
     running = sweep / "model=dnri,e=2,seed=3"
     (running / "metrics.json").unlink()
-    (running / ".dider.lock").write_text(json.dumps({"pid": os.getpid(), "host": socket.gethostname()}))
+    (running / ".dider.lock").write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))
     evaluated = sweep / "model=dnri,e=2,seed=1" / "eval" / "synth"
     shutil.copytree(sweep / "model=dnri,e=2,seed=1", evaluated)
     shutil.copytree(sweep / "model=dnri,e=2,seed=1", sweep / "twin", ignore=shutil.ignore_patterns("eval"))
@@ -317,7 +317,7 @@ def test_broken_running_and_evaluated_jobs(tmp_path: Path, caplog):
         summary = report.main([str(sweep), "--out", str(tmp_path / "out")])
     assert len(summary.failed) == 2
     assert summary.failed[0].startswith("model=dnri,e=2,seed=2 (") and "is not a run's record" in summary.failed[0]
-    assert summary.failed[1].startswith(f"model=dnri,e=2,seed=3 (running (pid {os.getpid()} ")
+    assert summary.failed[1].startswith(f"model=dnri,e=2,seed=3 (running (pid {os.getppid()} ")
     assert [len(g.jobs) for g in summary.groups] == [2]  # seed 1 and its twin; not the evaluation
     assert "ran the same settings: both are kept" in caplog.text and "twin" in caplog.text
 

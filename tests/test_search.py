@@ -61,3 +61,36 @@ def test_a_killed_search_goes_on_from_its_study(tmp_path, cache_dir):
     with pytest.raises(ValueError, match=r"holds a search with other settings.*\n  - overrides: "):
         search([*args, "hparams_search.n_trials=3", "trainer.max_epochs=1"])
     assert len(optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}").trials) == 3
+
+
+def test_a_failing_trial_is_recorded_and_the_search_goes_on(tmp_path, cache_dir, monkeypatch):
+    """Trial 0 diverges: it is a failed trial with its error recorded, and trial 1 still runs and is the best."""
+    import dider.analysis.search as search_module
+
+    real, calls = search_module.fit_and_score, []
+
+    def diverging_first(cfg):
+        calls.append(cfg)
+        if len(calls) == 1:
+            raise ValueError("non-finite loss at step 3 (term nll)")
+        return real(cfg)
+
+    monkeypatch.setattr(search_module, "fit_and_score", diverging_first)
+    out = tmp_path / "search"
+    best = search([*SMOKE, f"data.cache_dir={cache_dir}", "hparams_search=dider", "hparams_search.n_trials=2",
+                   f"hydra.run.dir={out}"])
+    study = optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}")
+    assert [t.state.name for t in study.trials] == ["FAIL", "COMPLETE"]
+    assert "non-finite loss" in study.trials[0].user_attrs["error"]
+    assert best["number"] == 1 and list(pd.read_csv(out / "search.csv")["trial"]) == [1]
+
+
+def test_a_search_refused_by_the_preflight_records_no_study(tmp_path, cache_dir):
+    out = tmp_path / "search"
+    args = [*SMOKE, f"data.cache_dir={cache_dir}", "hparams_search=dider", "hparams_search.n_trials=1",
+            f"hydra.run.dir={out}"]
+    with pytest.raises(ValueError, match=r"model.num_edges=1: must be >= 2"):
+        search([*args, "model.num_edges=1"])
+    assert not out.exists()  # the corrected command starts the search afresh
+    search([*args, "model.num_edges=2"])
+    assert len(optuna.load_study(study_name="dider", storage=f"sqlite:///{out / 'study.db'}").trials) == 1

@@ -64,7 +64,7 @@ def test_shipping_records_the_command_the_commit_and_how_long_training_ran(tmp_p
     package.mkdir()
     shutil.copy(HERE / catalog()["synth/dnri"]["file"], run / "checkpoints" / "last.ckpt")
     (run / "metrics.json").write_text(json.dumps({
-        "overrides": ["model=dnri", "seed=1", "hydra.run.dir=x", "logger=csv"],
+        "metrics": {}, "overrides": ["model=dnri", "seed=1", "hydra.run.dir=x", "logger=csv"],
         "provenance": {"git_commit": "abc", "wall_s": 600.0, "device": "cpu"}}))
     (package / "catalog.json").write_text("{}")
     monkeypatch.setattr(ship, "HERE", package)

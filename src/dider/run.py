@@ -28,10 +28,12 @@ from dider.outputs.prediction import PredictionWriter, PredictProgress
 from dider.outputs.run_record import (
     format_table,
     hparams,
+    in_sweep,
     log_results,
     overridden_keys,
-    overrides,
     provenance,
+    resume_command,
+    run_dir_given,
     run_label,
     write_metrics,
 )
@@ -41,12 +43,13 @@ from dider.perf import compile_modules, tune_allocator
 from dider.targets import named_targets
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
 from dider.training.checkpoint import AtomicCheckpointIO
+from dider.training.interrupt import drop_resumed_from, stop_on_signals
 from dider.training.module import RelationalVAEModule
 from dider.training.overrides import override_problem
-from dider.training.preflight import clip_problem, input_warnings, validate_config
+from dider.training.preflight import check_monitors, clip_problem, input_warnings, validate_config
 from dider.training.quiet import silence_library_chatter
+from dider.training.run_lock import RunLock
 from dider.training.runfolder import (
-    RunLock,
     RunRefused,
     check_checkpoint,
     check_fresh,
@@ -60,6 +63,7 @@ from dider.training.runfolder import (
     open_run_folder,
     predict_folder,
     resolve_ckpt,
+    sweep_partial_writes,
 )
 from dider.validation import ConfigError
 
@@ -198,7 +202,7 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
         raise ConfigError(f"{out_dir}: the run folder is not writable (choose another hydra.run.dir)")
     trained, version = None, None
     ckpt = (str(eval_checkpoint(cfg.ckpt_path, out_dir)) if cfg.mode == "eval"
-            else resolve_ckpt(cfg.ckpt_path, out_dir, _run_dir_given()))
+            else resolve_ckpt(cfg.ckpt_path, out_dir, run_dir_given()))
     if ckpt is not None:  # before any work: a checkpoint of another model fails naming both sides
         version = check_checkpoint(ckpt, OmegaConf.to_container(cfg.model, resolve=True))
     if cfg.mode == "eval":
@@ -212,6 +216,8 @@ def fit_and_score(cfg: DictConfig) -> tuple[dict[str, float], float | None]:
     with RunLock(out_dir):  # first: the folder checks below and the run never race another process
         if ckpt is None and is_rank_zero():
             check_fresh(out_dir)
+        elif is_rank_zero():  # going on in the folder: what a killed write (checkpoint, figure) left is swept
+            sweep_partial_writes(out_dir)
         open_run_folder(out_dir, cfg)
         return _fit_and_test(cfg, ckpt, out_dir, started, version, trained)
 
@@ -261,38 +267,6 @@ def _checkpoint_features(cfg: DictConfig, trained: TrainedModel, force_key: str)
     return take
 
 
-def _resume_command(cfg: DictConfig, out_dir: Path, ckpt: str | None) -> str:
-    """The command that repeats an interrupted job in its folder: its config (``--config-name eval``), its mode and
-    overrides, and the checkpoint to go on from (training: the folder's ``last``; evaluation: the one it tests)."""
-    try:
-        name = HydraConfig.get().job.config_name or "config"
-    except ValueError:  # composed outside a Hydra app
-        name = "config"
-    again = [o for o in overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path=", "mode="))]
-    resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
-    head = "python -m dider.run" + ("" if name == "config" else f" --config-name {name}")
-    return " ".join([head, f"mode={cfg.mode}", *again, f"hydra.run.dir={out_dir}", resume])
-
-
-def _in_sweep() -> bool:
-    """Whether this process runs a job of a Hydra multirun (its folder is the job's own)."""
-    try:
-        return str(HydraConfig.get().mode) == "RunMode.MULTIRUN"
-    except ValueError:
-        return False
-
-
-def _run_dir_given() -> bool:
-    """Whether the run folder was chosen (hydra.run.dir on the command line, or a sweep's job folder), rather
-    than a new timestamped one."""
-    try:
-        hydra_cfg = HydraConfig.get()
-    except ValueError:  # composed outside a Hydra app: the caller set the folder
-        return True
-    return str(hydra_cfg.mode) == "RunMode.MULTIRUN" or any(
-        o.startswith(("hydra.run.dir=", "hydra.sweep.dir=")) for o in hydra_cfg.overrides.hydra)
-
-
 def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: float,
                   ckpt_version: str | None = None, trained: TrainedModel | None = None
                   ) -> tuple[dict[str, float], float | None]:
@@ -308,7 +282,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     # The learning-rate monitor needs a logger to write to: without one (logger=none) it has nothing to do.
     callbacks = [c for c in _build_list(cfg.get("callbacks")) if loggers or not isinstance(c, LearningRateMonitor)]
     if cfg.mode == "train":
-        _check_monitors(model, cfg)
+        check_monitors(model, cfg)
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers or False,
                                      plugins=trainer_plugins(cfg))
     if trainer.world_size == 1:  # the data's problems (files, window lengths) surface before any training
@@ -323,11 +297,12 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         if cfg.mode == "train":
             trainer.fit(model, datamodule=datamodule, ckpt_path=ckpt)
             best = next((c.best_model_path for c in callbacks if isinstance(c, ModelCheckpoint)), "")
+            drop_resumed_from(ckpt, [c for c in callbacks if isinstance(c, ModelCheckpoint)])
         # verbose=False: the app prints the one final table itself (leading with the forecast in data units)
         trainer.test(model, datamodule=datamodule, ckpt_path=(best or None) if cfg.mode == "train" else ckpt,
                      verbose=False)
     except SIGTERMException:  # a SystemExit with status 0: schedulers and `&&` chains would see success
-        print(f"terminated (SIGTERM or Ctrl-C); resume with: {_resume_command(cfg, out_dir, ckpt)}", file=sys.stderr)
+        print(f"terminated (SIGTERM or Ctrl-C); resume with: {resume_command(cfg, out_dir, ckpt)}", file=sys.stderr)
         raise SystemExit(TERMINATED) from None
 
     metrics = {k: float(v) for k, v in trainer.callback_metrics.items() if k.startswith("test/")}
@@ -345,7 +320,16 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         if warning := edges_verdict(metrics):
             log.warning(warning)
         print(f"metrics: {out_dir / 'metrics.json'}", flush=True)
-    if figures := draw_figures(trainer, model):  # after the results: a figure never costs them
+    try:
+        with stop_on_signals():
+            figures = draw_figures(trainer, model)  # after the results: a figure never costs them
+    except SIGTERMException:
+        log.error("terminated (SIGTERM or Ctrl-C) while drawing the figures; the results are complete (%s)",
+                  out_dir / "metrics.json")
+        print(f"terminated (SIGTERM or Ctrl-C) while drawing the figures (the results are written); draw them with: "
+              f"{resume_command(cfg, out_dir, ckpt)}", file=sys.stderr)
+        raise SystemExit(TERMINATED) from None
+    if figures:
         # logdir_spec names the run in TensorBoard's HParams table (with --logdir it is the folder "tb")
         print(f"figures: {figures[0].parent}  (TensorBoard: tensorboard --logdir_spec {run_label(cfg)}:{out_dir})")
     if trainer.is_global_zero and (out_dir / "clips.npz").exists():
@@ -355,21 +339,6 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
         print("\n" + run_summary(metrics, out_dir, str(cfg.model.get("name", "")), data,
                                  getattr(datamodule, "units", None)), flush=True)
     return metrics, objective
-
-
-def _check_monitors(model: RelationalVAEModule, cfg: DictConfig) -> None:
-    """A checkpoint or early-stopping callback that monitors a metric the model never logs would fail only after the
-    first epoch: named before training, with the key that sets it."""
-    known = model.monitorable()
-    if (metric := cfg.get("optimized_metric")) and metric not in known:  # a search would score every trial inf
-        close = sorted(k for k in known if k.startswith("val/"))
-        raise ConfigError(f"optimized_metric={metric}: the model logs no such metric; e.g. {', '.join(close[:8])}")
-    for name, node in (cfg.get("callbacks") or {}).items():
-        monitor = node.get("monitor") if isinstance(node, DictConfig) else None
-        if monitor and monitor not in known:
-            close = sorted(k for k in known if k.split("/")[0] == str(monitor).split("/")[0])
-            raise ConfigError(f"callbacks.{name}.monitor={monitor}: the model logs no such metric; e.g. "
-                              f"{', '.join(close[:8]) or ', '.join(sorted(known)[:8])}")
 
 
 def _objective(cfg: DictConfig, trainer: L.Trainer, callbacks: list[Any], metrics: dict[str, float]) -> float | None:
@@ -401,7 +370,7 @@ def main(cfg: DictConfig) -> float | None:
         log_failure(e)  # Hydra prints it on the console, once
         if is_rank_zero():
             mark_failed(Path(cfg.output_dir), e)
-            mark_refused(Path(cfg.output_dir), e, sweep_job=_in_sweep())
+            mark_refused(Path(cfg.output_dir), e, sweep_job=in_sweep())
         raise
     finally:
         close_run_log()

@@ -14,7 +14,8 @@ Nothing here needs Lightning. Shapes: S clips, T frames, N agents, E = N(N-1) ed
 from __future__ import annotations
 
 import logging
-from collections.abc import Collection, Mapping
+import time
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,6 +105,24 @@ class TrainedModel:
     version: str = ""
     path: Path | None = None
     trust: tuple[str, ...] = ()  # the classes of the user's own that its config was allowed to build
+    # clips the network reads at once (as mode=predict's data.loader.eval_batch_size): the memory of a call is that
+    # of one batch, whatever the number of clips; a progress line every progress_s seconds of a long call
+    batch_size: int = 256
+    progress_s: float = 30.0
+
+    def _batched(self, count: int, run: Callable[[slice], Any]) -> list[Any]:
+        """``run`` on each batch of ``count`` clips (a slice of them) in order -> its results, with progress lines."""
+        check_arguments("TrainedModel", {"batch_size": (self.batch_size, integer(1))})
+        parts, started = [], time.monotonic()
+        shown = started
+        for lo in range(0, count, self.batch_size):
+            parts.append(run(slice(lo, lo + self.batch_size)))
+            if (now := time.monotonic()) - shown >= self.progress_s and lo + self.batch_size < count:
+                done = lo + self.batch_size
+                log.info("%d of %d clips (%.0f s, about %.0f s left)", done, count, now - started,
+                         (now - started) * (count - done) / done)
+                shown = now
+        return parts
 
     @property
     def device(self) -> torch.device:
@@ -150,9 +169,17 @@ class TrainedModel:
 
     @torch.no_grad()
     def describe(self, states: torch.Tensor, mask: torch.Tensor) -> dict[str, torch.Tensor]:
-        """:meth:`RelationalVAE.describe` of normalised states [S, T, N, 4] and mask [S, T, N] (eval mode)."""
+        """:meth:`RelationalVAE.describe` of normalised states [S, T, N, 4] and mask [S, T, N] (eval mode), a batch
+        of ``batch_size`` clips at a time (on the host)."""
         self.network.eval()
-        return self.network.describe(self.network.infer({"states": states, "mask": mask}, hard=True), mask)
+
+        def run(part: slice) -> dict[str, torch.Tensor]:
+            x, m = states[part], mask[part]
+            return {k: v.cpu() for k, v in self.network.describe(self.network.infer({"states": x, "mask": m},
+                                                                                     hard=True), m).items()}
+
+        parts = self._batched(states.shape[0], run)
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
     def segments(self, positions: ArrayLike, mask: ArrayLike | None = None, velocities: ArrayLike | None = None,
                  frame_rate: float | None = None) -> pd.DataFrame:
@@ -163,7 +190,7 @@ class TrainedModel:
         states, m, first = self.states(positions, mask, velocities, frame_rate)
         out = self.describe(states, m)
         s = states.shape[0]
-        arrays = {"segments": out["segments"].cpu(), "probs": out["probs"].cpu(), "clip": torch.arange(s),
+        arrays = {"segments": out["segments"], "probs": out["probs"], "clip": torch.arange(s),
                   "frame": torch.full((s,), first)}
         return segment_frame(arrays)
 
@@ -171,7 +198,7 @@ class TrainedModel:
                            velocities: ArrayLike | None = None, frame_rate: float | None = None) -> np.ndarray:
         """Per-step posterior probabilities of each edge type, [S, E, T'-1, K] (transition t -> t+1)."""
         states, m, _ = self.states(positions, mask, velocities, frame_rate)
-        return self.describe(states, m)["step_probs"].cpu().numpy()
+        return self.describe(states, m)["step_probs"].numpy()
 
     @torch.no_grad()
     def forecast(self, positions: ArrayLike, burn_in: int, steps: int, mask: ArrayLike | None = None,
@@ -184,19 +211,20 @@ class TrainedModel:
         do), leaving the global random state alone. ``samples`` K > 0: K sampled futures instead, their online edges
         drawn from the prior (types and segment ends) -> [K, S, steps, N, 2]."""
         check_arguments("TrainedModel.forecast", {"burn_in": (burn_in, integer(1)), "steps": (steps, integer(1)),
-                                                  "seed": (seed, optional(integer(0))),
+                                                  "seed": (seed, optional(integer(0, "", 2**64 - 1))),
                                                   "samples": (samples, integer(0))})
         states, m, _ = self.states(positions, mask, velocities, frame_rate)
         if burn_in > states.shape[1]:
             raise ValueError(f"TrainedModel.forecast: burn_in={burn_in}: more than the {states.shape[1]} steps of the "
                              f"model's input the clips give")
         self.network.eval()
-        with torch.random.fork_rng(devices=[]):
+        with torch.random.fork_rng(devices=[]):  # seeded once, drawn batch after batch as mode=predict draws
             torch.manual_seed(self.config.get("eval_seed", 0) if seed is None else seed)
-            pred = self.network.forecast_after(states, m, burn_in, steps, samples=samples)
+            pred = torch.cat(self._batched(states.shape[0], lambda part: self.network.forecast_after(
+                states[part], m[part], burn_in, steps, samples=samples).float().cpu()))
         if samples:  # [S, K, ...] -> [K, S, ...]
             pred = pred.transpose(0, 1)
-        xy = self.normalizer.to_user(self.normalizer.denormalize(pred.float().cpu()))[..., :2]
+        xy = self.normalizer.to_user(self.normalizer.denormalize(pred))[..., :2]
         return xy.masked_fill(~m[:, burn_in - 1, None, :, None].cpu(), float("nan")).numpy()
 
 

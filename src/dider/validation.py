@@ -51,7 +51,9 @@ def at_least(low: float, note: str = "") -> Rule:
 
 
 def above(low: float) -> Rule:
-    return _numeric(lambda v: v > low, f"must be > {low}")
+    """A finite number > low (inf is no rate, no learning rate, no speed)."""
+    greater = _numeric(lambda v: v > low, f"must be > {low}")
+    return lambda v: greater(v) or (None if math.isfinite(v) else "must be finite")
 
 
 def integer(low: int, note: str = "", high: int | None = None) -> Rule:
@@ -106,6 +108,23 @@ def boolean(value: Any) -> str | None:
     return None if isinstance(value, bool) else "expected true or false"
 
 
+def text(value: Any) -> str | None:
+    """A non-empty string (a name, a metric, a path)."""
+    return None if isinstance(value, str) and value else "expected a non-empty string"
+
+
+def texts(value: Any) -> str | None:
+    """A list of non-empty strings."""
+    ok = isinstance(value, Sequence) and not isinstance(value, str) and all(isinstance(v, str) and v for v in value)
+    return None if ok else "expected a list of strings"
+
+
+def node_or_null(value: Any) -> str | None:
+    """A config node that names its class (``_target_``), or null."""
+    ok = value is None or (isinstance(value, Mapping) and "_target_" in value)
+    return None if ok else "expected a node with its _target_ class, or null (left out)"
+
+
 def folder_name(value: Any) -> str | None:
     """A name for a folder inside another: no path separators, not '.' or '..'."""
     ok = isinstance(value, str) and value not in ("", ".", "..") and "/" not in value and "\\" not in value
@@ -120,11 +139,19 @@ def class_paths(value: Any) -> str | None:
 
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
+NUM_TYPES = integer(2, " (edge types: model.num_edges)")  # every plugin's num_types, interpolated from num_edges
 
 # The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare theirs
 # (SETTINGS), and so do the protocol, eval and predict nodes (dider.settings).
 RULES: dict[str, Rule] = {
     "compile": boolean,
+    "optimized_metric": optional(text),
+    "model.name": text,
+    "model.eval_seed": integer(0, " (a torch seed)", 2**64 - 1),
+    "model.optimizer._partial_": boolean,
+    "model.scheduler._partial_": boolean,
+    "model.scheduler.step_size": integer(1),
+    "model.scheduler.gamma": above(0),
     "deterministic": one_of(True, False, "warn"),  # Lightning acts on a bool or "warn" alone
     "cuda_graph": one_of("auto", True, False),
     "allocator": one_of(*ALLOCATORS),
@@ -194,7 +221,7 @@ class PickedBy:
     def pick(self, node: Mapping[str, Any], where: str) -> type:
         """The settings class of ``node`` (``where``: its key); an unknown value raises naming it."""
         value, classes = node.get(self.key, self.default), self.classes()
-        if (cls := classes.get(value, self.fallback)) is None:
+        if (cls := classes.get(value, self.fallback) if isinstance(value, str | None) else None) is None:
             raise ConfigError(f"{where}.{self.key}={value!r}: expected one of {sorted(classes)}")
         return cls
 
@@ -244,8 +271,10 @@ def _unknown_arguments(cls: type | None, node: Mapping[str, Any], path: str) -> 
         params = inspect.signature(cls).parameters
     except (TypeError, ValueError):  # a builtin's signature: nothing to compare
         return []
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        return []
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):  # its KEYWORDS rule, if any
+        rule = getattr(cls, "KEYWORDS", None)
+        return [] if rule is None else [f"{path}.{k}={v!r}: {why}" for k, v in node.items()
+                                        if k not in params and not str(k).startswith("_") and (why := rule(v))]
     known = [k for k, p in params.items() if p.kind is not inspect.Parameter.VAR_POSITIONAL]
     return [f"{path}.{k}: no such setting of {cls.__name__} (expected some of {known})" for k in node
             if not str(k).startswith("_") and k not in params]

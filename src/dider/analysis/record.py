@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from dider.io import atomic_write_text
-from dider.training.runfolder import LOCK, owner_of
+from dider.training.run_lock import LOCK, owner_of
 
 log = logging.getLogger(__name__)
 
@@ -202,11 +202,17 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
             raise ValueError(f"two jobs of model {job['model']!r} with seed {job['seed']}: {other} and "
                              f"{job['folder']}; a record keeps one job per model and seed: record them apart, or "
                              f"tell them apart by an override (without --by-name)")
+    if baseline is not None and baseline not in {job["model"] for job in jobs}:
+        raise ValueError(f"--baseline {baseline}: no job of that model (models: "
+                         f"{sorted({job['model'] for job in jobs})})")
     by_model: dict[str, dict[str, dict[int, float]]] = {}
     for job in jobs:
         for k, v in job["metrics"].items():
             if v is not None and not math.isnan(v):
                 by_model.setdefault(job["model"], {}).setdefault(k, {})[job["seed"]] = v
+            elif k in metrics:  # asked for and empty (NaN: e.g. no agent reached the horizon): said, not hidden
+                log.warning("%s: %s is NaN (no data); left out of model %s's mean over seeds", job["folder"], k,
+                            job["model"])
     models = {}
     for name, per_metric in by_model.items():
         models[name] = {k: summary(list(v.values())) for k, v in per_metric.items()}

@@ -29,7 +29,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from dider.io import atomic_write_text
-from dider.run import fit_and_score
+from dider.run import fit_and_score, validate_config
 
 log = logging.getLogger(__name__)
 KINDS = ("float", "int", "categorical")
@@ -45,6 +45,11 @@ def compose_run(overrides: Sequence[str], out: Path) -> DictConfig:
         cfg.hydra.job.num, cfg.hydra.job.id = 0, out.name
     HydraConfig().set_config(cfg)
     return cfg
+
+
+def first_point(space: Mapping[str, Any]) -> dict[str, Any]:
+    """A point of the (checked) space: each key at its low end or first choice, for the preflight."""
+    return {k: spec["choices"][0] if spec["type"] == "categorical" else spec["low"] for k, spec in space.items()}
 
 
 def check_space(space: Mapping[str, Any]) -> None:
@@ -118,6 +123,9 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
     given_dir = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra.run.dir=")), None)
     out = out or (Path(given_dir) if given_dir else Path("multirun/search") / time.strftime("%Y-%m-%d_%H-%M-%S"))
     given = [o for o in overrides if not o.startswith("hydra.run.dir=")]
+    # the settings pass the preflight (at the space's first point) before the study is made: a corrected command in
+    # the same folder is not then refused as "a search with other settings"
+    validate_config(compose_run([*given, *(f"{k}={v}" for k, v in first_point(space).items())], out / "preflight"))
     out.mkdir(parents=True, exist_ok=True)
     # the study lives in the search folder: a killed search started again with the same folder goes on
     storage = f"sqlite:///{out.resolve() / 'study.db'}"
@@ -143,6 +151,7 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
         values = suggest(trial, space)
         run_dir = out / f"trial_{trial.number:03d}"
         cfg = compose_run([*given, *(f"{k}={v}" for k, v in values.items())], run_dir)
+        trial.set_user_attr("dir", str(run_dir))
         try:
             value = fit_and_score(cfg)[1]
         except SystemExit as e:  # SIGTERM in the trial: the search stops, to go on from its study later
@@ -150,16 +159,21 @@ def search(overrides: Sequence[str], out: Path | None = None) -> dict[str, Any]:
             print(f"search terminated in trial {trial.number}; go on with: python -m dider.analysis.search {again}",
                   file=sys.stderr)
             raise SystemExit(e.code) from None
-        value = math.inf if value is None or not math.isfinite(value) else float(value)
-        trial.set_user_attr("dir", str(run_dir))
-        return value
+        except Exception as e:  # a trial that diverges (or fails otherwise): recorded as failed, the search goes on
+            trial.set_user_attr("error", repr(e))
+            log.warning("trial %d (%s) failed: %r; the search goes on", trial.number, run_dir, e)
+            raise
+        return math.inf if value is None or not math.isfinite(value) else float(value)
 
     def write_trials(study: Any, _: Any) -> None:  # every finished trial of the study, resumed ones included
         rows = [{"trial": t.number, "value": t.value, **t.params, "dir": t.user_attrs.get("dir")}
                 for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))]
         atomic_write_text(out / "search.csv", pd.DataFrame(rows).to_csv(index=False))
 
-    study.optimize(objective, n_trials=max(int(spec.get("n_trials", 20)) - done, 0), callbacks=[write_trials])
+    study.optimize(objective, n_trials=max(int(spec.get("n_trials", 20)) - done, 0), callbacks=[write_trials],
+                   catch=(Exception,))
+    if not study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,)):
+        raise RuntimeError(f"{out}: every trial failed (each trial folder's failed.json says why)")
     best = {"number": study.best_trial.number, "value": study.best_value, "params": study.best_params,
             "dir": str(out / f"trial_{study.best_trial.number:03d}"),
             "objective": base.get("optimized_metric"), "direction": spec.get("direction", "minimize")}

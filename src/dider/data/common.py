@@ -28,7 +28,7 @@ from dider.data.batch import Batch, Normalizer
 from dider.data.legacy import flat_view
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
-from dider.validation import ConfigError, PickedBy, Rule, integer, node_problems, optional
+from dider.validation import ConfigError, PickedBy, Rule, integer, node_problems, optional, text
 
 SPLITS = ("train", "val", "test")
 # The per-agent features of every batch, in order (raw units before normalisation).
@@ -269,6 +269,7 @@ class BaseDataModule(L.LightningDataModule):
     # The rules of the shared arguments; a subclass adds its own (``BaseDataModule.SETTINGS | {...}``).
     SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = {
         "loader": Loader, "num_train": optional(integer(1)), "num_val": optional(integer(1)),
+        "cache_dir": optional(text),
         "num_test": optional(integer(1)),
     }
     LOADER = Loader()  # this data set's loader defaults

@@ -16,10 +16,12 @@ pair_offsets[w]:pair_offsets[w+1]), ``pair_agents`` [Q, 2] long (agent positions
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
 from dider.graph import edge_id
+from dider.validation import Rule, above, texts, within
 
 OTHER, PARKED, OPPOSITE = 0, 1, 2
 CROSSING_CHUNK = 256
@@ -32,6 +34,9 @@ class PairRules:
     moving_speed: float = 2.0  # m/s: a vehicle whose mean speed exceeds this is moving
     opposite_cos: float = -0.9  # mean headings with a lower cosine head opposite ways (-0.9: up to ~25 deg off)
     vehicle_classes: tuple[str, ...] = ("car", "truck_bus", "truck", "bus", "van", "trailer", "motorcycle")
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {"parked_speed": above(0), "moving_speed": above(0),
+                                           "opposite_cos": within(-1.0, 0.0), "vehicle_classes": texts}
 
     def __post_init__(self) -> None:
         if not 0 < self.parked_speed <= self.moving_speed:

@@ -18,7 +18,7 @@ from torch import nn
 from dider.graph import aggregate_to_receivers, edge_index, edge_mask
 from dider.models.layers import PairLinear, TypedLinear, checkpointed
 from dider.models.losses import line_fit
-from dider.validation import Rule, boolean, check_settings, integer, within
+from dider.validation import NUM_TYPES, Rule, boolean, check_settings, integer, within
 
 
 class _MessagePassing(nn.Module):
@@ -90,8 +90,9 @@ class KinematicStep(nn.Module):
 
 
 # What the two decoders take alike (checked by each, and by the preflight under model.net.decoder).
-DECODER_SETTINGS: dict[str, Rule] = {"input_dim": integer(1), "hidden": integer(1), "skip_first": boolean,
-                                     "dropout": within(0.0, 1.0), "checkpoint": boolean, "kinematic": boolean}
+DECODER_SETTINGS: dict[str, Rule] = {"num_types": NUM_TYPES, "input_dim": integer(1), "hidden": integer(1),
+                                     "skip_first": boolean, "dropout": within(0.0, 1.0), "checkpoint": boolean,
+                                     "kinematic": boolean}
 MARKOV_SETTINGS: dict[str, Rule] = DECODER_SETTINGS | {"prediction_steps": integer(1)}
 
 

@@ -15,7 +15,7 @@ from torch import nn
 from dider.graph import aggregate_to_receivers, edge_mask
 from dider.models.layers import MLP, PairLinear, checkpointed, head
 from dider.models.rnn import bidirectional_lstm
-from dider.validation import Rule, boolean, check_settings, integer, one_of, within
+from dider.validation import NUM_TYPES, Rule, boolean, check_settings, integer, one_of, within
 
 LSTMState = tuple[torch.Tensor, torch.Tensor]
 
@@ -66,7 +66,7 @@ class GNNLSTMEncoder(nn.Module):
     SETTINGS: ClassVar[dict[str, Rule]] = {
         **{k: integer(1) for k in ("input_dim", "hidden", "rnn_hidden", "head_hidden", "head_layers")},
         "dropout": within(0.0, 1.0), "batch_norm": boolean, "checkpoint": boolean,
-        "posterior_reads": one_of("sequence", "transition")}
+        "posterior_reads": one_of("sequence", "transition"), "num_types": NUM_TYPES}
     SHAPES: ClassVar[tuple[str, ...]] = ("posterior_reads",)  # non-integer settings that fix parameter shapes
 
     def __init__(

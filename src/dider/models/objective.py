@@ -27,7 +27,18 @@ from dider.models.inference import Inference
 from dider.models.losses import capacity, categorical_kl, categorical_kl_probs
 from dider.models.plugins import Progress
 from dider.models.prior import fixed_log_probs
-from dider.validation import FRACTION_OF_TRAINING, Rule, above, at_least, check_settings, integer, one_of, within_open
+from dider.validation import (
+    FRACTION_OF_TRAINING,
+    NUM_TYPES,
+    Rule,
+    above,
+    at_least,
+    check_settings,
+    integer,
+    node_or_null,
+    one_of,
+    within_open,
+)
 
 Batch = Mapping[str, torch.Tensor]
 
@@ -99,7 +110,8 @@ class Sparsity(Term):
     mean over edge-steps of each one's KL, so every marked edge-step costs log(no_edge_prob / rest) more than an
     unmarked one, none is paid for)."""
 
-    SETTINGS = {"weight": at_least(0), "no_edge_prob": within_open(0.0, 1.0), "form": one_of("mean_edges", "per_edge")}
+    SETTINGS = {"weight": at_least(0), "no_edge_prob": within_open(0.0, 1.0), "form": one_of("mean_edges", "per_edge"),
+                "num_types": NUM_TYPES}
 
     def __init__(self, weight: float = 1.0, no_edge_prob: float = 0.9, form: str = "mean_edges",
                  num_types: int = 2) -> None:
@@ -217,6 +229,7 @@ class Objective(nn.Module):
     ``kl_warmup`` and ``capacity_ramp``, fractions of training."""
 
     SETTINGS: ClassVar[dict[str, Rule]] = {"kl_warmup": FRACTION_OF_TRAINING, "capacity_ramp": FRACTION_OF_TRAINING}
+    KEYWORDS: ClassVar[Rule] = node_or_null  # the terms (the preflight's rule of the keys besides the settings)
 
     def __init__(self, kl_warmup: float = 0.0, capacity_ramp: float = 0.5, **terms: Term | None) -> None:
         super().__init__()

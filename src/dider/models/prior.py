@@ -13,13 +13,14 @@ import torch
 from torch import nn
 
 from dider.models.layers import head
-from dider.validation import Rule, check_settings, integer
+from dider.validation import NUM_TYPES, Rule, check_settings, integer, optional, within_open
 
 
 class LearnedPrior(nn.Module):
     """DNRI's learned prior: an MLP head on the forward LSTM state (conditions on x_0..x_t only)."""
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {k: integer(1) for k in ("rnn_hidden", "hidden", "num_layers")}
+    SETTINGS: ClassVar[dict[str, Rule]] = {**{k: integer(1) for k in ("rnn_hidden", "hidden", "num_layers")},
+                                           "num_types": NUM_TYPES}
 
     def __init__(self, num_types: int, rnn_hidden: int = 64, hidden: int = 128, num_layers: int = 3) -> None:
         super().__init__()
@@ -36,8 +37,11 @@ class FixedPrior(nn.Module):
     ``no_edge_prob: null`` gives the uniform prior.
     """
 
+    SETTINGS: ClassVar[dict[str, Rule]] = {"num_types": NUM_TYPES, "no_edge_prob": optional(within_open(0.0, 1.0))}
+
     def __init__(self, num_types: int, no_edge_prob: float | None = 0.9) -> None:
         super().__init__()
+        check_settings(self, locals())
         if no_edge_prob is None:
             log_probs = torch.full((num_types,), -math.log(num_types))
         else:

@@ -41,7 +41,7 @@ from dider.models.plugins import (
 from dider.models.segments import Segmentation, entries
 from dider.protocol import fill_absent, observed_inputs
 from dider.targets import build, check, named_targets
-from dider.validation import Rule, above, boolean, check_settings, integer, one_of
+from dider.validation import Rule, above, boolean, check_settings, integer, one_of, text
 
 
 class RelationalVAE(nn.Module):
@@ -52,7 +52,7 @@ class RelationalVAE(nn.Module):
         "num_edges": integer(2, " (type 0 is 'no interaction': a relation needs another type)"),
         "gumbel_tau": above(0), "posterior_readout": one_of("start", "mean"),
         "rollout_edges": one_of("sample", "argmax"), "forecast_edges": one_of("prior", "burn_in"),
-        "decoder_edges": boolean,
+        "decoder_edges": boolean, "name": text,
     }
 
     def __init__(

@@ -76,6 +76,38 @@ def overrides() -> list[str]:
         return []
 
 
+def in_sweep() -> bool:
+    """Whether this process runs a job of a Hydra multirun (its folder is the job's own)."""
+    try:
+        return str(HydraConfig.get().mode) == "RunMode.MULTIRUN"
+    except ValueError:
+        return False
+
+
+def run_dir_given() -> bool:
+    """Whether the run folder was chosen (hydra.run.dir on the command line, or a sweep's job folder), rather
+    than a new timestamped one."""
+    try:
+        hydra_cfg = HydraConfig.get()
+    except ValueError:  # composed outside a Hydra app: the caller set the folder
+        return True
+    return str(hydra_cfg.mode) == "RunMode.MULTIRUN" or any(
+        o.startswith(("hydra.run.dir=", "hydra.sweep.dir=")) for o in hydra_cfg.overrides.hydra)
+
+
+def resume_command(cfg: DictConfig, out_dir: Path, ckpt: str | None) -> str:
+    """The command that repeats an interrupted job in its folder: its config (``--config-name eval``), its mode and
+    overrides, and the checkpoint to go on from (training: the folder's ``last``; evaluation: the one it tests)."""
+    try:
+        name = HydraConfig.get().job.config_name or "config"
+    except ValueError:  # composed outside a Hydra app
+        name = "config"
+    again = [o for o in overrides() if not o.startswith(("hydra.run.dir=", "ckpt_path=", "mode="))]
+    resume = "ckpt_path=last" if cfg.mode == "train" else f"ckpt_path={ckpt}"
+    head = "python -m dider.run" + ("" if name == "config" else f" --config-name {name}")
+    return " ".join([head, f"mode={cfg.mode}", *again, f"hydra.run.dir={out_dir}", resume])
+
+
 def overridden_keys() -> set[str]:
     """The config keys set on the command line (``+`` and ``~`` stripped), e.g. ``{"data.source.frame_rate"}``."""
     return {o.split("=", 1)[0].lstrip("+~") for o in overrides()}

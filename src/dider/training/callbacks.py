@@ -244,6 +244,8 @@ class ResumeMidEpoch(L.Callback):
         inside = 0 < self.done <= trainer.num_training_batches
         if order is not None and order.seed is not None and inside:
             checkpoint[self.CHECKPOINT_KEY] = {"seed": order.seed, "done": self.done}
+            if (means := getattr(pl_module, "epoch_means", None)) is not None:  # the epoch's logged means so far
+                checkpoint[self.CHECKPOINT_KEY]["means"] = means.state_dict()
 
     def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
         position = checkpoint.get(self.CHECKPOINT_KEY)
@@ -253,6 +255,8 @@ class ResumeMidEpoch(L.Callback):
             rng = torch.as_tensor(rng, dtype=torch.uint8).cpu()
             dm.resume_position = (int(position["seed"]), int(position["done"]), rng)
             self.done = int(position["done"])
+            if "means" in position and hasattr(pl_module, "epoch_means"):
+                pl_module.epoch_means.load_state_dict(position["means"])
 
 
 class SaveOnTerminate(L.Callback):

@@ -40,14 +40,7 @@ from dider.models.plugins import Progress
 from dider.models.vae import Inference, plain_config
 from dider.protocol import agent_horizons, scored_targets
 from dider.targets import build, check, named_targets
-from dider.training.callbacks import (
-    EdgeLabelsFit,
-    EvalRandomState,
-    FiniteGuard,
-    ProtocolFits,
-    ResumeMidEpoch,
-    SaveOnTerminate,
-)
+from dider.training import callbacks as cb
 from dider.training.first_batch import fit_to_a_training_batch
 from dider.training.graphed import GraphedSteps, wanted
 from dider.training.step_metrics import EpochMeans
@@ -102,7 +95,7 @@ class RelationalVAEModule(L.LightningModule):
         # Training steps replayed from one CUDA graph (``cuda_graph``; dider.training.graphed): how a step runs
         self.cuda_graph: bool | str = False
         self._graphed: GraphedSteps | None = None
-        self._epoch_means = EpochMeans()  # the training epoch's logged values, kept on the device
+        self.epoch_means = EpochMeans()  # the training epoch's logged values, kept on the device
 
     @classmethod
     def from_config(cls, cfg: DictConfig | Mapping[str, Any]) -> RelationalVAEModule:
@@ -188,9 +181,9 @@ class RelationalVAEModule(L.LightningModule):
         return val | train | {"loss"}
 
     def configure_callbacks(self) -> list[L.Callback]:
-        guard = [FiniteGuard()] if self.hparams.check_finite else []
-        checks = [ProtocolFits(), EdgeLabelsFit(), EvalRandomState(self.hparams.eval_seed), *guard]
-        return [*checks, ResumeMidEpoch(), SaveOnTerminate()]
+        guard = [cb.FiniteGuard()] if self.hparams.check_finite else []
+        checks = [cb.ProtocolFits(), cb.EdgeLabelsFit(), cb.EvalRandomState(self.hparams.eval_seed), *guard]
+        return [*checks, cb.ResumeMidEpoch(), cb.SaveOnTerminate()]
 
     def _log_segments(self, stage: str, out: Inference, batch: Batch) -> None:
         """How the duration plugin cuts the edges (segments per edge, their length, the latents' spread)."""
@@ -217,7 +210,7 @@ class RelationalVAEModule(L.LightningModule):
         terms = {k: v for k, v in values.items() if not k.startswith("segments/")}
         if self._trainer is not None and self._trainer.progress_bar_callback is not None:  # shown: read each step
             self.log("loss", terms["loss"], prog_bar=True, logger=False, batch_size=bs)
-        self._epoch_means.add({**{f"train/{k}": v for k, v in values.items()},
+        self.epoch_means.add({**{f"train/{k}": v for k, v in values.items()},
                                **{f"train/schedule/{k}": float(v) for k, v in schedule.items()}}, bs)
         if self._writes_logs():  # the step's own values, on the steps the trainer writes (log_every_n_steps)
             self.log_dict({f"train/{k}_step": v for k, v in terms.items()}, on_step=True, on_epoch=False,
@@ -231,10 +224,10 @@ class RelationalVAEModule(L.LightningModule):
     def _log_epoch_means(self) -> None:
         """train/<term>_epoch, train/segments/*, train/schedule/*: the epoch's means (kept by :class:`EpochMeans`)."""
         terms = {f"train/{k}" for k in (*self.model.objective.names(), "loss", "nelbo")}
-        means = {f"{k}_epoch" if k in terms else k: v for k, v in self._epoch_means.means().items()}
+        means = {f"{k}_epoch" if k in terms else k: v for k, v in self.epoch_means.means().items()}
         if means:
             self.log_dict(means, on_step=False, on_epoch=True, sync_dist=True, batch_size=1)  # means already
-        self._epoch_means.reset()
+        self.epoch_means.reset()
 
     def on_train_batch_end(self, outputs: Any, batch: Batch, batch_idx: int) -> None:
         if batch_idx + 1 >= self.trainer.num_training_batches:  # before validation and the epoch's callbacks read it

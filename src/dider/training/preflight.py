@@ -274,3 +274,18 @@ def stray_keys(node: Mapping[str, Any]) -> list[str]:
     known = {*RelationalVAEModule.setting_names(), "name", "num_edges"}
     return [f"model.{k}: not a setting of the model's top level ({sorted(known)}); the network's settings are "
             f"under model.net (model.net.{k})" for k in node if k not in known and k != "_target_"]
+
+
+def check_monitors(model: Any, cfg: DictConfig) -> None:
+    """A checkpoint or early-stopping callback that monitors a metric the model never logs would fail only after the
+    first epoch: named before training, with the key that sets it."""
+    known = model.monitorable()
+    if (metric := cfg.get("optimized_metric")) and metric not in known:  # a search would score every trial inf
+        close = sorted(k for k in known if k.startswith("val/"))
+        raise ConfigError(f"optimized_metric={metric}: the model logs no such metric; e.g. {', '.join(close[:8])}")
+    for name, node in (cfg.get("callbacks") or {}).items():
+        monitor = node.get("monitor") if isinstance(node, DictConfig) else None
+        if monitor and monitor not in known:
+            close = sorted(k for k in known if k.split("/")[0] == str(monitor).split("/")[0])
+            raise ConfigError(f"callbacks.{name}.monitor={monitor}: the model logs no such metric; e.g. "
+                              f"{', '.join(close[:8]) or ', '.join(sorted(known)[:8])}")

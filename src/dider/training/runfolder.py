@@ -13,7 +13,6 @@ import inspect
 import json
 import logging
 import os
-import socket
 import traceback
 from collections.abc import Mapping
 from pathlib import Path
@@ -30,7 +29,6 @@ from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
 
-LOCK = ".dider.lock"
 # Settings that fix a network's parameter shapes (a checkpoint of another value cannot be loaded): the
 # model's name and edge types, and every plugin's target and integer sizes.
 PLUGINS = ("encoder", "prior", "duration", "decoder")
@@ -59,15 +57,14 @@ def resolve_ckpt(ckpt_path: str | None, folder: Path, folder_given: bool) -> str
     """``last``: this run folder's ``checkpoints/last.ckpt`` (after a kill during its first write, the newest
     complete checkpoint there). Absent, a fresh start only where that is clearly meant (the folder was named on
     the command line: a restartable job's first start), with a notice; in a new timestamped folder resuming can
-    never work, so that is an error naming where it looked. Temporary files of a killed checkpoint write are
-    removed."""
+    never work, so that is an error naming where it looked (the temporary files of killed writes are removed once
+    the folder's lock is taken: :func:`sweep_partial_writes`)."""
     if ckpt_path is None:
         return None
     if ckpt_path != "last":
         if not Path(ckpt_path).is_file():
             raise FileNotFoundError(f"ckpt_path={ckpt_path}: no such checkpoint file")
         return ckpt_path
-    sweep_partial_writes(folder / "checkpoints")
     last = folder / "checkpoints" / "last.ckpt"
     if last.exists():
         return str(last)
@@ -84,11 +81,13 @@ def resolve_ckpt(ckpt_path: str | None, folder: Path, folder_given: bool) -> str
 
 
 def sweep_partial_writes(folder: Path) -> None:
-    """Remove the temporary files that a process killed while writing a checkpoint left in ``folder``
-    (:func:`dider.io.atomic_write` names them ``.<name>.<random>.tmp``)."""
-    for tmp in folder.glob(".*.tmp"):
-        log.warning("%s: removing the temporary file of a checkpoint write that never finished", tmp)
-        tmp.unlink(missing_ok=True)
+    """Remove the temporary files that a process killed while writing (a checkpoint, a figure, a record) left anywhere
+    in the run folder ``folder`` (:func:`dider.io.atomic_write` names them ``.<name>.<random>.tmp``). Call it holding
+    the folder's lock: a live writer's file is never one of them."""
+    for tmp in folder.rglob(".*.tmp"):
+        if tmp.is_file() and not tmp.is_symlink():
+            log.warning("%s: removing the temporary file of a write that never finished", tmp)
+            tmp.unlink(missing_ok=True)
 
 
 def newest_checkpoint(folder: Path) -> Path | None:
@@ -224,9 +223,14 @@ class RunRefused(ConfigError):
 def open_run_folder(folder: Path, cfg: Mapping[str, Any] | None = None) -> None:
     """Once the folder checks have passed (never before: a refused run leaves another run's folder as it
     was): Hydra's record of the run (``.hydra/config.yaml``, ``hydra.yaml``, ``overrides.yaml``, as
-    ``dider.analysis.report`` reads them) and the run's log file ``run.log``, on rank zero."""
+    ``dider.analysis.report`` reads them) and the run's log file ``run.log``, on rank zero. A folder holding a
+    symbolic link is refused first."""
     if not is_rank_zero():
         return
+    if links := [f"{p} -> {os.readlink(p)}" for p in sorted(folder.iterdir()) if p.is_symlink()]:
+        # a planted link would send the run's writes (its log, records, checkpoints, predictions) outside the folder
+        raise RunRefused(f"{folder}: holds link(s) {links}; dider writes the files of its run folder itself and "
+                         f"follows no link it did not make: remove them, or use another hydra.run.dir")
     OPENED.add(folder.resolve())
     try:
         hydra = HydraConfig.get()
@@ -264,68 +268,6 @@ def close_run_log() -> None:
 _LOG: list[logging.Handler] = []
 OPENED: set[Path] = set()  # the folders this process has taken (open_run_folder): only those get a failed.json
 LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's console format
-
-
-class RunLock:
-    """``folder/.dider.lock`` while a run writes the folder; a second live run there fails naming the first."""
-
-    def __init__(self, folder: Path) -> None:
-        self.path = folder / LOCK
-        self.held = False
-
-    def __enter__(self) -> RunLock:
-        if not is_rank_zero():
-            return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        me = {"pid": os.getpid(), "host": socket.gethostname()}
-        for _ in range(2):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                owner = self._owner()
-                if owner is not None and _alive(owner):
-                    raise RunRefused(f"{self.path.parent} is being written by another run (pid {owner['pid']} on "
-                                      f"{owner['host']}); wait for it, or use another hydra.run.dir") from None
-                log.warning("%s: taking over the lock of a run that is gone (%s)", self.path, owner)
-                self.path.unlink(missing_ok=True)
-                continue
-            with os.fdopen(fd, "w") as f:
-                json.dump(me, f)
-            self.held = True
-            return self
-        raise ConfigError(f"{self.path}: could not take the run folder's lock")
-
-    def _owner(self) -> dict[str, Any] | None:
-        try:
-            return json.loads(self.path.read_text())
-        except (OSError, ValueError):
-            return None
-
-    def __exit__(self, *exc: object) -> None:
-        if self.held:
-            self.path.unlink(missing_ok=True)
-            self.held = False
-
-
-def owner_of(folder: Path) -> dict[str, Any] | None:
-    """The live run that holds ``folder``'s lock (its pid and host), or None (no lock, or its writer is gone)."""
-    try:
-        owner = json.loads((folder / LOCK).read_text())
-    except (OSError, ValueError):
-        return None
-    return owner if isinstance(owner, dict) and _alive(owner) else None
-
-
-def _alive(owner: Mapping[str, Any]) -> bool:
-    if owner.get("host") != socket.gethostname():
-        return True  # another machine's process: cannot tell, so respect it
-    try:
-        os.kill(int(owner["pid"]), 0)
-    except ProcessLookupError:
-        return False
-    except (PermissionError, ValueError, KeyError, TypeError):
-        return True
-    return True
 
 
 def mark_failed(folder: Path, error: BaseException) -> None:

@@ -30,6 +30,8 @@ class EpochMeans:
                 if self.weight and self.sums is not None:
                     raise ValueError(f"EpochMeans: step values {sorted(tensors)} differ from the epoch's {self.names}")
                 self.names, self.sums = tuple(tensors), torch.zeros_like(stacked)
+            if self.sums.device != stacked.device:  # restored from a checkpoint on the host
+                self.sums = self.sums.to(stacked.device)
             self.sums.add_(stacked, alpha=weight)
             self.values = stacked
         for k, v in values.items():
@@ -50,3 +52,13 @@ class EpochMeans:
         if self.sums is not None:
             self.sums.zero_()
         self.host, self.weight = {}, 0.0
+
+    def state_dict(self) -> dict[str, object]:
+        """The epoch's sums so far (host copies), for a checkpoint saved inside the epoch."""
+        sums = None if self.sums is None else self.sums.detach().cpu()
+        return {"names": list(self.names), "sums": sums, "host": dict(self.host), "weight": self.weight}
+
+    def load_state_dict(self, state: Mapping[str, object]) -> None:
+        """Go on from :meth:`state_dict`'s sums: the resumed epoch's means cover its batches before the stop too."""
+        self.names, self.sums = tuple(state["names"]), state["sums"]
+        self.host, self.weight = dict(state["host"]), float(state["weight"])

@@ -14,10 +14,12 @@ from dider.data.levelx.reading import DEFAULT_FEATURES
 from dider.data.levelx.recordings import pattern_regex
 from dider.data.levelx.tracks import LevelXTracks
 from dider.data.windowing import Windows
-from dider.validation import ConfigError, Rule, above, node_problems
+from dider.validation import ConfigError, Rule, above, node_problems, optional, text, texts
 
 
 def _pattern(value: Any) -> str | None:
+    if not isinstance(value, str):
+        return "expected a file name pattern with one {id}, e.g. {id}_tracks.csv"
     try:
         pattern_regex(str(value))
     except ValueError as e:
@@ -34,7 +36,8 @@ class LevelXFiles:
     recording_meta: str = "{id}_recordingMeta.csv"
     background: str = "{id}_background.png"  # the image drawn under the trajectory figures, where present
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {k: _pattern for k in ("tracks", "tracks_meta", "recording_meta")}
+    SETTINGS: ClassVar[dict[str, Rule]] = {k: _pattern for k in ("tracks", "tracks_meta", "recording_meta",
+                                                                  "background")}
 
 
 @dataclass(frozen=True)
@@ -48,8 +51,14 @@ class LevelXColumns:
     features: tuple[str, ...] = DEFAULT_FEATURES  # x, y (m), x and y velocity (m/s)
 
     SETTINGS: ClassVar[dict[str, Rule]] = {
+        **{k: text for k in ("track_id", "frame", "agent_class", "frame_rate")},
         "features": lambda v: None if isinstance(v, (list, tuple)) and len(v) == 4
         else "need 4 columns (x, y, x velocity, y velocity)"}
+
+
+def _recording_ids(value: object) -> str | None:
+    ok = isinstance(value, (list, tuple)) and all(isinstance(v, (int, str)) and not isinstance(v, bool) for v in value)
+    return None if ok else "expected a list of recording ids, e.g. [0, 1, 7]"
 
 
 @dataclass(frozen=True)
@@ -66,8 +75,9 @@ class LevelXSource:
     # metres per background pixel = recordingMeta's orthoPxToMeter x this (inD's images are downscaled 12x)
     background_scale: float = 12.0
 
-    SETTINGS: ClassVar[dict[str, Rule | type]] = {"files": LevelXFiles, "columns": LevelXColumns,
-                                                  "background_scale": above(0)}
+    SETTINGS: ClassVar[dict[str, Rule | type]] = {
+        "files": LevelXFiles, "columns": LevelXColumns, "background_scale": above(0), "root": optional(text),
+        "name": text, "recordings": optional(_recording_ids), "classes": optional(texts)}
     WINDOWS: ClassVar[Windows] = Windows(seq_len=50, downsample=10)  # DNRI's inD windows: 50 steps of 2.5 Hz
     UNUSED: ClassVar[dict[str, str]] = {
         "max_speed": "levelX tracks come from a drone's view: no tracking jumps to drop"}

@@ -47,7 +47,7 @@ def reader_problem(reader: object, others: tuple[str, ...] = ()) -> str | None:
     """The setting rule of ``data.source.reader``: ``table``, a track reader's name or one of ``others`` (the
     sources with settings of their own)."""
     known = ["table", *sorted(track_readers()), *others]
-    return None if reader in known else f"expected one of {known}"
+    return None if isinstance(reader, str) and reader in known else f"expected one of {known}"
 
 
 def read_tracks(reader: str, path: Path) -> pd.DataFrame:
