@@ -103,3 +103,25 @@ def test_a_table_offset_by_5e6_scores_and_predicts_as_the_original(make_cfg, tmp
     for key in ("test/cv/ade/h04", "test/ade/h04", "test/fde/h08", "test/mse_raw/h04"):
         power = 2 if "mse_raw" in key else 1
         assert huge[key] == pytest.approx(original[key] * 1e27**power, rel=1e-3), key
+
+
+def test_an_npz_of_utm_sized_positions_trains_and_predicts_as_the_original(make_cfg, tmp_path):
+    """data=trajectories: the file's clips relative to its centre (float64 before the cast): the same metrics as
+    the file near 0 (constant velocity's to 1e-4), and predictions in the file's coordinates."""
+    from helpers.fixtures import write_trajectories
+
+    near = write_trajectories(tmp_path / "near.npz", num=48, steps=16, agents=3)
+    far = {k: v + 5e6 if k == "positions" else v for k, v in near.items()}
+    np.savez(tmp_path / "far.npz", **far)
+    runs = {}
+    for name in ("near", "far"):
+        data = ["data=trajectories", f"data.source.path={tmp_path / f'{name}.npz'}", "protocol.burn_in=4",
+                "protocol.horizons=[1,4]", "logger=none", "callbacks.timelines.num_clips=0"]
+        runs[name] = train(make_cfg([*data, "trainer.max_epochs=1"], out=tmp_path / name))
+    for key in (k for k in runs["near"] if "/cv/" in k):
+        assert runs["far"][key] == pytest.approx(runs["near"][key], rel=1e-4), key
+    out = tmp_path / "predicted"
+    predict(make_cfg(["mode=predict", f"ckpt_path={tmp_path / 'far'}", "data=trajectories",
+                      f"data.source.path={tmp_path / 'far.npz'}"], out=out))
+    clips = np.load(out / "predictions" / "clips.npz")
+    np.testing.assert_allclose(clips["positions"][0], far["positions"][0, 1:], rtol=0, atol=1e-3)

@@ -200,7 +200,8 @@ API = {  # method, arguments besides the positions, what the error must say
                       r"TrainedModel.forecast: burn_in=5.0: must be an integer"),
     "steps-float": ("forecast", {"burn_in": 5, "steps": 2.5}, r"steps=2.5: must be an integer"),
     "steps-bool": ("forecast", {"burn_in": 5, "steps": True}, r"steps=True: must be an integer"),
-    "seed-negative": ("forecast", {"burn_in": 5, "steps": 2, "seed": -1}, r"seed=-1: must be >= 0"),
+    "seed-negative": ("forecast", {"burn_in": 5, "steps": 2, "seed": -1},
+                      r"seed=-1: must lie in \[0, 18446744073709551615\]"),
     "burn-in-too-long": ("forecast", {"burn_in": 40, "steps": 2}, r"burn_in=40: more than the 11 steps"),
     "one-step-clips": ("segments", {"frames": 2}, r"2 frame\(s\) a clip give 1 step\(s\).*>= 3 frames"),
     "one-step-probabilities": ("edge_probabilities", {"frames": 2}, r"needs >= 2 \(one transition\)"),
@@ -272,7 +273,8 @@ def test_a_long_prediction_reports_progress_and_stops_on_sigterm(trained, tmp_pa
     proc.send_signal(signal.SIGTERM)
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 143, out[-3000:]
-    assert "terminated (SIGTERM) before the predictions were complete: nothing written to" in out
+    assert "terminated (SIGTERM or Ctrl-C) before the predictions were complete: nothing written to" in out
+    assert "predict again with: python -m dider.run mode=predict" in out
     assert not (tmp_path / "out" / "predictions").exists() and not (tmp_path / "out" / ".predictions.partial").exists()
 
 

@@ -22,14 +22,14 @@ def make_dm(path: Path | None, **kw) -> ClipsDataModule:
 
 
 def all_clips(dm: ClipsDataModule) -> dict[str, torch.Tensor]:
-    """Raw states of every split, put back in file order: [S, T, N, 4] (and masks)."""
+    """States of every split in the file's coordinates, put back in file order: [S, T, N, 4] (and masks)."""
     parts = split_indices(sum(len(d) for d in dm.datasets.values()), dm.hparams.split, dm.hparams.seed)
     n = sum(len(v) for v in parts.values())
     ds = dm.datasets["train"]
     states = torch.zeros(n, *ds.states.shape[1:])
     mask = torch.zeros(n, *ds.mask.shape[1:], dtype=torch.bool)
     for split, idx in parts.items():
-        states[idx] = dm.normalizer.denormalize(dm.datasets[split].states)
+        states[idx] = dm.normalizer.to_user(dm.normalizer.denormalize(dm.datasets[split].states)).float()
         mask[idx] = dm.datasets[split].mask
     return {"states": states, "mask": mask}
 
@@ -46,7 +46,7 @@ def test_positions_only_finite_difference(tmp_path):
     test_batch = next(iter(dm.test_dataloader()))
     assert test_batch["source"]["clip"].tolist() == test_idx.tolist()
     assert (test_batch["source"]["frame"] == 1).all()
-    torch.testing.assert_close(dm.normalizer.denormalize(test_batch["states"])[..., :2],
+    torch.testing.assert_close(dm.normalizer.to_user(dm.normalizer.denormalize(test_batch["states"]))[..., :2].float(),
                                torch.as_tensor(arrays["positions"], dtype=torch.float32)[test_idx, 1:], atol=1e-4,
                                rtol=0)
     pos = torch.as_tensor(arrays["positions"], dtype=torch.float32)

@@ -149,8 +149,9 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
         trainer.predict(module, datamodule=datamodule, return_predictions=False)
     except SIGTERMException:
         shutil.rmtree(staging, ignore_errors=True)
-        print(f"terminated (SIGTERM) before the predictions were complete: nothing written to {final}",
-              file=sys.stderr)
+        log.error("terminated (SIGTERM or Ctrl-C) before the predictions were complete: nothing written to %s", final)
+        print(f"terminated (SIGTERM or Ctrl-C) before the predictions were complete: nothing written to {final}; "
+              f"predict again with: {resume_command(cfg, out_dir, str(cfg.ckpt_path))}", file=sys.stderr)
         raise SystemExit(TERMINATED) from None
     if not trainer.is_global_zero:
         return None, writer

@@ -51,7 +51,7 @@ def build(node: Mapping[str, Any], kind: str, where: str | Path, path: str = "",
     path there; ``trust``: dotted class paths the user trusts beside dider's own."""
     node = _container(node)
     check(node, kind, where, path, trust)
-    return _make(node, kind, path)
+    return _make(node, kind, path, where)
 
 
 def check(node: Any, kind: str, where: str | Path, path: str = "", trust: Collection[str] = ()) -> None:
@@ -115,20 +115,20 @@ def _walk(node: Mapping[str, Any], kind: str, path: str) -> Iterator[tuple[str, 
         elif child is not None and value is None:
             continue  # a term (or scheduler) left out
         else:
-            yield from _plain(value, sub)
+            yield from _in_data(value, sub)
 
 
-def _plain(value: Any, path: str) -> Iterator[tuple[str, Any, None]]:
+def _in_data(value: Any, path: str) -> Iterator[tuple[str, Any, None]]:
     yield path, value, None
     if isinstance(value, Mapping):
         for key, sub in value.items():
-            yield from _plain(sub, f"{path}.{key}")
+            yield from _in_data(sub, f"{path}.{key}")
     elif isinstance(value, (list, tuple)):
         for i, sub in enumerate(value):
-            yield from _plain(sub, f"{path}[{i}]")
+            yield from _in_data(sub, f"{path}[{i}]")
 
 
-def _make(node: Mapping[str, Any], kind: str, path: str) -> Any:
+def _make(node: Mapping[str, Any], kind: str, path: str, where: str | Path) -> Any:
     """Build a checked node: children first, then its class with the settings by name."""
     children = CHILDREN.get(kind, {})
     kwargs: dict[str, Any] = {}
@@ -137,34 +137,38 @@ def _make(node: Mapping[str, Any], kind: str, path: str) -> Any:
             continue
         child = children.get(key, children.get("*"))
         sub = f"{path}.{key}" if path else key
-        kwargs[key] = _make(value, child, sub) if child and isinstance(value, Mapping) else _copy(value)
-    cls = resolve(node["_target_"], kind, path)
+        kwargs[key] = _make(value, child, sub, where) if child and isinstance(value, Mapping) else plain(value)
+    cls = resolve(node["_target_"], kind, path, where)
     return functools.partial(cls, **kwargs) if node.get("_partial_") is True else cls(**kwargs)
 
 
-def _copy(value: Any) -> Any:
-    """A plain value, its containers copied (a class never shares the file's lists)."""
+def plain(value: Any) -> Any:
+    """A plain copy of ``value``: mappings as dicts, tuples and lists as lists, all the way down (what a YAML file
+    would hold; a class built from it never shares the file's lists)."""
     if isinstance(value, Mapping):
-        return {k: _copy(v) for k, v in value.items()}
+        return {k: plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_copy(v) for v in value]
+        return [plain(v) for v in value]
     return value
 
 
-def resolve(target: str, kind: str, path: str = "") -> type:
+def resolve(target: str, kind: str, path: str = "", where: str | Path = "") -> type:
     """The class ``target`` names: dider's own of ``kind``, else imported (a trusted path) and checked to be a class
-    of that kind."""
+    of that kind; a refusal names ``where`` (the file) and ``path`` (the key)."""
     if (cls := builtin_classes(kind).get(target)) is not None:
         return cls
     module_name, _, name = target.rpartition(".")
+    here = f"{where}: " if where else ""
     try:
         found: Any = getattr(importlib.import_module(module_name), name)
     except (ImportError, AttributeError, ValueError):
-        raise Untrusted(f"{path}._target_={target!r}: no such class (module {module_name!r} has no {name!r})") from None
+        raise Untrusted(f"{here}{path}._target_={target!r}: no such class (module {module_name!r} has no "
+                        f"{name!r})") from None
     if not inspect.isclass(found):
-        raise Untrusted(f"{path}._target_={target!r}: a {type(found).__name__}, not a class; only classes are built")
+        raise Untrusted(f"{here}{path}._target_={target!r}: a {type(found).__name__}, not a class; only classes are "
+                        f"built")
     if problem := kind_problem(found, kind):
-        raise Untrusted(f"{path}._target_={target!r}: {problem}")
+        raise Untrusted(f"{here}{path}._target_={target!r}: {problem}")
     return found
 
 

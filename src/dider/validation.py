@@ -139,7 +139,10 @@ def class_paths(value: Any) -> str | None:
 
 
 FRACTION_OF_TRAINING = within(0.0, 1.0, "a fraction of training, in")
-NUM_TYPES = integer(2, " (edge types: model.num_edges)")  # every plugin's num_types, interpolated from num_edges
+def NUM_TYPES(value: Any) -> str | None:  # noqa: N802 (a rule, named as the other rule constants)
+    """Every plugin's ``num_types``, which the model config interpolates from ``model.num_edges``: named by it."""
+    why = integer(2)(value)
+    return None if why is None else f"{why} (model.num_edges={value!r}: type 0 'no interaction' and at least one other)"
 
 # The settings of the app, the trainer and the LightningModule; the model's and the data's classes declare theirs
 # (SETTINGS), and so do the protocol, eval and predict nodes (dider.settings).

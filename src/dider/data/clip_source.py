@@ -14,14 +14,16 @@ import torch
 
 @dataclass
 class Clips:
-    """One split's clips, raw (not normalised). states: [S, T, N, 4] float32 (x, y, vx, vy); mask: [S, T, N] bool
-    or None (every agent present); edges: [S, T-1, E] long, the type of each transition t -> t+1, or None; ids: the
-    clips' source identifiers ([S] or [S, N] long each) or None."""
+    """One split's clips, raw (not normalised). states: [S, T, N, 4] float32 (x, y, vx, vy; positions relative to
+    ``origin``, the input's coordinates less it, taken off in float64 by the reader); mask: [S, T, N] bool or None
+    (every agent present); edges: [S, T-1, E] long, the type of each transition t -> t+1, or None; ids: the clips'
+    source identifiers ([S] or [S, N] long each) or None."""
 
     states: torch.Tensor
     mask: torch.Tensor | None = None
     edges: torch.Tensor | None = None
     ids: dict[str, torch.Tensor] | None = None
+    origin: tuple[float, float] = (0.0, 0.0)
 
     def __len__(self) -> int:
         return self.states.shape[0]
@@ -35,12 +37,21 @@ class Clips:
         """The clips ``idx`` [K] long, in that order, ids and all."""
         pick = lambda t: None if t is None else t[idx]  # noqa: E731
         return Clips(self.states[idx], pick(self.mask), pick(self.edges),
-                     None if self.ids is None else {k: v[idx] for k, v in self.ids.items()})
+                     None if self.ids is None else {k: v[idx] for k, v in self.ids.items()}, self.origin)
 
     def crop(self, steps: int) -> Clips:
         """Every clip's first ``steps`` steps (and the transitions between them)."""
         return Clips(self.states[:, :steps], None if self.mask is None else self.mask[:, :steps],
-                     None if self.edges is None else self.edges[:, :steps - 1], self.ids)
+                     None if self.edges is None else self.edges[:, :steps - 1], self.ids, self.origin)
+
+    def relative_to(self, origin: tuple[float, float]) -> Clips:
+        """The clips' positions relative to ``origin`` (a trained model's): shifted by the small difference of the
+        two origins, where agents are present."""
+        if origin == self.origin:
+            return self
+        shift = torch.tensor([self.origin[0] - origin[0], self.origin[1] - origin[1], 0.0, 0.0], dtype=torch.float64)
+        states = (self.states.double() + shift * self.present[..., None]).float()
+        return Clips(states, self.mask, self.edges, self.ids, origin)
 
 
 class ClipSource(Protocol):

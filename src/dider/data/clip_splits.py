@@ -56,21 +56,23 @@ def fit_ranges(clips: Clips, ranges: str) -> Normalizer:
     min and max (``separate``, NRI's and DNRI's), by one range for all four features (``same``, DNRI's
     ``--same_data_norm``), or the identity (``none``)."""
     if ranges == "none":
-        return Normalizer((-1.0, 1.0), (-1.0, 1.0))
+        return Normalizer((-1.0, 1.0), (-1.0, 1.0), clips.origin)
     if ranges == "same":
         values = clips.states if clips.mask is None else clips.states[clips.mask]
         if values.numel() == 0:
             raise ValueError("no present agent states to fit on")
         lo, hi = values.min().item(), values.max().item()
-        return Normalizer((lo, hi), (lo, hi))
-    return Normalizer.fit(clips.states, clips.mask)
+        return Normalizer((lo, hi), (lo, hi), clips.origin)
+    return Normalizer.fit(clips.states, clips.mask, clips.origin)
 
 
 def clip_datasets(parts: Mapping[str, Clips], normalizer: Normalizer) -> dict[str, ClipDataset]:
-    """Each split normalised, absent agents zeroed (the normalised range's centre), as a :class:`ClipDataset`
-    (states [S, T, N, 4], mask [S, T, N], edges [S, T-1, E] or None, the clips' ids as its sources)."""
+    """Each split normalised (relative to the normaliser's origin), absent agents zeroed (the normalised range's
+    centre), as a :class:`ClipDataset` (states [S, T, N, 4], mask [S, T, N], edges [S, T-1, E] or None, the clips'
+    ids as its sources)."""
     out = {}
     for split, clips in parts.items():
+        clips = clips.relative_to(normalizer.origin)
         mask = clips.present
         out[split] = ClipDataset(fill_absent(normalizer.normalize(clips.states), mask), mask, clips.edges, clips.ids)
     return out

@@ -37,6 +37,7 @@ from dider.models.prior import FixedPrior, LearnedPrior
 from dider.models.segment_end import SegmentEnd
 from dider.models.vae import RelationalVAE
 from dider.settings import NODES
+from dider.targets import plain
 from dider.training.module import RelationalVAEModule
 
 # The classes the configs build, each stored as schema/<Class>: the network and its plugins (conf/model/net),
@@ -78,19 +79,10 @@ def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
 def _field(default: Any) -> Any:
     """A dataclass field holding ``default``; a mutable or nested one is copied, plain, for each config."""
     if dataclasses.is_dataclass(default):
-        return dataclasses.field(default_factory=lambda d=default: _plain(dataclasses.asdict(d)))
+        return dataclasses.field(default_factory=lambda d=default: plain(dataclasses.asdict(d)))
     if isinstance(default, (list, tuple, Mapping)):
-        return dataclasses.field(default_factory=lambda d=default: _plain(d))
+        return dataclasses.field(default_factory=lambda d=default: plain(d))
     return dataclasses.field(default=default)
-
-
-def _plain(value: Any) -> Any:
-    """Tuples as lists, mappings as dicts, all the way down (what a YAML file would hold)."""
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value
 
 
 def module_schema() -> type:
@@ -111,6 +103,6 @@ def register_schemas() -> None:
     for cls in SOURCES:
         store.store(group="schema", name=cls.__name__, node=schema(cls, target=False))
     for name, node in DATA_NODES.items():
-        store.store(group="schema", name=name, node=_plain(dataclasses.asdict(node)))
+        store.store(group="schema", name=name, node=plain(dataclasses.asdict(node)))
     for cls in NODES.values():  # the app's own nodes (protocol, eval, predict): dataclasses already
         store.store(group="schema", name=cls.__name__, node=cls)

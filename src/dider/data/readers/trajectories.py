@@ -25,6 +25,7 @@ import torch
 
 from dider.data.clip_source import Clips
 from dider.data.common import check_finite
+from dider.data.windowing import midpoint
 from dider.graph import num_edges
 from dider.protocol import fill_absent
 from dider.validation import Rule, above, one_of
@@ -94,7 +95,21 @@ def load_trajectories(path: Path, frame_rate: float = 1.0) -> dict[str, Any]:
     """
     if not path.is_file():
         raise FileNotFoundError(f"data.source.path={path}: no such file")
-    return trajectory_states(_read_npz(path), path, frame_rate)
+    arrays = _read_npz(path)
+    return trajectory_states(arrays, path, frame_rate, _centre(arrays))
+
+
+def _centre(arrays: dict[str, np.ndarray]) -> tuple[float, float]:
+    """The centre of the file's finite present positions (float64): the origin its clips are relative to (a file
+    that is not of the layout: 0, and :func:`trajectory_states` names what is wrong)."""
+    pos, mask = arrays["positions"], arrays.get("mask")
+    if pos.dtype.kind not in "iuf" or pos.ndim != 4 or pos.shape[-1] != 2:
+        return (0.0, 0.0)
+    flat = pos.reshape(-1, 2).astype(np.float64)
+    keep = np.isfinite(flat).all(1)
+    if mask is not None and mask.shape == pos.shape[:3]:
+        keep &= mask.reshape(-1).astype(bool)
+    return midpoint(flat[keep])
 
 
 def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rate: float = 1.0,
@@ -123,7 +138,8 @@ def trajectory_states(arrays: dict[str, np.ndarray], path: str | Path, frame_rat
     check_finite(f"{path}: key 'positions'{hint}", pos, mask[..., None])
     pos, vel, mask, drop = _velocities(arrays, path, pos, mask, frame_rate, hint)
     # first_frame: the file's time index of the clip's step 0 (1 when the first step went to differencing)
-    out = {"states": fill_absent(torch.cat([pos, vel], dim=-1), mask), "mask": mask, "first_frame": drop}
+    out = {"states": fill_absent(torch.cat([pos, vel], dim=-1), mask), "mask": mask, "first_frame": drop,
+           "origin": origin}
     if "edges" in arrays:
         # edges[t] produced step t from t-1, so the clip's transition j -> j+1 (raw step drop+j -> drop+j+1)
         # is labelled by raw edges[drop + j + 1].
@@ -188,4 +204,4 @@ def read(path: str | Path | None, frame_rate: float = 1.0) -> Clips:
     data = load_trajectories(Path(path).expanduser(), frame_rate)
     count = data["states"].shape[0]
     ids = {"clip": torch.arange(count), "frame": torch.full((count,), int(data["first_frame"]), dtype=torch.long)}
-    return Clips(data["states"], data["mask"], data.get("edges"), ids)
+    return Clips(data["states"], data["mask"], data.get("edges"), ids, data["origin"])
