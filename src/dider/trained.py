@@ -27,7 +27,7 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.readers.trajectories import trajectory_states
 from dider.io import read_run_record
-from dider.models.checkpoint_format import upgrade
+from dider.models.checkpoint_format import check_format
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
@@ -73,7 +73,7 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
     if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
         raise ValueError(f"{path}: not a dider training checkpoint (no state_dict / hyper_parameters)")
-    ckpt = upgrade(ckpt, path)  # today's format first: what follows reads today's layout
+    ckpt = check_format(ckpt, path)  # today's format first (another is refused by name): what follows reads it
     bad = [k for k, v in ckpt["state_dict"].items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:

@@ -35,7 +35,7 @@ from dider.evaluation.scoring import (
 from dider.evaluation.type_meaning import TypeProfile, degenerate_types, pair_features, profile_values
 from dider.graph import edge_mask
 from dider.models.baselines import ConstantVelocity
-from dider.models.checkpoint_format import network_config, read, stamp, upgrade
+from dider.models.checkpoint_format import check_format, network_config, read, stamp
 from dider.models.plugins import Progress
 from dider.models.vae import Inference, plain_config
 from dider.protocol import agent_horizons, scored_targets
@@ -382,8 +382,8 @@ class RelationalVAEModule(L.LightningModule):
         stamp(checkpoint, version=__version__, data=data_description(dm))
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        # A resumed or tested run reads the file through Lightning: its weights in today's format, before they load.
-        upgrade(checkpoint)
+        # A resumed or tested run reads the file through Lightning: only today's format, before its weights load.
+        check_format(checkpoint)
 
     def configure_optimizers(self) -> Any:
         make = build(self.hparams.optimizer or {"_target_": "torch.optim.Adam", "_partial_": True}, "optimizer",

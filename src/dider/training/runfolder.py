@@ -23,7 +23,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
-from dider.models.checkpoint_format import network_config, upgrade
+from dider.models.checkpoint_format import check_format, network_config
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -191,7 +191,7 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     except Exception as e:  # torch raises many types for a foreign or damaged file
         raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
     try:
-        ckpt = upgrade(ckpt, f"ckpt_path={path}") if isinstance(ckpt, dict) else ckpt
+        ckpt = check_format(ckpt, f"ckpt_path={path}") if isinstance(ckpt, dict) else ckpt
     except ValueError as e:  # a newer format than this package reads
         raise ConfigError(str(e)) from e
     saved = ckpt.get("hyper_parameters", {}).get("net") if isinstance(ckpt, dict) else None
