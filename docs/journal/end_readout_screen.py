@@ -45,10 +45,10 @@ HELD: dict[str, torch.Tensor] = {}  # "interaction": [B, E, S] whether the segme
 _every_start = segment_end.SegmentEnd._every_start
 
 
-def every_start_noting_types(self, feats, steps, types, fixed, value):  # noqa: ANN001, ANN201
+def every_start_noting_types(self, feats, steps, types, fixed, value, *rest):  # noqa: ANN001, ANN002, ANN201
     """The plugin's cut with all starts at once, noting the type each start's segment holds (read at its start)."""
     HELD["interaction"] = types[..., 1:].sum(-1) > 0.5
-    return _every_start(self, feats, steps, types, fixed, value)
+    return _every_start(self, feats, steps, types, fixed, value, *rest)
 
 
 def hybrid_held(logits: torch.Tensor, start: torch.Tensor, fixed: torch.Tensor, value: torch.Tensor,
@@ -78,11 +78,12 @@ def main() -> None:
     out = {"command": "python docs/journal/end_readout_screen.py " + " ".join(args.folders) + f" --out {args.out}",
            "results": {}}
     for folder in args.folders:
-        meta = json.loads(Path(glob.glob(f"{folder}/*/metrics.json")[0]).read_text())
+        record = Path(glob.glob(f"{folder}/*/metrics.json")[0])
+        meta = json.loads(record.read_text())
         for name, (readout, patch) in READOUTS.items():
             for attr, fn in {**originals, **patch}.items():
                 setattr(segment_end, attr, fn)
-            module = RelationalVAEModule.load_from_checkpoint(meta["checkpoint"], map_location="cpu")
+            module = RelationalVAEModule.load_from_checkpoint(record.parent / meta["checkpoint"], map_location="cpu")
             module.hparams.samples = 0
             module.model.duration.end_readout = readout
             module.model.duration.sync_free = True

@@ -47,7 +47,7 @@ tmp = tempfile.mkdtemp()
 overrides = [f"model={model}", "data.num_train=1024", "data.num_val=16", "data.num_test=16",
              "data.loader.batch_size=16", f"data.cache_dir={tmp}", f"output_dir={tmp}", "model.net.encoder.hidden=8",
              "model.net.encoder.rnn_hidden=8", "model.net.encoder.head_hidden=8", "model.net.decoder.hidden=8",
-             "data.num_steps=10", "protocol.burn_in=3", "protocol.horizons=[1,5]", *sys.argv[2:]]
+             "data.source.num_steps=10", "protocol.burn_in=3", "protocol.horizons=[1,5]", *sys.argv[2:]]
 with initialize_config_module(version_base="1.3", config_module="dider.conf"):
     cfg = compose(config_name="config", overrides=overrides)
 module = RelationalVAEModule.from_config(cfg.model)

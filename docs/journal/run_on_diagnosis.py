@@ -46,7 +46,7 @@ def after_push(module: RelationalVAEModule, dm: ClipsDataModule) -> dict[str, fl
     with torch.no_grad():
         for i in range(0, len(ds), 100):
             batch = ds.__getitems__(list(range(i, min(i + 100, len(ds)))))
-            out = module._infer(batch, hard=True)
+            out = module.model.infer(batch, hard=True)
             parts.append((out.probs[..., 1:].sum(-1), out.step_logits.softmax(-1)[..., 1:].sum(-1), out.evidence,
                           batch["edges"].transpose(1, 2) > 0))
     held, step, evidence, truth = (torch.cat(p).numpy() for p in zip(*parts, strict=True))
@@ -76,7 +76,7 @@ def main() -> None:
     for folder in args.folders:
         job = Path(glob.glob(f"{folder}/*/metrics.json")[0]).parent
         meta = json.loads((job / "metrics.json").read_text())
-        module = RelationalVAEModule.load_from_checkpoint(meta["checkpoint"], map_location="cpu").eval()
+        module = RelationalVAEModule.load_from_checkpoint(job / meta["checkpoint"], map_location="cpu").eval()
         result[folder] = {**held_to_end(json.loads((job / "segments.json").read_text()), truth),
                           **after_push(module, dm)}
         print(folder, result[folder], flush=True)

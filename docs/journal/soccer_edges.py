@@ -37,7 +37,7 @@ def score(run, split):
     burn_in, steps = cfg.model.burn_in, max(HORIZONS)
     sums = {k: torch.zeros(len(HORIZONS)) for k in ("sample", "argmax", "none", "cv")}
     counts = torch.zeros(len(HORIZONS))
-    for batch in dm._loader(split, train=False):
+    for batch in {"val": dm.val_dataloader, "test": dm.test_dataloader}[split]():
         x, mask = batch["states"], batch["mask"]
         n = x.shape[2]
         for mode in sums:
