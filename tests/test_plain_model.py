@@ -60,15 +60,6 @@ def test_checkpoint_weights_roll_out_without_a_trainer(make_cfg, tmp_path):
     assert module.hparams.net["num_edges"] == 2 and module.hparams.burn_in == 5
 
 
-def test_old_checkpoint_layout_loads(make_cfg):
-    """Checkpoints written before the network moved into ``module.model`` (plugins at the top level)."""
-    module = RelationalVAEModule.from_config(make_cfg(["model=dnri"]).model)
-    old = {"state_dict": {k.removeprefix("model."): v for k, v in module.state_dict().items()}}
-    module.on_load_checkpoint(old)
-    module.load_state_dict(old["state_dict"])
-    assert set(old["state_dict"]) == set(module.state_dict())
-
-
 def test_model_config_keys_are_split(make_cfg):
     module = RelationalVAEModule.from_config(make_cfg(["model=dnri", "model.eval_seed=7"]).model)
     assert module.hparams.eval_seed == 7 and "eval_seed" not in module.hparams.net

@@ -205,8 +205,8 @@ def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
     del ckpt["dider"]
     old = tmp_path / "old.ckpt"
     torch.save(ckpt, old)
-    with pytest.raises(ValueError, match=r"old\.ckpt: this checkpoint lacks the package version and the data "
-                                         r"normaliser.*mode=eval"):
+    with pytest.raises(ValueError, match=r"old\.ckpt: written in checkpoint format 1 by a development version before "
+                                         r"0\.2\.0: retrain it with this version"):
         dider.load(old)
     foreign = tmp_path / "notes.ckpt"
     foreign.write_text("not a checkpoint")
