@@ -82,3 +82,32 @@ def test_a_string_setting_that_fixes_shapes_is_compared_with_the_checkpoints(mak
                                           r"'past'"):
         check_checkpoint(path, model("model.net.encoder.posterior_reads=sequence",
                                      "model.net.duration.online_prior=past"))
+
+
+def test_one_reader_opens_every_checkpoint():
+    """``torch.load`` of a checkpoint happens in one function (the caches and DNRI's data files are no checkpoints),
+    and Lightning's loads (a resumed or tested run) go through it too."""
+    from pathlib import Path
+
+    import dider.data.cache
+    import dider.data.readers.dnri_files
+    import dider.models.checkpoint_format
+
+    src = Path(dider.__file__).parent
+    allowed = {Path(m.__file__) for m in (dider.models.checkpoint_format, dider.data.cache,
+                                          dider.data.readers.dnri_files)}
+    loads = {p for p in src.rglob("*.py") if "torch.load(" in p.read_text() and p not in allowed}
+    assert not loads, loads
+    assert dider.models.checkpoint_format.read.__code__.co_names.count("load") == 1
+
+
+def test_lightnings_loads_go_through_the_reader(tmp_path):
+    from dider.shipped import HERE, catalog
+    from dider.training.checkpoint import AtomicCheckpointIO
+
+    ckpt = torch.load(HERE / catalog()["synth/dider"]["file"], map_location="cpu", weights_only=True)
+    assert AtomicCheckpointIO().load_checkpoint(HERE / catalog()["synth/dider"]["file"]).keys() == ckpt.keys()
+    del ckpt["dider"]["format"]
+    torch.save(ckpt, path := tmp_path / "old.ckpt")
+    with pytest.raises(ValueError, match=r"old.ckpt: written in checkpoint format 1"):
+        AtomicCheckpointIO().load_checkpoint(path)

@@ -724,8 +724,9 @@ def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
 
     folder = tmp_path / "checkpoints"
     folder.mkdir()
-    for name, step in (("epoch_000.ckpt", 10), ("epoch_001.ckpt", 20)):
-        torch.save({"global_step": step}, folder / name)
+    for name, step in (("epoch_000.ckpt", 10), ("epoch_001.ckpt", 20)):  # complete checkpoints (of today's format)
+        torch.save({"global_step": step, "state_dict": {}, "hyper_parameters": {}, "dider": {"format": 2}},
+                   folder / name)
     (folder / "broken.ckpt").write_bytes(b"PK\x03\x04 half")
     (folder / ".last.ckpt.x1y2.tmp").write_bytes(b"PK\x03\x04 half a checkpoint")
     (tmp_path / "figures").mkdir()

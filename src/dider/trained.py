@@ -27,7 +27,7 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.readers.trajectories import trajectory_states
 from dider.io import read_run_record
-from dider.models.checkpoint_format import check_format
+from dider.models.checkpoint_format import read
 from dider.models.vae import RelationalVAE
 from dider.outputs.clips import segment_frame
 from dider.protocol import MIN_STEPS, fill_absent
@@ -67,13 +67,7 @@ def find_checkpoint(path: str | Path) -> Path:
 def read_checkpoint(path: Path) -> dict[str, Any]:
     """The checkpoint's contents (tensors and plain values only: ``weights_only``), with a named error for
     a file that is not one, or one written before checkpoints described themselves."""
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # torch raises many types for a foreign or damaged file
-        raise ValueError(f"{path}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
-    if not isinstance(ckpt, dict) or "state_dict" not in ckpt or "hyper_parameters" not in ckpt:
-        raise ValueError(f"{path}: not a dider training checkpoint (no state_dict / hyper_parameters)")
-    ckpt = check_format(ckpt, path)  # today's format first (another is refused by name): what follows reads it
+    ckpt = read(path)  # a training checkpoint of today's format (anything else refused by name)
     bad = [k for k, v in ckpt["state_dict"].items()
            if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all())]
     if bad:

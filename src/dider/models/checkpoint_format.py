@@ -45,11 +45,19 @@ def check_format(checkpoint: dict[str, Any], where: str | Path = "checkpoint") -
     return checkpoint
 
 
-def read(path: str | Path, **load: Any) -> dict[str, Any]:
-    """A checkpoint file loaded (tensors and plain values only: ``weights_only``), of today's format (else refused).
-    ``load``: more of torch.load's arguments (``mmap``)."""
-    checkpoint = torch.load(path, map_location="cpu", weights_only=True, **load)
-    return check_format(checkpoint, path) if isinstance(checkpoint, dict) else checkpoint
+def read(path: str | Path, where: str | None = None, **load: Any) -> dict[str, Any]:
+    """The one reader of a checkpoint file: loaded with ``weights_only`` (tensors and plain values: a planted
+    pickle cannot run), a training checkpoint (``state_dict`` and ``hyper_parameters``) of today's format, else a
+    ValueError naming it (``where``: how messages name it; default the path). ``load``: more of torch.load's
+    arguments (``mmap``)."""
+    where = where or str(path)
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True, **load)
+    except Exception as e:  # torch raises many types for a foreign or damaged file
+        raise ValueError(f"{where}: not a readable dider checkpoint ({type(e).__name__}: {e})") from e
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "hyper_parameters" not in checkpoint:
+        raise ValueError(f"{where}: not a dider training checkpoint (no state_dict / hyper_parameters)")
+    return check_format(checkpoint, where)
 
 
 def network_config(node: Mapping[str, Any]) -> dict[str, Any]:

@@ -18,12 +18,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
-from dider.models.checkpoint_format import check_format, network_config
+from dider.models.checkpoint_format import network_config, read
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
@@ -95,7 +94,7 @@ def newest_checkpoint(folder: Path) -> Path | None:
     best: tuple[int, Path] | None = None
     for path in folder.glob("*.ckpt"):
         try:
-            step = int(torch.load(path, map_location="cpu", weights_only=True, mmap=True).get("global_step", -1))
+            step = int(read(path, mmap=True).get("global_step", -1))
         except Exception:  # a damaged or foreign file is no candidate  # noqa: BLE001
             continue
         if best is None or step > best[0]:
@@ -187,14 +186,10 @@ def check_checkpoint(path: str, model: Mapping[str, Any]) -> str:
     config's: the error names each differing setting with both values. Warns when another minor or major
     version wrote it. -> the package version it records ("" for none)."""
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
-    except Exception as e:  # torch raises many types for a foreign or damaged file
-        raise ConfigError(f"ckpt_path={path}: not a readable checkpoint ({type(e).__name__}: {e})") from e
-    try:
-        ckpt = check_format(ckpt, f"ckpt_path={path}") if isinstance(ckpt, dict) else ckpt
-    except ValueError as e:  # a newer format than this package reads
+        ckpt = read(path, f"ckpt_path={path}", mmap=True)
+    except ValueError as e:  # unreadable, not a training checkpoint, or of another format
         raise ConfigError(str(e)) from e
-    saved = ckpt.get("hyper_parameters", {}).get("net") if isinstance(ckpt, dict) else None
+    saved = ckpt["hyper_parameters"].get("net") if isinstance(ckpt["hyper_parameters"], Mapping) else None
     if not isinstance(saved, Mapping):
         raise ConfigError(f"ckpt_path={path}: not a dider training checkpoint (no model config in its "
                           f"hyper-parameters)")
