@@ -528,7 +528,7 @@ def test_a_checkpoint_of_another_model_is_named(make_cfg, tmp_path):
             train(make_cfg([*overrides, "logger=none", "mode=eval", f"ckpt_path={ckpt}"], out=tmp_path / "eval"))
     notes = tmp_path / "notes.txt"
     notes.write_text("hello")
-    with pytest.raises(ConfigError, match=r"notes.txt: not a readable checkpoint"):
+    with pytest.raises(ConfigError, match=r"notes.txt: not a readable dider checkpoint"):
         train(make_cfg(["logger=none", "mode=eval", f"ckpt_path={notes}"], out=tmp_path / "eval"))
 
 
