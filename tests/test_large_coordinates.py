@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from dider.data.batch import Normalizer
+from dider.data.readers.trajectories import trajectory_states
 from dider.data.table import table_windows
 from dider.data.table_reading import read_table
 from dider.data.windowing import Windows, midpoint
@@ -57,7 +58,10 @@ def test_windows_are_the_same_relative_to_the_tables_centre(tmp_path, offset):
 def test_normalizer_round_trips_the_users_coordinates():
     norm = Normalizer((-100.0, 100.0), (-5.0, 5.0), origin=(5.0e6 + 0.25, 1.0e7 - 0.125))
     user = torch.tensor([[5.0e6 + 12.345678, 1.0e7 - 3.210987, 1.5, -2.0]], dtype=torch.float64)
-    back = norm.to_user(norm.denormalize(norm.normalize(norm.from_user(user))))
+    arrays = {"positions": user[None, None, :, :2].expand(1, 1, 2, 2).numpy(),  # two agents, as the API takes them
+              "velocities": user[None, None, :, 2:].expand(1, 1, 2, 2).numpy()}
+    raw = trajectory_states(arrays, "clip", 1.0, norm.origin)["states"][0, 0, :1]  # the API's door in
+    back = norm.to_user(norm.denormalize(norm.normalize(raw)))
     np.testing.assert_allclose(back.numpy(), user.numpy(), rtol=0, atol=2e-5)
     assert Normalizer(**norm.state_dict()).origin == norm.origin  # travels in checkpoints
 

@@ -210,7 +210,7 @@ def build(paths: Sequence[Path], metrics: Sequence[str], baseline: str | None, c
         for k, v in job["metrics"].items():
             if v is not None and not math.isnan(v):
                 by_model.setdefault(job["model"], {}).setdefault(k, {})[job["seed"]] = v
-            elif k in metrics:  # asked for and empty (NaN: e.g. no agent reached the horizon): said, not hidden
+            else:  # asked for and empty (NaN: e.g. no agent reached the horizon): said, not hidden
                 log.warning("%s: %s is NaN (no data); left out of model %s's mean over seeds", job["folder"], k,
                             job["model"])
     models = {}

@@ -37,8 +37,7 @@ class Normalizer:
     "Raw" states (what :meth:`normalize` takes and :meth:`denormalize` gives, what data modules hold and metrics
     in data units read) are positions relative to ``origin`` (x0, y0), which the reader subtracted in float64
     before its float32 cast: tracks in UTM-sized coordinates (5e6 m) keep their centimetres, which float32 rounds
-    to 0.5 m. :meth:`to_user` adds it back where positions leave (predictions, the explorer, the API);
-    :meth:`from_user` takes the user's coordinates in.
+    to 0.5 m. :meth:`to_user` adds it back where positions leave (predictions, the explorer, the API).
     """
 
     def __init__(self, pos_range: tuple[float, float], vel_range: tuple[float, float],
@@ -62,20 +61,12 @@ class Normalizer:
         pos, vel = flat[:, :2], flat[:, 2:]
         return cls((pos.min().item(), pos.max().item()), (vel.min().item(), vel.max().item()), origin)
 
-    def _shift(self, states: torch.Tensor, sign: float) -> torch.Tensor:
-        """[..., 4] float64 with ``sign`` x origin added to the positions."""
+    def to_user(self, states: torch.Tensor) -> torch.Tensor:
+        """[..., 4] raw (e.g. :meth:`denormalize`'s) -> [..., 4] float64 in the user's coordinates."""
         states = states.double()
         if self.origin == (0.0, 0.0):
             return states
-        return states + states.new_tensor([sign * self.origin[0], sign * self.origin[1], 0.0, 0.0])
-
-    def from_user(self, states: torch.Tensor) -> torch.Tensor:
-        """[..., 4] in the user's coordinates (float64 keeps large ones) -> [..., 4] float32 raw."""
-        return self._shift(states, -1.0).float()
-
-    def to_user(self, states: torch.Tensor) -> torch.Tensor:
-        """[..., 4] raw (e.g. :meth:`denormalize`'s) -> [..., 4] float64 in the user's coordinates."""
-        return self._shift(states, 1.0)
+        return states + states.new_tensor([self.origin[0], self.origin[1], 0.0, 0.0])
 
     def _lo_span(self, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lo = torch.tensor([self.pos_range[0]] * 2 + [self.vel_range[0]] * 2, dtype=ref.dtype, device=ref.device)

@@ -26,8 +26,8 @@ RENAMED: dict[str, str] = {
     **{f"data.{k}": f"protocol.{k}" for k in ("burn_in", "horizons", "burn_in_mode")},
 }
 # Hydra's flags that take a value, and those after which no job runs.
-VALUED_FLAGS = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-c", "--cfg", "-p",
-                "--package", "--info", "-i", "--experimental-rerun"}
+VALUED_FLAGS = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-p", "--package",
+                "--experimental-rerun"}
 NO_RUN_FLAGS = {"-h", "--help", "--hydra-help", "--version", "-sc", "--shell-completion", "-c", "--cfg", "-i",
                 "--info", "--resolve"}
 CANNOT = re.compile(r"Could not override '([^']+)'")
