@@ -68,6 +68,53 @@ def test_no_module_over_400_lines() -> None:
     assert not long, f"split these modules by what they hold: {long}"
 
 
+def runtime_imports(path: Path) -> set[str]:
+    """The dider modules a file imports when it is imported: its top-level imports (not those inside a function or
+    under ``if TYPE_CHECKING``)."""
+    names = set()
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "dider":
+            names |= {node.module} | {f"{node.module}.{a.name}" for a in node.names
+                                      if is_module(f"{node.module}.{a.name}")}
+        elif isinstance(node, ast.Import):
+            names |= {a.name for a in node.names if a.name.split(".")[0] == "dider"}
+    return names
+
+
+def test_no_import_circles() -> None:
+    """No module imports, through others, a module that imports it (a circle makes import order matter)."""
+    graph = {name: runtime_imports(path) - {name} for name, path in modules()}
+    circles = []
+    for start in graph:  # a depth-first walk from each module back to itself
+        stack, seen = [(start, (start,))], set()
+        while stack:
+            node, trail = stack.pop()
+            for nxt in graph.get(node, ()):
+                if nxt == start:
+                    circles.append(" -> ".join((*trail, start)))
+                elif nxt not in seen:
+                    seen.add(nxt)
+                    stack.append((nxt, (*trail, nxt)))
+    assert not circles, circles
+
+
+def test_the_lightning_module_stays_thin() -> None:
+    """The LightningModule is handed its parts and scores nothing itself (the passes beside it do): at most 250
+    lines, no method over 40, and the model config's top-level keys are its constructor's settings."""
+    import inspect
+
+    from dider.training.building import SETTINGS
+    from dider.training.module import RelationalVAEModule
+
+    path = SRC / "training" / "module.py"
+    assert len(path.read_text().splitlines()) <= 250
+    long = {n.name: n.end_lineno - n.lineno + 1 for n in ast.walk(ast.parse(path.read_text()))
+            if isinstance(n, ast.FunctionDef) and n.end_lineno - n.lineno + 1 > 40}
+    assert not long, long
+    params = inspect.signature(RelationalVAEModule.__init__).parameters.values()
+    assert [p.name for p in params if p.kind is p.POSITIONAL_OR_KEYWORD][1:] == list(SETTINGS)
+
+
 def test_no_data_module_or_settings_node_takes_more_than_twelve_settings() -> None:
     """A data module's settings go in nested nodes (source, windows, loader); no node passes 12 either, and every
     data module says what it reads in a ``source`` node."""

@@ -9,13 +9,15 @@ from hydra.utils import instantiate
 
 from dider.data.clips import ClipsDataModule
 from dider.data.readers.basketball import detect_format
+from helpers.data import data_module
 from helpers.fixtures import write_dnri_bball, write_zhan
-from helpers.flat import flat
 from helpers.protocol import fits
 
 
-def make_dm(root: Path, **kw) -> ClipsDataModule:
-    dm = flat("basketball", root=None if root is None else str(root), **{"loader": {"batch_size": 8}, **kw})
+def make_dm(root: Path | None, source: dict | None = None, **kw) -> ClipsDataModule:
+    """data=basketball on the files in ``root``, ``source`` over its source's settings, ``kw`` over the module's."""
+    source = {"root": None if root is None else str(root), **(source or {})}
+    dm = data_module("basketball", source=source, **{"loader": {"batch_size": 8}, **kw})
     dm.prepare_data()
     dm.setup()
     return dm
@@ -61,10 +63,10 @@ def test_validation_carved_reproducibly(tmp_path):
 
 def test_agents_options_alt_names_caps_and_train_len(tmp_path):
     write_zhan(tmp_path, names=("bball_train.npz", "bball_test.npz"))
-    dm = make_dm(tmp_path, agents="all", num_train=10, num_test=5, train_len=40)
+    dm = make_dm(tmp_path, source={"agents": "all"}, num_train=10, num_test=5, train_len=40)
     assert dm.datasets["test"].states.shape == (5, 49, 11, 4) and len(dm.datasets["train"]) == 10
     assert dm.datasets["train"].states.shape[1] == 40
-    assert make_dm(tmp_path, agents="defence").datasets["val"].states.shape[2] == 5
+    assert make_dm(tmp_path, source={"agents": "defence"}).datasets["val"].states.shape[2] == 5
 
 
 def test_dnri_format(tmp_path):
@@ -88,7 +90,7 @@ def test_hydra_config_instantiates(tmp_path, make_cfg):
     dm = instantiate(cfg.data, _convert_="all")
     dm.setup()
     assert next(iter(dm.test_dataloader()))["states"].shape[1:] == (49, 5, 4)
-    assert cfg.model.burn_in == 40 and list(cfg.model.horizons) == [1, 5, 9]
+    assert cfg.model.protocol.burn_in == 40 and list(cfg.model.protocol.horizons) == [1, 5, 9]
 
 
 def _write_npz(path, **arrays):
@@ -115,10 +117,10 @@ def test_bad_input(tmp_path):
     with pytest.raises(ValueError, match=r"test.npz: key 'data': 1 NaN/inf"):
         make_dm(tmp_path)
     _write_npz(tmp_path / "test.npz", data=np.zeros((4, 30, 22)))  # 29 steps < 40 burn-in
-    with pytest.raises(ValueError, match=r"model.burn_in=40 must be shorter than the clips \(29 steps, the test"):
+    with pytest.raises(ValueError, match=r"protocol.burn_in=40 must be shorter than the clips \(29 steps, the test"):
         fits(make_dm(tmp_path), 40, (1, 5, 9))
     _write_npz(tmp_path / "test.npz", data=np.zeros((4, 47, 22)))  # 46 steps: horizon 9 needs 49
-    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 9\]: each must lie in 1..6 .*protocol.horizons"):
+    with pytest.raises(ValueError, match=r"protocol.horizons=\[1, 5, 9\]: each must lie in 1..6"):
         fits(make_dm(tmp_path), 40, (1, 5, 9))
     fits(make_dm(tmp_path, train_len=40), 40, (1, 5, 6), stage="fit")  # training crops may be as short as the burn-in
     write_dnri_bball(tmp_path)
@@ -126,21 +128,22 @@ def test_bad_input(tmp_path):
         make_dm(tmp_path)
     np.save(tmp_path / "vel_test_bball.npy", np.zeros((10, 48, 5, 2)))
     with pytest.raises(ValueError, match=r"vel_test_bball.npy: shape \(10, 48, 5, 2\) differs"):
-        make_dm(tmp_path, format="dnri")
+        make_dm(tmp_path, source={"format": "dnri"})
     np.save(tmp_path / "vel_test_bball.npy", np.zeros((10, 49, 10)))
     with pytest.raises(ValueError, match=r"vel_test_bball.npy: shape \(10, 49, 10\); expected \[S, T, N, 2"):
-        make_dm(tmp_path, format="dnri")
+        make_dm(tmp_path, source={"format": "dnri"})
     (tmp_path / "vel_test_bball.npy").unlink()
     with pytest.raises(FileNotFoundError, match="vel_test_bball.npy: missing"):
-        make_dm(tmp_path, format="dnri")
+        make_dm(tmp_path, source={"format": "dnri"})
     assert detect_format(tmp_path) == "zhan"
 
 
-BAD_CONFIG = [({"format": "csv"}, "data.source.format"), ({"agents": "ball"}, "data.source.agents"),
+BAD_CONFIG = [({"source": {"format": "csv"}}, "data.source.format"),
+              ({"source": {"agents": "ball"}}, "data.source.agents"),
               ({"val_fraction": 1.0}, "data.val_fraction"), ({"train_len": 1}, "data.train_len")]
 
 
 @pytest.mark.parametrize("kw, key", BAD_CONFIG)
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat("basketball", **kw)
+        data_module("basketball", **kw)

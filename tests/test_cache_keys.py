@@ -12,7 +12,7 @@ import dider.data.cache as cache
 from dider.data.levelx.reading import WindowParams
 from dider.data.readers import push as push_reader
 from dider.data.tracks import TracksDataModule
-from helpers.flat import flat
+from helpers.data import data_module
 
 PUSH = {  # data=synth at its defaults, and with the positive control's step push
     "linear": {"train": "665bdfec1ceb0ee4", "val": "31036e376cd5978b", "test": "cc0f6d3fe258aad6"},
@@ -22,7 +22,7 @@ PUSH = {  # data=synth at its defaults, and with the positive control's step pus
 
 @pytest.mark.parametrize("push", sorted(PUSH))
 def test_the_push_simulators_cache_names(tmp_path, push):
-    dm = flat("synth", cache_dir=str(tmp_path), push=push)
+    dm = data_module("synth", cache_dir=str(tmp_path), source={"push": push})
     sizes = {s: dm.hparams[f"num_{s}"] for s in PUSH[push]}
     names = {s: push_reader.cache_path(dm.source, s, n, dm.cache_dir).name for s, n in sizes.items()}
     assert names == {s: f"synth_{s}_{k}.pt" for s, k in PUSH[push].items()}
@@ -40,7 +40,8 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
         raise LookupError  # stop before simulating
 
     monkeypatch.setattr(cache, "load_or_build", record)
-    dm = flat("springs", simulate=simulate, num_train=50000, num_val=10000, num_test=10000, cache_dir=str(tmp_path))
+    dm = data_module("springs", source=simulate, num_train=50000, num_val=10000, num_test=10000,
+                     cache_dir=str(tmp_path))
     with pytest.raises(LookupError):
         dm.prepare_data()
     assert [p.name for p in seen] == [name]

@@ -27,9 +27,11 @@ def test_checkpoints_are_written_in_todays_format(make_cfg):
 
 
 @pytest.mark.parametrize("mark, by", [(None, "a development version before 0.2.0: retrain it"),
+                                      (FORMAT - 1, "a development version before 0.2.0: retrain it"),
                                       (FORMAT + 1, "a newer dider: upgrade the package")])
 def test_another_format_is_refused_by_name_at_every_door(make_cfg, tmp_path, mark, by):
-    """The shipped DIDER's file with its format mark removed (format 1: no number) or a newer one: read(), the
+    """The shipped DIDER's file with its format mark removed (format 1: no number), an older number (format 2: the
+    data arguments flat) or a newer one: read(), the
     ``ckpt_path=`` check, dider.load and the LightningModule's loader each refuse it naming the file and the format."""
     from dider.shipped import HERE, catalog
 
@@ -111,3 +113,15 @@ def test_lightnings_loads_go_through_the_reader(tmp_path):
     torch.save(ckpt, path := tmp_path / "old.ckpt")
     with pytest.raises(ValueError, match=r"old.ckpt: written in checkpoint format 1"):
         AtomicCheckpointIO().load_checkpoint(path)
+
+
+def test_a_checkpoint_setting_the_module_does_not_take_is_refused_not_dropped(tmp_path):
+    """A key of the hyper-parameters' top level that no setting reads (a hand edit, a setting of another version) is
+    named, not silently left out of the model that is built."""
+    from dider.shipped import HERE, catalog
+
+    ckpt = torch.load(HERE / catalog()["synth/dider"]["file"], map_location="cpu", weights_only=True)
+    ckpt["hyper_parameters"]["burn_in"] = 5  # the protocol's key where format 2 kept it
+    torch.save(ckpt, path := tmp_path / "extra.ckpt")
+    with pytest.raises(ConfigError, match=r"model config: burn_in: not a setting of the model's top level"):
+        RelationalVAEModule.from_checkpoint(path)

@@ -158,13 +158,14 @@ def test_each_data_set_picks_the_models_protocol(make_cfg):
     assert set(options("protocol")) == {"synth", "basketball", "ind", "ind200", "tracking", "springs", "pedestrians"}
     for data, (burn_in, horizons, mode) in expected.items():
         cfg = make_cfg([f"data={data}"])
-        for node in (cfg.protocol, cfg.model):
+        for node in (cfg.protocol, cfg.model.protocol):
             assert (node.burn_in, list(node.horizons), node.burn_in_mode) == (burn_in, horizons, mode), data
         assert not {"burn_in", "horizons", "burn_in_mode"} & set(cfg.data), data
     cfg = make_cfg(["data=table", "protocol.burn_in=3", "protocol.horizons=[1,2]", "protocol.burn_in_mode=global"])
-    assert (cfg.model.burn_in, list(cfg.model.horizons), cfg.model.burn_in_mode) == (3, [1, 2], "global")
+    p = cfg.model.protocol
+    assert (p.burn_in, list(p.horizons), p.burn_in_mode) == (3, [1, 2], "global")
     cfg = make_cfg(["data=synth", "protocol=ind"])
-    assert (list(cfg.model.horizons), cfg.model.burn_in_mode) == ([1, 20, 40], "per_agent")
+    assert (list(cfg.model.protocol.horizons), cfg.model.protocol.burn_in_mode) == ([1, 20, 40], "per_agent")
 
 
 def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):
@@ -234,7 +235,7 @@ def test_every_node_a_class_builds_holds_its_arguments(make_cfg, tmp_path):
             make_cfg([f"hydra.searchpath=[file://{tmp_path}]", f"experiment={level}"], tiny=False)
 
 
-@pytest.mark.parametrize("node, typo, schema", [("protocol", "burnin", "Protocol"), ("predict", "forecast_step",
+@pytest.mark.parametrize("node, typo, schema", [("protocol", "burnin", "ForecastProtocol"), ("predict", "forecast_step",
                                                                                    "PredictSettings"),
                                                 ("eval", "nmae", "EvalSettings")])
 def test_the_apps_own_nodes_refuse_an_unknown_key(make_cfg, tmp_path, node, typo, schema):

@@ -4,13 +4,13 @@ import torch
 from dider.data.batch import Normalizer
 from dider.data.clips import ClipsDataModule
 from dider.data.simulate import simulate_push
-from helpers.flat import flat
+from helpers.data import data_module
 
 
 def make_dm(tmp_path, **kw) -> ClipsDataModule:
     params = dict(num_train=40, num_val=10, num_test=12, cache_dir=str(tmp_path), loader={"batch_size": 8})
     params.update(kw)
-    dm = flat("synth", **params)
+    dm = data_module("synth", **params)
     dm.prepare_data()
     dm.setup()
     return dm
@@ -42,11 +42,11 @@ def test_cache_is_keyed_and_reused(tmp_path):
 
 @pytest.mark.parametrize(
     "kw, key",
-    [({"num_train": 0}, "data.num_train"), ({"num_steps": 1}, "data.source.num_steps")],
+    [({"num_train": 0}, "data.num_train"), ({"source": {"num_steps": 1}}, "data.source.num_steps")],
 )
 def test_bad_config_names_the_key(tmp_path, kw, key):
     with pytest.raises(ValueError, match=key):
-        flat("synth", cache_dir=str(tmp_path), **kw)
+        data_module("synth", cache_dir=str(tmp_path), **kw)
 
 
 def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
@@ -55,21 +55,11 @@ def test_the_loader_node_overrides_the_data_sets_defaults_key_by_key(tmp_path):
     dm = make_dm(tmp_path, loader={"batch_size": 5})
     assert dm.loader == Loader(batch_size=5, eval_batch_size=256)  # the synthetic set's evaluation batch kept
     assert dm.train_dataloader().batch_size == 5 and dm.test_dataloader().batch_size == 256
-    assert flat("basketball").loader == Loader(batch_size=128, eval_batch_size=128)
+    assert data_module("basketball").loader == Loader(batch_size=128, eval_batch_size=128)
     with pytest.raises(ValueError, match=r"data.loader.pin_memory='yes': expected true or false"):
-        flat("synth", cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
+        data_module("synth", cache_dir=str(tmp_path), loader={"pin_memory": "yes"})
     with pytest.raises(ValueError, match=r"data.loader.workers: no such setting"):
-        flat("synth", cache_dir=str(tmp_path), loader={"workers": 2})
-
-
-def test_an_older_data_config_gets_its_loader_node_and_leaves_the_protocol_to_the_model():
-    from dider.data.legacy import upgrade_data_node
-
-    older = {"_target_": "x", "batch_size": 8, "pin_memory": True, "num_train": 5, "burn_in": 5, "horizons": [1],
-             "burn_in_mode": "global"}
-    assert upgrade_data_node(older) == {"_target_": "x", "num_train": 5,
-                                        "loader": {"batch_size": 8, "pin_memory": True}}
-    assert upgrade_data_node({"loader": {"batch_size": 3}}) == {"loader": {"batch_size": 3}}
+        data_module("synth", cache_dir=str(tmp_path), loader={"workers": 2})
 
 
 def test_every_data_setting_is_a_constructor_argument():

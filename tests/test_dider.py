@@ -149,7 +149,7 @@ def test_first_forecast_segment_starts_after_the_burn_in(make_cfg, model):
     """The paper's t_1 = 0, d_0 = T_obs: the burn-in is its own segment, and the first forecast segment's
     type and duration are read at its end, in training (segment) and in the roll-out alike."""
     burn = 6
-    net = build(make_cfg, f"model={model}", f"model.burn_in={burn}", "model.net.rollout_edges=argmax").eval()
+    net = build(make_cfg, f"model={model}", f"protocol.burn_in={burn}", "model.net.rollout_edges=argmax").eval()
     batch = clip(t=30)
     enc = net.encoder(batch["states"], batch["mask"])
     seg = net.duration.segment(enc.h_fwd, enc.h_rev, batch["states"])

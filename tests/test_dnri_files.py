@@ -9,7 +9,7 @@ from hydra.utils import instantiate
 from dider.data.batch import Normalizer
 from dider.data.clips import ClipsDataModule
 from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
-from helpers.flat import flat
+from helpers.data import data_module
 
 SIZES = {"train": 8, "val": 3, "test": 5}
 STEPS = 30
@@ -34,8 +34,10 @@ def root(tmp_path: Path) -> Path:
     return tmp_path / "dnri"
 
 
-def make_dm(root: Path | None, setup: bool = True, **kw) -> ClipsDataModule:
-    dm = flat("dnri_files", root=None if root is None else str(root), **{**SMALL, **kw})
+def make_dm(root: Path | None, setup: bool = True, source: dict | None = None, **kw) -> ClipsDataModule:
+    """data=dnri_files on the files in ``root``, ``source`` over its source's settings, ``kw`` over the module's."""
+    source = {"root": None if root is None else str(root), **(source or {})}
+    dm = data_module("dnri_files", source=source, **{**SMALL, **kw})
     if setup:
         dm.setup()
     return dm
@@ -80,7 +82,7 @@ def test_predict_every_clip_with_the_given_normaliser(root):
     raw = write_dnri(root)
     norm = Normalizer((-3.0, 3.0), (-0.2, 0.2))
     for split in ("test", "val"):
-        dm = make_dm(root, setup=False, predict_split=split)
+        dm = make_dm(root, setup=False, source={"predict_split": split})
         dm.use_normalizer(norm)
         dm.setup("predict")
         ds = dm.datasets["predict"]
@@ -147,11 +149,11 @@ def test_bad_input(root, tmp_path):
 
 
 @pytest.mark.parametrize("kw, key", [({"normalization": "minmax"}, "data.normalization"),
-                                     ({"predict_split": "all"}, "data.source.predict_split"),
+                                     ({"source": {"predict_split": "all"}}, "data.source.predict_split"),
                                      ({"num_train": 0}, "data.num_train")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat("dnri_files", **kw)
+        data_module("dnri_files", **kw)
 
 
 def test_hydra_config_instantiates(root, make_cfg):

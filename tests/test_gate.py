@@ -116,7 +116,7 @@ def test_gradients_reach_both_gates(make_cfg):
 
 @pytest.mark.parametrize("burn_in", [None, 6])
 def test_online_types_hold_until_the_prior_gate_fires(make_cfg, burn_in):
-    over = [] if burn_in is None else [f"model.burn_in={burn_in}", "model.net.duration.burn_in=${model.burn_in}"]
+    over = [] if burn_in is None else [f"protocol.burn_in={burn_in}", "model.net.duration.burn_in=${protocol.burn_in}"]
     net = build(make_cfg, "model.net.rollout_edges=argmax", *over).eval()
     batch = clip()
     h_fwd = net.encoder(batch["states"], batch["mask"]).h_fwd

@@ -2,6 +2,7 @@
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -12,15 +13,17 @@ from hydra.utils import instantiate
 from dider.bench.data import benchmark_preprocess
 from dider.bench.fake_levelx import RECORDING_META_COLUMNS, TRACKS_COLUMNS, TRACKS_META_COLUMNS
 from dider.data.clip_splits import split_counts
-from dider.data.legacy import LEVELX, nest_args
 from dider.data.levelx import tracks as ind_mod
 from dider.data.levelx.recordings import discover_recordings
 from dider.data.tracks import TracksDataModule
 from dider.protocol import burn_in_mask
+from helpers.data import merged
 from helpers.fixtures import edit_csv, write_background, write_ind_root
 
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
-SMALL = dict(split=(2, 1, 1), seq_len=20, loader={"batch_size": 4, "eval_batch_size": 4})
+SMALL = dict(split=(2, 1, 1), windows={"seq_len": 20}, loader={"batch_size": 4, "eval_batch_size": 4})
+# The levelX module as its data config (data=ind) reads: DNRI's inD batches, the consistency check's default rules.
+LEVELX = {"source": {"reader": "levelx"}, "loader": {"batch_size": 8, "eval_batch_size": 8}, "pairs": {}}
 
 
 @pytest.fixture
@@ -28,9 +31,9 @@ def root(tmp_path: Path) -> Path:
     return write_ind_root(tmp_path / "inD")
 
 
-def levelx(**flat) -> TracksDataModule:
-    """The module with its settings given flat (nested as the config nests them)."""
-    return TracksDataModule(**nest_args(LEVELX, flat)[1])
+def levelx(**settings: Any) -> TracksDataModule:
+    """The levelX module with ``settings`` (nested as the config nests them) over ``LEVELX`` key by key."""
+    return TracksDataModule(**merged(LEVELX, settings))
 
 
 def recordings(ds) -> list[str]:
@@ -39,7 +42,9 @@ def recordings(ds) -> list[str]:
 
 
 def make_dm(root: Path, cache: Path, setup: bool = True, **kw) -> TracksDataModule:
-    dm = levelx(root=None if root is None else str(root), cache_dir=str(cache), **{**SMALL, **kw})
+    """The recordings in ``root`` cut small (``SMALL``), ``kw`` over it key by key."""
+    given = merged({"source": {"root": None if root is None else str(root)}, **SMALL}, kw)
+    dm = levelx(cache_dir=str(cache), **given)
     if setup:
         dm.prepare_data()
         dm.setup()
@@ -154,31 +159,31 @@ def test_normalizer_fit_on_present_train_agents(root, tmp_path):
 
 def test_downsample_stride_and_window_filters(root, tmp_path):
     cache = tmp_path / "cache"
-    dm = make_dm(root, cache, downsample=5, seq_len=30)  # 120 steps: 4 windows
+    dm = make_dm(root, cache, windows={"downsample": 5, "seq_len": 30})  # 120 steps: 4 windows
     assert len(dm.datasets["test"]) == 4 and dm.dt == pytest.approx(0.2)
-    dm = make_dm(root, cache, stride=5, eval_stride=40)  # train windows at 0, 5, ..., 40; eval at 0, 40
+    dm = make_dm(root, cache, windows={"stride": 5, "eval_stride": 40})  # train windows at 0, 5, ..., 40; eval at 0, 40
     assert dm.datasets["train"].window_start.tolist() == list(range(0, 41, 5)) * 2
     assert dm.datasets["val"].window_start.tolist() == [0, 40]
     full = make_dm(root, cache)
-    capped = make_dm(root, cache, max_agents=3)
+    capped = make_dm(root, cache, windows={"max_agents": 3})
     assert capped.datasets["train"].num_agents.max() == 3
     assert (capped.datasets["train"].num_agents == full.datasets["train"].num_agents.clamp(max=3)).all()
     # the cap keeps the agents present longest: the parked ones (whole windows) always survive
     ds = capped.datasets["train"]
     assert int(torch.isin(ds.agent_ids, torch.tensor([0, 1])).sum()) == 2 * len(ds)
-    longer = make_dm(root, cache, min_agent_steps=12)  # only agents present >= 12 of the 20 steps
+    longer = make_dm(root, cache, windows={"min_agent_steps": 12})  # only agents present >= 12 of the 20 steps
     assert (longer.datasets["train"].mask.sum(1) >= 12).all()
     assert len(longer.datasets["train"].mask) < len(full.datasets["train"].mask)
     # min_agents drops the windows with fewer agents
     thr = min(int(d.num_agents.max()) for d in full.datasets.values())
-    crowded = make_dm(root, cache, min_agents=thr).datasets["train"]
+    crowded = make_dm(root, cache, windows={"min_agents": thr}).datasets["train"]
     assert len(crowded) == int((full.datasets["train"].num_agents >= thr).sum())
     assert crowded.num_agents.min() >= thr
 
 
 def test_class_filter_and_caps(root, tmp_path):
     cache = tmp_path / "cache"
-    dm = make_dm(root, cache, classes=["car", "truck_bus"])
+    dm = make_dm(root, cache, source={"classes": ["car", "truck_bus"]})
     ds = dm.datasets["train"]
     assert set(np.array(ds.class_names)[ds.agent_class].tolist()) <= {"car", "truck_bus"}
     everyone = make_dm(root, cache).datasets["train"]
@@ -231,7 +236,7 @@ def test_cache_is_shared_keyed_and_invalidated(root, tmp_path, monkeypatch):
     os.utime(root / "03_tracks.csv", ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
     make_dm(root, cache)
     assert len(list((cache / "levelx").glob("*.pt"))) == 5
-    make_dm(root, cache, seq_len=25)
+    make_dm(root, cache, windows={"seq_len": 25})
     assert len(list((cache / "levelx").glob("*.pt"))) == 9
 
 
@@ -246,9 +251,9 @@ def test_extra_columns_ignored_and_custom_patterns(root, tmp_path):
     for p in root.iterdir():  # rename to a different naming scheme, e.g. round_00-tracks.csv
         rec, kind = p.name.split("_", 1)
         (other / f"round_{rec}-{kind}").write_bytes(p.read_bytes())
-    dm = make_dm(other, tmp_path / "c2", name="round", tracks_pattern="round_{id}-tracks.csv",
-                 tracks_meta_pattern="round_{id}-tracksMeta.csv",
-                 recording_meta_pattern="round_{id}-recordingMeta.csv")
+    dm = make_dm(other, tmp_path / "c2", source={"name": "round", "files": {
+        "tracks": "round_{id}-tracks.csv", "tracks_meta": "round_{id}-tracksMeta.csv",
+        "recording_meta": "round_{id}-recordingMeta.csv"}})
     assert torch.equal(dm.datasets["train"].states, base.datasets["train"].states)
     assert all(p.name.startswith("round_") for p in (tmp_path / "c2" / "levelx").glob("*.pt"))
 
@@ -260,7 +265,7 @@ def test_hydra_config_instantiates(root, make_cfg):
     dm.prepare_data()
     dm.setup()
     batch = next(iter(dm.val_dataloader()))
-    assert batch["states"].shape[1] == 20 and cfg.model.burn_in == 5
+    assert batch["states"].shape[1] == 20 and cfg.model.protocol.burn_in == 5
     for option in ("ind200", "round", "unid"):
         assert make_cfg([f"data={option}"]).data._target_ == "dider.data.tracks.TracksDataModule"
     rules = instantiate(make_cfg(["data=ind", "data.pairs.parked_speed=0.3"]).data, _convert_="all").pair_rules
@@ -330,7 +335,7 @@ def test_missing_files_and_paths(root, tmp_path):
         make_dm(root, tmp_path / "c")
     (root / "01_tracks.csv").write_text("")
     with pytest.raises(ValueError, match="01_tracks.csv: empty file"):
-        make_dm(root, tmp_path / "c", recordings=[0, 1, 3], split=(1, 1, 1))
+        make_dm(root, tmp_path / "c", source={"recordings": [0, 1, 3]}, split=(1, 1, 1))
 
 
 def test_empty_metadata_file(root, tmp_path):
@@ -341,17 +346,18 @@ def test_empty_metadata_file(root, tmp_path):
 
 def test_too_short_and_bad_config(root, tmp_path):
     with pytest.raises(ValueError, match=r"no window of data.windows.seq_len=70 .* too short"):
-        make_dm(root, tmp_path / "c", seq_len=70)
+        make_dm(root, tmp_path / "c", windows={"seq_len": 70})
     with pytest.raises(ValueError, match=r"data.source.classes=\['tram'\] left too few tracks"):
-        make_dm(root, tmp_path / "c", classes=["tram"])
-    for kw, key in [({"seq_len": 1}, "data.windows.seq_len"), ({"downsample": 0}, "data.windows.downsample"),
-                    ({"max_agents": 0}, "data.windows.max_agents"),
-                    ({"features": ["xCenter"]}, "data.source.columns.features"),
-                    ({"tracks_pattern": "tracks.csv"}, "data.source.files.tracks"),
-                    ({"max_speed": 30.0}, "data.windows.max_speed=30.0: levelX tracks"),
+        make_dm(root, tmp_path / "c", source={"classes": ["tram"]})
+    for kw, key in [({"windows": {"seq_len": 1}}, "data.windows.seq_len"),
+                    ({"windows": {"downsample": 0}}, "data.windows.downsample"),
+                    ({"windows": {"max_agents": 0}}, "data.windows.max_agents"),
+                    ({"source": {"columns": {"features": ["xCenter"]}}}, "data.source.columns.features"),
+                    ({"source": {"files": {"tracks": "tracks.csv"}}}, "data.source.files.tracks"),
+                    ({"windows": {"max_speed": 30.0}}, "data.windows.max_speed=30.0: levelX tracks"),
                     ({"split": (1, 1)}, "data.split")]:
         with pytest.raises(ValueError, match=key):
-            levelx(**{**SMALL, **kw})
+            levelx(**merged(SMALL, kw))
 
 
 def test_background_image_and_extent(root, tmp_path):

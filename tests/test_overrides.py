@@ -16,6 +16,7 @@ from dider.training.overrides import job_overrides, override_problem
     ("data.path=x.csv", "data.path=x.csv: no such key; 0.2 moved it to data.source.path (data.source.path=x.csv)"),
     ("data.seq_len=5", "0.2 moved it to data.windows.seq_len"),
     ("data.burn_in=5", "0.2 moved it to protocol.burn_in"),
+    ("model.samples=3", "0.2 moved it to protocol.samples (protocol.samples=3)"),
     ("model.num_edgs=3", "model.num_edgs=3: no such key; did you mean model.num_edges"),
     ("trainer.max_epoch=3", "did you mean trainer.max_epochs?"),
 ])

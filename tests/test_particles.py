@@ -11,7 +11,7 @@ from dider.data.clips import ClipsDataModule
 from dider.data.particles import STIFFNESS, _forces, simulate_particles
 from dider.data.readers.nri_files import nri_path, read_nri_split, write_nri_split
 from dider.graph import edge_index
-from helpers.flat import flat
+from helpers.data import data_module
 from helpers.protocol import fits
 
 SMALL = dict(loader={"batch_size": 4, "eval_batch_size": 4})
@@ -124,14 +124,14 @@ def test_bad_nri_files_are_named(tmp_path, kind, array, match):
 def test_the_data_module_reads_files_as_it_simulates(tmp_path):
     """data=springs and data=nri_files on the files of the same simulation give the same batches."""
     sim = {"system": "springs", "num_balls": 4, "num_frames": 20, "switch_prob": 0.1, "seed": 2}
-    made = flat("springs", simulate=sim, num_train=6, num_val=3, num_test=4, cache_dir=str(tmp_path / "cache"),
-                **SMALL)
+    made = data_module("springs", source=sim, num_train=6, num_val=3, num_test=4, cache_dir=str(tmp_path / "cache"),
+                       **SMALL)
     made.setup()
     files = tmp_path / "files"
     for i, split in enumerate(("train", "val", "test")):
         loc, vel, edges = simulate_particles("springs", (6, 3, 4)[i], 20, 4, switch_prob=0.1, seed=2000 + i)
         write_nri_split(files, split, "_s", loc, vel, edges)
-    read = flat("nri_files", root=str(files), suffix="_s", **SMALL)
+    read = data_module("nri_files", source={"root": str(files), "suffix": "_s"}, **SMALL)
     read.setup()
     for split in ("train", "val", "test"):
         a, b = made.datasets[split], read.datasets[split]
@@ -150,14 +150,15 @@ def test_the_data_module_names_bad_settings(tmp_path, make_cfg):
     with pytest.raises(ValueError, match="data.num_train=None: must be an integer"):
         ClipsDataModule(source={"reader": "particles"})
     with pytest.raises(ValueError, match="data.source.system='gravity'"):
-        flat("springs", simulate={"system": "gravity"}, num_train=2, num_val=2, num_test=2)
+        data_module("springs", source={"system": "gravity"}, num_train=2, num_val=2, num_test=2)
     names = r"\['reader', 'system', 'num_balls', 'num_frames', 'sample_every', 'switch_prob', 'seed'\]"
     with pytest.raises(Exception, match=rf"data.source.frames: no such setting \(expected one of {names}\)"):
         instantiate(make_cfg(["data=springs", "+data.source.frames=3"]).data)
     with pytest.raises(ValueError, match="data.source.root is not set"):
         ClipsDataModule(source={"reader": "nri_files"}, **SMALL).setup()
     write_sim(tmp_path / "f", frames=12)
-    dm = flat("nri_files", root=str(tmp_path / "f"), suffix="_springs4", **SMALL)
+    dm = data_module("nri_files", source={"root": str(tmp_path / "f"), "suffix": "_springs4"}, **SMALL)
     dm.setup()
-    with pytest.raises(ValueError, match=r"model.horizons=\[1, 10\]: each must lie in 1..2 .*12-step clips, the test"):
+    with pytest.raises(ValueError, match=r"protocol.horizons=\[1, 10\]: each must lie in 1..2 .*12-step clips, "
+                                         r"the test"):
         fits(dm, 10, (1, 10))

@@ -57,7 +57,7 @@ def test_checkpoint_weights_roll_out_without_a_trainer(make_cfg, tmp_path):
     x = torch.rand(2, 12, 3, 4) * 2 - 1
     pred = module(x, torch.ones(2, 30, 3, dtype=torch.bool), burn_in=10, num_pred=20)
     assert pred.double().sum().item() == pytest.approx(out["sum"], rel=1e-6, abs=1e-6)
-    assert module.hparams.net["num_edges"] == 2 and module.hparams.burn_in == 5
+    assert module.hparams.net["num_edges"] == 2 and module.protocol.burn_in == module.hparams.protocol["burn_in"] == 5
 
 
 def test_model_config_keys_are_split(make_cfg):

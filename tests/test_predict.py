@@ -21,8 +21,8 @@ from dider.data.batch import Normalizer
 from dider.run import predict, train, validate_config
 from dider.trained import training_settings
 from dider.validation import ConfigError
+from helpers.data import data_module
 from helpers.fixtures import write_trajectories
-from helpers.flat import flat
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 API_PAGE = Path(__file__).resolve().parents[1] / "docs" / "api.md"
@@ -64,8 +64,9 @@ def test_checkpoint_describes_itself(run):
     meta = ckpt["dider"]
     assert meta["version"] == dider.__version__
     assert meta["data"]["features"] == ["x", "y", "vx", "vy"]
-    assert meta["data"]["args"]["frame_rate"] == 10
-    dm = flat("trajectories", path=meta["data"]["args"]["path"], frame_rate=10, num_val=4)
+    assert meta["data"]["args"]["source"]["frame_rate"] == 10  # nested as the config nests it
+    dm = data_module("trajectories", source={"path": meta["data"]["args"]["source"]["path"], "frame_rate": 10},
+                     num_val=4)
     dm.setup("fit")  # the same file and split refit the same normaliser
     assert Normalizer(**meta["data"]["state"]["normalizer"]).state_dict() == dm.normalizer.state_dict()
     assert ckpt["hyper_parameters"]["net"]["name"] == "dider"
@@ -217,7 +218,7 @@ def test_older_and_foreign_checkpoints_are_named(run, tmp_path):
 
 
 def test_predict_needs_the_trained_normaliser(new_data):
-    dm = flat("trajectories", path=str(new_data[0]))
+    dm = data_module("trajectories", source={"path": str(new_data[0])})
     with pytest.raises(ValueError, match="trained model's normaliser"):
         dm.setup("predict")
 

@@ -26,8 +26,8 @@ from dider.data.simulate import simulate_push
 from dider.data.tracks import TracksDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
+from helpers.data import data_module
 from helpers.fixtures import write_ind_root
-from helpers.flat import flat
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None,
                 derandomize=True)  # the same examples on every run: a failure in CI reproduces locally
@@ -132,8 +132,8 @@ def test_trajectory_reader_fails_cleanly(spec):
         if "edges" in out:
             assert out["edges"].shape == (s, t - 1, num_edges(n)) and (out["edges"] >= 0).all()
         # ...and the whole DataModule on top of it also fails only cleanly.
-        dm = flat("trajectories", path=str(path), frame_rate=spec["frame_rate"],
-                                  loader={"batch_size": 2, "eval_batch_size": 2})
+        dm = data_module("trajectories", source={"path": str(path), "frame_rate": spec["frame_rate"]},
+                         loader={"batch_size": 2, "eval_batch_size": 2})
         try:
             dm.setup()
         except Exception as e:  # noqa: BLE001
@@ -245,6 +245,7 @@ SYNTH = st.fixed_dictionaries({
     "num_train": COUNT, "num_val": st.integers(0, 6), "num_test": st.integers(1, 6),
     "num_steps": st.one_of(st.integers(0, 12), st.integers(6, 12), st.just("x")), "push_factor": REAL, "seed": SEED,
 })
+PUSH_KEYS = ("num_steps", "push_factor", "seed")  # SYNTH's keys of the simulator's node (data.source)
 
 
 @FAST
@@ -252,7 +253,9 @@ SYNTH = st.fixed_dictionaries({
 def test_synthetic_data_rejects_bad_parameters_by_key(params):
     with tempfile.TemporaryDirectory() as tmp:
         try:
-            dm = flat("synth", cache_dir=tmp, loader={"batch_size": 4}, **params)
+            source = {k: v for k, v in params.items() if k in PUSH_KEYS}
+            sizes = {k: v for k, v in params.items() if k not in PUSH_KEYS}
+            dm = data_module("synth", cache_dir=tmp, loader={"batch_size": 4}, source=source, **sizes)
             dm.prepare_data()
         except Exception as e:  # noqa: BLE001
             assert_clean(e, "data.", "push_factor")
@@ -270,8 +273,8 @@ def test_interrupted_cache_write_leaves_no_partial_file(num_train, fail_at, writ
     """A save that dies part-way (disk full, Ctrl-C) leaves the finished splits and nothing else; the next
     run regenerates the missing ones and everything loads."""
     with tempfile.TemporaryDirectory() as tmp:
-        dm = flat("synth", num_train=num_train, num_val=3, num_test=2, num_steps=8, cache_dir=tmp,
-                             loader={"batch_size": 4})
+        dm = data_module("synth", num_train=num_train, num_val=3, num_test=2, source={"num_steps": 8}, cache_dir=tmp,
+                         loader={"batch_size": 4})
         real_save, calls = torch.save, []
 
         def dying_save(obj, f, *args, **kwargs):
@@ -315,7 +318,7 @@ def test_basketball_reader_fails_cleanly(spec, split):
         elif spec["damage"] == "npy":
             with path.open("wb") as f:
                 np.save(f, spec["array"])
-        dm = flat("basketball", root=str(root), cache_dir=str(root / "cache"), val_fraction=0.2)
+        dm = data_module("basketball", source={"root": str(root)}, cache_dir=str(root / "cache"), val_fraction=0.2)
         try:
             dm.prepare_data()
             dm.setup()

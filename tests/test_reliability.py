@@ -16,6 +16,7 @@ import torch
 
 import dider
 import dider.models.likelihood as likelihood_mod
+from dider.models.checkpoint_format import FORMAT
 from dider.models.plugins import Progress
 from dider.models.vae import RelationalVAE
 from dider.run import ConfigError, predict, train, trainer_plugins, validate_config
@@ -331,11 +332,9 @@ def _npz(tmp_path: Path) -> Path:
 BAD_CONFIGS = [
     (["model.num_edges=1"], r"model.num_edges=1: must be >= 2"),
     (["protocol.burn_in=50"], r"protocol.burn_in=50: must be shorter than the clips \(data.source.num_steps=50\)"),
-    (["model.burn_in=50"], r"model.burn_in=50: must be shorter than the clips \(data.source.num_steps=50\)"),
     (["data.source.num_steps=20",
      "protocol.horizons=[1,5,16]"], r"protocol.horizons=\[1, 5, 16\]: each must lie in 1..15"),
     (["protocol.horizons=[0,5]"], r"protocol.horizons=\[0, 5\]"),
-    (["model.horizons=[1,99]"], r"model.horizons=\[1, 99\]: each must lie in 1..45"),
     (["model=dider", "model.net.duration.rate=1.5"], r"model.net.duration.rate=1.5: must lie in \(0.0, 1.0\)"),
     (["model.net.objective.kl_edge.capacity=-0.5"], r"model.net.objective.kl_edge.capacity=-0.5: must be >= 0"),
     (["model.net.objective.kl_duration.weight=-1"], r"model.net.objective.kl_duration.weight=-1: must be >= 0"),
@@ -347,7 +346,6 @@ BAD_CONFIGS = [
      r"protocol.burn_in=20: must be shorter .*data.source.num_frames=20"),
     (["mode=eval"], r"ckpt_path: mode=eval needs ckpt_path"),
     (["ckpt_path=/no/such.ckpt"], r"ckpt_path=/no/such.ckpt: no such checkpoint file"),
-    (["model.burn_in_mode=sideways"], r"model.burn_in_mode='sideways'"),
     (["protocol.burn_in=0", "model=dider"], r"configuration:\n  - protocol.burn_in=0: must be >= 1$"),  # not again
     (["+model.gumbel_tau=0.3"], r"model.gumbel_tau: not a setting of .* \(model.net.gumbel_tau\)"),
     (["protocol.burn_in_mode=sideways"], r"configuration:\n  - protocol.burn_in_mode='sideways': expected one of "
@@ -389,12 +387,12 @@ def test_config_checks_run_before_any_work(make_cfg, tmp_path, monkeypatch):
         raise AssertionError("work started")
 
     monkeypatch.setattr("dider.run.instantiate", boom)
-    cfg = make_cfg(["model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "model.burn_in=60"],
+    cfg = make_cfg(["model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "protocol.burn_in=60"],
                    out=tmp_path / "run")
     with pytest.raises(ConfigError) as info:
         train(cfg)
     message = str(info.value)  # every problem at once
-    for key in ("model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "model.burn_in=60"):
+    for key in ("model.num_edges=1", "model.net.objective.kl_edge.capacity=-1", "protocol.burn_in=60"):
         assert key in message
     assert not (tmp_path / "run").exists()
 
@@ -725,7 +723,7 @@ def test_resume_after_a_kill_during_the_first_last_ckpt_write(tmp_path, caplog):
     folder = tmp_path / "checkpoints"
     folder.mkdir()
     for name, step in (("epoch_000.ckpt", 10), ("epoch_001.ckpt", 20)):  # complete checkpoints (of today's format)
-        torch.save({"global_step": step, "state_dict": {}, "hyper_parameters": {}, "dider": {"format": 2}},
+        torch.save({"global_step": step, "state_dict": {}, "hyper_parameters": {}, "dider": {"format": FORMAT}},
                    folder / name)
     (folder / "broken.ckpt").write_bytes(b"PK\x03\x04 half")
     (folder / ".last.ckpt.x1y2.tmp").write_bytes(b"PK\x03\x04 half a checkpoint")

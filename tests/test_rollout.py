@@ -165,21 +165,20 @@ def test_first_scored_horizon_is_the_agents_first_own_prediction():
 
 
 def test_model_takes_the_mode_from_the_protocol(make_cfg, tmp_path):
-    """model.burn_in_mode is the protocol's (an interpolation, as the data's): the module is told, not fished from a
-    trainer."""
+    """The module's forecast protocol is the config's ``protocol`` node (one interpolation, as the data's): the
+    module is told, not fished from a trainer, and the checkpoint keeps it as one node."""
     for data, mode in [("synth", "global"), ("ind", "per_agent")]:
         net = RelationalVAEModule.from_config(make_cfg(["model=dnri", f"data={data}"]).model)
-        assert net.burn_in_mode == mode and net.hparams.burn_in_mode == mode, data
+        assert net.protocol.burn_in_mode == mode and net.hparams.protocol["burn_in_mode"] == mode, data
         net._trainer = SimpleNamespace(datamodule=SimpleNamespace(burn_in_mode="sideways"))
-        assert net.burn_in_mode == mode  # the attached data module is not asked
+        assert net.protocol.burn_in_mode == mode  # the attached data module is not asked
     dnri = OmegaConf.to_container(make_cfg(["model=dnri"]).model, resolve=True)
-    assert RelationalVAEModule.from_config({**dnri, "burn_in_mode": None}).burn_in_mode == "global"  # older hparams
-    with pytest.raises(Exception, match="model.burn_in_mode"):  # Hydra wraps the ValueError
-        RelationalVAEModule.from_config({**dnri, "burn_in_mode": "sideways"})
+    with pytest.raises(Exception, match=r"model.protocol.burn_in_mode='sideways'"):
+        RelationalVAEModule.from_config({**dnri, "protocol": {**dnri["protocol"], "burn_in_mode": "sideways"}})
     for data, mode in [("synth", "global"), ("basketball", "global"), ("ind", "per_agent"),
                        ("ind200", "per_agent"), ("round", "per_agent"), ("trajectories", "per_agent")]:
         cfg = make_cfg([f"data={data}"])
-        assert cfg.protocol.burn_in_mode == cfg.model.burn_in_mode == mode, data
+        assert cfg.protocol.burn_in_mode == cfg.model.protocol.burn_in_mode == mode, data
 
 
 def test_ind_run_scores_per_agent_horizons(make_cfg, tmp_path, monkeypatch):

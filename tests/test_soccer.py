@@ -131,7 +131,7 @@ def test_train_then_predict_on_another_half(make_cfg, tmp_path):
     assert 0 < metrics["test/ade/h05"] and 0 < metrics["test/cv/ade/h05"]
     assert metrics["test/ade_vs_cv/h05"] == pytest.approx(metrics["test/ade/h05"] / metrics["test/cv/ade/h05"])
     ckpt = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-    assert ckpt["dider"]["data"]["args"]["frame_rate"] == 50.0
+    assert ckpt["dider"]["data"]["args"]["source"]["frame_rate"] == 50.0  # nested as the config nests it
     cfg = make_cfg([*common, files_override(HAWKEYE_2), "mode=predict", "predict.forecast_steps=6",
                     f"ckpt_path={tmp_path / 'run' / 'checkpoints' / 'last.ckpt'}"], tiny=False, out=tmp_path / "pred")
     written = {p.name for p in predict(cfg)}

@@ -16,10 +16,10 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.common import SPLITS
-from dider.data.legacy import TABLE, nest_args
 from dider.data.pairs import PARKED
 from dider.data.tracks import TracksDataModule
 from dider.graph import edge_index
+from helpers.data import merged
 
 # The hand fixture. Scene 'east' (first in the file and by name): frames 0..5, agents amy and dan. Scene 'north':
 # frames 10..17, bob at every frame, amy at every frame but 13 (a gap), cat from frame 14 on.
@@ -27,7 +27,7 @@ SPEED = {"amy": 1.0, "bob": 0.5, "cat": -1.0, "dan": 2.0}
 X0 = {"amy": 0.0, "bob": 10.0, "cat": 20.0, "dan": 5.0}
 Y0 = {"amy": 0.0, "bob": 1.0, "cat": 2.0, "dan": 3.0}
 RATE = 2.0  # frames per second
-SMALL = dict(seq_len=4, stride=2, frame_rate=RATE,
+SMALL = dict(source={"frame_rate": RATE}, windows={"seq_len": 4, "stride": 2},
              loader={"batch_size": 2, "eval_batch_size": 2})
 COLUMNS = {"scene": "place", "agent": "who", "frame": "t", "x": "px", "y": "py"}
 IDENTITY = Normalizer((-1.0, 1.0), (-1.0, 1.0))  # normalize() returns raw units: windows checked by value
@@ -58,9 +58,10 @@ def table(tmp_path: Path) -> Path:
 
 
 def make_dm(path: Path | None, columns: dict | None = None, **kw) -> TracksDataModule:
-    """The module of the table at ``path``, its settings given flat (nested as the config nests them)."""
-    flat = {"path": None if path is None else str(path), "columns": columns or COLUMNS, **SMALL, **kw}
-    return TracksDataModule(**nest_args(TABLE, flat)[1])
+    """The module of the table at ``path`` read by ``columns`` (whole: ``COLUMNS`` by default), cut small
+    (``SMALL``), ``kw`` (nested as the config nests them) over it key by key."""
+    source = {"path": None if path is None else str(path), "columns": columns or COLUMNS}
+    return TracksDataModule(**merged(merged(SMALL, {"source": source}), kw))
 
 
 def windows(path: Path, normalizer: Normalizer = IDENTITY, **kw) -> tuple[TracksDataModule, object]:
@@ -118,7 +119,7 @@ def test_given_velocities_and_downsample(table):
     torch.testing.assert_close(ds.states[lo][1], expected("bob", [10, 11, 12, 13], vel="given"))
     # downsample=2: north keeps frames 10, 12, 14, 16 (13 is skipped, amy has no gap); differences span 2
     # frames at RATE / 2; east (0, 2, 4 -> 2 steps after the drop) is too short for seq_len=3.
-    dm, ds = windows(table, downsample=2, seq_len=3)
+    dm, ds = windows(table, windows={"downsample": 2, "seq_len": 3})
     assert ds.sources["frame"].tolist() == [12] and dm.frame_step == 2 and dm.dt == pytest.approx(1.0)
     assert ds.agent_ids.tolist() == [0, 1, 2] and ds.mask.int().tolist() == [[1, 1, 1], [1, 1, 1], [0, 0, 1]]
     torch.testing.assert_close(ds.states[0], expected("amy", [12, 14, 16], span=2), atol=1e-4, rtol=0)
@@ -131,24 +132,24 @@ def test_steps_faster_than_max_speed_are_absent(tmp_path, caplog):
             for a in ("amy", "bob") for f in range(9)]
     path = tmp_path / "jump.csv"
     pd.DataFrame(rows).to_csv(path, index=False)
-    kw = dict(columns={"agent": "agent"}, seq_len=8, stride=8, frame_rate=2.0)
+    kw = dict(columns={"agent": "agent"}, windows={"seq_len": 8, "stride": 8}, source={"frame_rate": 2.0})
     _, kept = windows(path, **kw)
     assert kept.mask.all() and kept.states[..., 2].max() == pytest.approx(62.0)  # (30 + 1) m in half a second
     with caplog.at_level(logging.WARNING, logger="dider.data.table"):
-        _, ds = windows(path, max_speed=10.0, **kw)
+        _, ds = windows(path, **merged(kw, {"windows": {"max_speed": 10.0}}))
     assert ds.agent_ids.tolist() == [0, 1]
     # steps are frames 1..8 (differences drop frame 0): bob's step at frame 5 moved 31 m in 0.5 s
     assert ds.mask.int().tolist() == [[1] * 8, [1, 1, 1, 1, 0, 1, 1, 1]]
     assert ds.states[1, 4].abs().sum() == 0 and ds.states[ds.mask][:, 2].tolist() == pytest.approx([2.0] * 15)
     assert "1 of 16 agent-steps (6.25%) move faster than data.windows.max_speed=10.0" in caplog.text
     with pytest.raises(ValueError, match="data.windows.max_speed=0"):
-        make_dm(path, columns={"agent": "agent"}, max_speed=0)
+        make_dm(path, columns={"agent": "agent"}, windows={"max_speed": 0})
 
 
 def test_min_agent_steps_and_min_agents(table):
-    _, ds = windows(table, min_agent_steps=3)  # amy and cat have 2 steps at 13, amy 2 at 11: bob alone
+    _, ds = windows(table, windows={"min_agent_steps": 3})  # amy and cat have 2 steps at 13, amy 2 at 11: bob alone
     assert ds.sources["frame"].tolist() == [1]
-    _, ds = windows(table, min_agents=3)
+    _, ds = windows(table, windows={"min_agents": 3})
     assert ds.sources["frame"].tolist() == [13] and ds.sources["clip"].tolist() == [0]
 
 
@@ -216,7 +217,7 @@ def test_the_split_does_not_depend_on_the_rows_order(tmp_path):
     df.iloc[np.random.default_rng(3).permutation(len(df))].to_csv(shuffled, index=False)
     splits = []
     for p in (path, shuffled):
-        dm = make_dm(p, stride=4)
+        dm = make_dm(p, windows={"stride": 4})
         dm.setup()
         splits.append({s: (dm.datasets[s].sources["scene"].tolist(), dm.datasets[s].states) for s in SPLITS})
     for s in SPLITS:
@@ -227,7 +228,7 @@ def test_the_split_does_not_depend_on_the_rows_order(tmp_path):
 @pytest.mark.parametrize("scenes, by", [(5, "scene"), (2, "window")])
 def test_split(tmp_path, caplog, scenes, by):
     path = table_of_scenes(tmp_path / "t.csv", scenes)
-    dm = make_dm(path, stride=4)  # 12 steps after the drop: 3 windows a scene
+    dm = make_dm(path, windows={"stride": 4})  # 12 steps after the drop: 3 windows a scene
     with caplog.at_level(logging.INFO, logger="dider.data.tracks"):
         dm.setup()
     assert f"split by {by}" in caplog.text
@@ -240,7 +241,7 @@ def test_split(tmp_path, caplog, scenes, by):
     train = dm.datasets["train"]
     present = train.states[train.mask]
     assert present.min() == pytest.approx(-1, abs=1e-5) and present.max() == pytest.approx(1, abs=1e-5)
-    capped = make_dm(path, stride=4, num_train=2)
+    capped = make_dm(path, windows={"stride": 4}, num_train=2)
     capped.setup()
     assert len(capped.datasets["train"]) == 2
 
@@ -318,37 +319,39 @@ def test_bad_input(tmp_path, table):
                                          r"needs 9 step\(s\) \+ 1 for the finite-difference velocities of "
                                          r"data.windows.downsample=1 frame\(s\), i.e. a scene spanning >= 10 frames, "
                                          r"and the longest scene has 8 step\(s\): set data.windows.seq_len <= 7$"):
-        windows(table, seq_len=9)
+        windows(table, windows={"seq_len": 9})
     with pytest.raises(ValueError,
                        match=r"no window of data.windows.seq_len=4 steps has >= data.windows.min_agents=4"):
-        windows(table, min_agents=4)
+        windows(table, windows={"min_agents": 4})
     df[df.t % 2 == 0].to_csv(p, index=False)  # frames 0, 2, 4, ...: no two consecutive steps for a velocity
     with pytest.raises(ValueError, match=r"no window .* \(frames step by 2: set data.windows.downsample=2\?\)"):
-        windows(p, seq_len=2)
+        windows(p, windows={"seq_len": 2})
     df[df.t <= 1].to_csv(p, index=False)  # two frames a scene: one step once the velocities are differenced
     with pytest.raises(ValueError, match=r"the longest scene has 2 step\(s\): no scene is long enough for the "
                                          r"shortest window \(data.windows.seq_len=2\)$"):
-        windows(p, seq_len=2)  # not "set data.windows.seq_len <= 1", below the setting's minimum
+        windows(p, windows={"seq_len": 2})  # not "set data.windows.seq_len <= 1", below the setting's minimum
     p.write_bytes(b"\x00\xff\xfe garbage")
     with pytest.raises(ValueError, match="bad.csv"):
         windows(p)
 
 
 @pytest.mark.parametrize("kw, key", [
-    ({"seq_len": 1}, "data.windows.seq_len"), ({"seq_len": 2.5}, r"data.windows.seq_len=2.5: must be an integer"),
-    ({"stride": 0}, "data.windows.stride"), ({"frame_rate": 0}, "data.source.frame_rate"),
-    ({"downsample": 0}, "data.windows.downsample"),
-    ({"min_agent_steps": 5}, "data.windows.min_agent_steps=5: must be <= data.windows.seq_len=4"),
-    ({"min_agents": 0}, "min_agents"), ({"eval_stride": 2}, "data.windows.eval_stride=2: a table is cut before"),
+    ({"windows": {"seq_len": 1}}, "data.windows.seq_len"),
+    ({"windows": {"seq_len": 2.5}}, r"data.windows.seq_len=2.5: must be an integer"),
+    ({"windows": {"stride": 0}}, "data.windows.stride"), ({"source": {"frame_rate": 0}}, "data.source.frame_rate"),
+    ({"windows": {"downsample": 0}}, "data.windows.downsample"),
+    ({"windows": {"min_agent_steps": 5}}, "data.windows.min_agent_steps=5: must be <= data.windows.seq_len=4"),
+    ({"windows": {"min_agents": 0}}, "min_agents"),
+    ({"windows": {"eval_stride": 2}}, "data.windows.eval_stride=2: a table is cut before"),
     ({"split": (0.5, 0.5)}, "data.split"),
-    ({"columns": {"speed": "v"}}, r"data.source.columns: unknown key\(s\) \['speed'\]"),
-    ({"columns": {"x": None}}, "data.source.columns.x is null"),
-    ({"columns": {"vx": "vx"}}, "give both velocity columns"),
-    ({"columns": {"x": "p", "y": "p"}}, r"column\(s\) \['p'\] named for more than one key"),
+    ({"source": {"columns": {"speed": "v"}}}, r"data.source.columns: unknown key\(s\) \['speed'\]"),
+    ({"source": {"columns": {"x": None}}}, "data.source.columns.x is null"),
+    ({"source": {"columns": {"vx": "vx"}}}, "give both velocity columns"),
+    ({"source": {"columns": {"x": "p", "y": "p"}}}, r"column\(s\) \['p'\] named for more than one key"),
 ])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        TracksDataModule(**nest_args(TABLE, {**SMALL, **kw})[1])
+        TracksDataModule(**merged(SMALL, kw))
 
 
 def test_command_line_run(tmp_path):

@@ -128,8 +128,8 @@ def test_trained_dnri_beats_constant_velocity(make_cfg, tmp_path):
     dm.prepare_data()
     dm.setup()
     states = dm.datasets["test"].states
-    cv = constant_velocity(states, cfg.model.burn_in, dm.normalizer)
-    cv_h1 = (cv[:, 0] - states[:, cfg.model.burn_in]).pow(2).mean().item()
+    cv = constant_velocity(states, cfg.protocol.burn_in, dm.normalizer)
+    cv_h1 = (cv[:, 0] - states[:, cfg.protocol.burn_in]).pow(2).mean().item()
     assert metrics["test/mse/h01"] < 0.85 * cv_h1, (metrics["test/mse/h01"], cv_h1)
     assert all_finite(metrics)
 

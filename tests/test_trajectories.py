@@ -10,13 +10,15 @@ from hydra.utils import instantiate
 from dider.data.clip_splits import split_indices
 from dider.data.clips import ClipsDataModule
 from dider.run import train
+from helpers.data import data_module
 from helpers.fixtures import write_trajectories
-from helpers.flat import flat
 from helpers.protocol import fits
 
 
-def make_dm(path: Path | None, **kw) -> ClipsDataModule:
-    dm = flat("trajectories", path=None if path is None else str(path), **{"loader": {"batch_size": 8}, **kw})
+def make_dm(path: Path | None, source: dict | None = None, **kw) -> ClipsDataModule:
+    """data=trajectories on the file ``path``, ``source`` over its source's settings, ``kw`` over the module's."""
+    source = {"path": None if path is None else str(path), **(source or {})}
+    dm = data_module("trajectories", source=source, **{"loader": {"batch_size": 8}, **kw})
     dm.setup()
     return dm
 
@@ -36,7 +38,7 @@ def all_clips(dm: ClipsDataModule) -> dict[str, torch.Tensor]:
 
 def test_positions_only_finite_difference(tmp_path):
     arrays = write_trajectories(tmp_path / "t.npz")
-    dm = make_dm(tmp_path / "t.npz", frame_rate=2.0)
+    dm = make_dm(tmp_path / "t.npz", source={"frame_rate": 2.0})
     assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 32, "val": 4, "test": 4}
     batch = next(iter(dm.train_dataloader()))
     assert set(batch) == {"states", "mask", "source", "everyone"} and batch["everyone"]
@@ -137,19 +139,19 @@ def test_bad_input(tmp_path):
     with pytest.raises(ValueError, match=r"key 'positions': 2 NaN/inf values \(first at index \(0, 0, 0, 0"):
         make_dm(p)
     write_trajectories(p, num=10, steps=12)  # 11 steps once differenced: horizon 10 needs 15
-    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 10\]: each must lie in 1..6 \(the predicted steps "
-                                         r"after model.burn_in=5 of 11-step clips, the test split's\)"):
+    with pytest.raises(ValueError, match=r"protocol.horizons=\[1, 5, 10\]: each must lie in 1..6 \(the predicted steps "
+                                         r"after protocol.burn_in=5 of 11-step clips, the test split's\)"):
         fits(make_dm(p), 5, (1, 5, 10))
-    with pytest.raises(ValueError, match=r"model.burn_in=11 must be shorter .*\(set by protocol.burn_in\)"):
+    with pytest.raises(ValueError, match=r"protocol.burn_in=11 must be shorter "):
         fits(make_dm(p), 11, (1,), stage="fit")
 
 
 @pytest.mark.parametrize("kw, key", [({"split": (0.5, 0.5)}, "data.split"),
-                                     ({"frame_rate": 0}, "data.source.frame_rate"),
+                                     ({"source": {"frame_rate": 0}}, "data.source.frame_rate"),
                                      ({"loader": {"batch_size": 0}}, "data.loader.batch_size")])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ValueError, match=key):
-        flat("trajectories", **kw)
+        data_module("trajectories", **kw)
 
 
 def test_a_run_checks_the_protocol_against_the_clips_before_training(make_cfg, tmp_path):
@@ -158,7 +160,6 @@ def test_a_run_checks_the_protocol_against_the_clips_before_training(make_cfg, t
     write_trajectories(tmp_path / "short.npz", num=10, steps=9)  # 8 steps once differenced
     cfg = make_cfg(["data=trajectories", f"data.source.path={tmp_path / 'short.npz'}",
                    "logger=none"], out=tmp_path / "run")
-    with pytest.raises(ValueError, match=r"model.horizons=\[1, 5, 10\]: each must lie in 1..3 .*the val split's\)"
-                                         r" \(set by protocol.horizons\)"):
+    with pytest.raises(ValueError, match=r"protocol.horizons=\[1, 5, 10\]: each must lie in 1..3 .*the val split's\)$"):
         train(cfg)
     assert not list((tmp_path / "run").rglob("*.ckpt"))

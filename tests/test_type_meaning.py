@@ -125,7 +125,7 @@ def test_interaction_rate_counts_the_edge_steps_the_type_table_counts() -> None:
     posterior[0, 0, 0] = 0
     forecast = scoring.Forecast(states[:, 2:], states[:, 2:], mask[:, 2:], posterior, None)
     metrics = scoring.TestMetrics([1], num_types=2)
-    metrics.update({"states": states, "mask": mask}, forecast, posterior, posterior)
+    metrics.update(batch={"states": states, "mask": mask}, forecast=forecast, posterior=posterior, prior=posterior)
     out = metrics.compute()
     assert out["test/type1/share"].item() == pytest.approx(11 / 12)
     assert out["test/interaction_rate/posterior"].item() == pytest.approx(11 / 12)

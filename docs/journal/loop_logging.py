@@ -50,8 +50,7 @@ overrides = [f"model={model}", "data.num_train=1024", "data.num_val=16", "data.n
              "data.source.num_steps=10", "protocol.burn_in=3", "protocol.horizons=[1,5]", *sys.argv[2:]]
 with initialize_config_module(version_base="1.3", config_module="dider.conf"):
     cfg = compose(config_name="config", overrides=overrides)
-module = RelationalVAEModule.from_config(cfg.model)
-module.cuda_graph = cfg.get("cuda_graph", False)
+module = RelationalVAEModule.from_config(cfg.model, cuda_graph=cfg.get("cuda_graph", False))
 clock = Clock()
 trainer = L.Trainer(max_epochs=1, accelerator="cpu", limit_val_batches=0, num_sanity_val_steps=0,
                     enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,

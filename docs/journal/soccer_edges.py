@@ -3,13 +3,15 @@ windows of experiment=soccer, rolled out with the prior's sampled edges (the def
 edges, and no edges at all (every pair type 0, no messages). Forecast from the first burn-in frames; the agents
 present at the burn-in's last frame carry on.
 
-python docs/journal/soccer_edges.py RUN [RUN ...] --out docs/records/NAME.json   (docs/journal/soccer.md)"""
+python docs/journal/soccer_edges.py RUN [RUN ...] --out docs/records/NAME.json   (docs/journal/soccer.md)
+(--override KEY=VALUE ...: more overrides of the experiment's data, e.g. the run's own)"""
 
 import argparse
 import json
 
 import torch
 from hydra import compose, initialize_config_module
+from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
 import dider
@@ -27,14 +29,15 @@ def ade(norm, pred, x, mask, burn_in, steps):
     return [(d[:, :h][ok[:, :h]]).sum().item() for h in HORIZONS], [ok[:, :h].sum().item() for h in HORIZONS]
 
 
-def score(run, split):
+def score(run, split, overrides=()):
     net = dider.load(run).network.eval()
+    GlobalHydra.instance().clear()
     with initialize_config_module(version_base="1.3", config_module="dider.conf"):
-        cfg = compose(config_name="config", overrides=["experiment=soccer"])
+        cfg = compose(config_name="config", overrides=["experiment=soccer", *overrides])
     dm = instantiate(cfg.data, _convert_="all")
     dm.prepare_data()
     dm.setup("fit")
-    burn_in, steps = cfg.model.burn_in, max(HORIZONS)
+    burn_in, steps = cfg.protocol.burn_in, max(HORIZONS)
     sums = {k: torch.zeros(len(HORIZONS)) for k in ("sample", "argmax", "none", "cv")}
     counts = torch.zeros(len(HORIZONS))
     for batch in {"val": dm.val_dataloader, "test": dm.test_dataloader}[split]():
@@ -66,9 +69,12 @@ if __name__ == "__main__":
     parser.add_argument("runs", nargs="+")
     parser.add_argument("--split", default="val")
     parser.add_argument("--out", required=True)
+    parser.add_argument("--override", nargs="*", default=[], help="more overrides of experiment=soccer")
     args = parser.parse_args()
-    record = {"command": "python docs/journal/soccer_edges.py " + " ".join(args.runs) + f" --split {args.split}",
-              "runs": {run: score(run, args.split) for run in args.runs}}
+    more = "".join(f" '{o}'" for o in args.override)
+    record = {"command": "python docs/journal/soccer_edges.py " + " ".join(args.runs) + f" --split {args.split}"
+                         + (f" --override{more}" if more else ""),
+              "runs": {run: score(run, args.split, args.override) for run in args.runs}}
     with open(args.out, "w") as f:
         json.dump(record, f, indent=1)
     print(json.dumps(record, indent=1))

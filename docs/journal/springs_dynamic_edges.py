@@ -4,7 +4,7 @@ the objective reads it, the decoder's edge evidence (nats), each scored against 
 AUROC, accuracy at 0.5 and its mean on spring / no-spring edge-steps.
 
 python docs/journal/springs_dynamic_edges.py --out docs/records/springs_dynamic_edge_diagnosis.json \
-    MODEL=CHECKPOINT ...   (the checkpoint each run tested: the one its val/select chose)
+    MODEL=CHECKPOINT ...   (the checkpoint each run tested: the one its val/select chose; --clips: test clips, 500)
 """
 import argparse
 import json
@@ -12,17 +12,18 @@ import json
 import torch
 from torchmetrics.functional.classification import binary_auroc
 
-from dider.data.batch import Normalizer
+import dider
 from dider.data.clips import ClipsDataModule
-from dider.models.vae import RelationalVAE
 
 
-def diagnose(path: str) -> dict[str, dict[str, float]]:
-    net = RelationalVAE.from_checkpoint(path).eval()
-    state = torch.load(path, map_location="cpu", weights_only=False)["dider"]["data"]["state"]
-    dm = ClipsDataModule(source={"reader": "particles", "switch_prob": 0.02}, num_train=5000, num_val=200,
-                         num_test=500, loader={"eval_batch_size": 100})  # experiment=springs_dynamic's data
-    dm.use_normalizer(Normalizer(**state["normalizer"]))
+def diagnose(path: str, clips: int = 500, cache: str | None = None) -> dict[str, dict[str, float]]:
+    model = dider.load(path)
+    net = model.network.eval()
+    # experiment=springs_dynamic's test clips (each split draws from its own stream: the training and validation
+    # sizes do not change them, and the normaliser is the model's)
+    dm = ClipsDataModule(source={"reader": "particles", "switch_prob": 0.02}, num_train=8, num_val=8,
+                         num_test=clips, loader={"eval_batch_size": 100}, **({"cache_dir": cache} if cache else {}))
+    dm.use_normalizer(model.normalizer)
     dm.setup()
     parts: dict[str, list[torch.Tensor]] = {"truth": [], "per_step": [], "held": [], "prior": [], "evidence": []}
     with torch.no_grad():
@@ -52,10 +53,15 @@ def diagnose(path: str) -> dict[str, dict[str, float]]:
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", required=True)
+    parser.add_argument("--clips", type=int, default=500, help="test clips")
+    parser.add_argument("--cache", help="the data cache folder (default: the data module's)")
     parser.add_argument("runs", nargs="+", help="MODEL=CHECKPOINT")
     args = parser.parse_args()
-    record = {"command": "python docs/journal/springs_dynamic_edges.py --out " + args.out + " " + " ".join(args.runs),
-              "models": {run.split("=", 1)[0]: diagnose(run.split("=", 1)[1]) for run in args.runs}}
+    sizes = "" if args.clips == 500 else f" --clips {args.clips}"
+    record = {"command": "python docs/journal/springs_dynamic_edges.py --out " + args.out + sizes + " "
+                         + " ".join(args.runs),
+              "models": {run.split("=", 1)[0]: diagnose(run.split("=", 1)[1], args.clips, args.cache)
+                         for run in args.runs}}
     with open(args.out, "w") as f:
         json.dump(record, f, indent=1)
     print(json.dumps(record["models"], indent=1))

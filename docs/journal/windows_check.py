@@ -4,7 +4,7 @@ and the source names.
 
 The guard of a rewrite of the data layer: run it before and after on the same machine and compare the two files
 (``--compare``); equal hashes are byte-identical windows, splits and normalised tensors. Real formats read small
-inputs generated here (the tests' fixture writers); the synthetic sets are generated at each config's sizes.
+inputs generated here (the writers below); the synthetic sets are generated at each config's sizes.
 
     python docs/journal/windows_check.py --out /tmp/windows_before.json
     python docs/journal/windows_check.py --out /tmp/windows_after.json --compare /tmp/windows_before.json
@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -32,15 +31,88 @@ from hydra import compose, initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 
-TESTS = Path(__file__).resolve().parents[2] / "tests"
-sys.path.insert(0, str(TESTS))
+from dider.bench.fake_levelx import write_levelx_recording
+from dider.data.example import example_tracks
+from dider.data.particles import simulate_particles
+from dider.data.readers.nri_files import write_nri_split
+from dider.data.simulate import simulate_push
+from dider.graph import num_edges
 
-from dider.data.example import example_tracks  # noqa: E402
-from dider.data.particles import simulate_particles  # noqa: E402
-from dider.data.readers.nri_files import write_nri_split  # noqa: E402
-from helpers.fixtures import write_dnri_bball, write_ind_root, write_trajectories, write_zhan  # noqa: E402
-from test_dnri_files import write_dnri  # noqa: E402
-from test_readers import write_scenes  # noqa: E402
+# The small inputs of the real formats, written here as the baseline's were (the same writers, seeds and sizes as
+# the tests' fixture writers of tests/helpers/fixtures.py, test_dnri_files.py and test_readers.py had when
+# windows_baseline.json was made), so that a comparison with it reads the same files.
+IND_LOCATIONS = {0: 4, 1: 4, 2: 1, 3: 1, 4: 2, 5: 3}  # mirroring inD's layout (00-06 location 4, 07-17 location 1)
+
+
+def write_ind_root(root: Path, num_recordings: int, num_frames: int) -> None:
+    """Fake levelX recordings 00, 01, ... of ``num_frames`` frames at 25 Hz (6 tracks, 2 parked) in ``root``."""
+    for r in range(num_recordings):
+        write_levelx_recording(root, r, num_frames=num_frames, num_tracks=6, num_parked=2, seed=r,
+                               location_id=IND_LOCATIONS.get(r, 1))
+
+
+def bball_positions(rng: np.random.Generator, num: int, steps: int, agents: int) -> np.ndarray:
+    """Random walks inside the 94 x 50 ft court: [num, steps, agents, 2] float64 (feet)."""
+    start = rng.uniform([0.0, 0.0], [47.0, 50.0], (num, 1, agents, 2))
+    walk = np.cumsum(rng.normal(0.0, 0.8, (num, steps, agents, 2)), axis=1)
+    return np.clip(start + walk, [0.0, 0.0], [94.0, 50.0])
+
+
+def write_zhan(root: Path) -> None:
+    """Zhan et al.'s npz files: key 'data', (S, 50, 22) = ball + 5 offence + 5 defence (x, y); 40 and 12 clips."""
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for name, num in (("train.npz", 40), ("test.npz", 12)):
+        np.savez(root / name, data=bball_positions(rng, num, 50, 11).reshape(num, 50, 22))
+
+
+def write_dnri_bball(root: Path) -> None:
+    """DNRI's basketball npy files: {loc,vel}_{split}_bball.npy, each [S, 49, 5, 2]."""
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    for split, num in {"train": 30, "valid": 8, "test": 10}.items():
+        loc = bball_positions(rng, num, 50, 5)
+        np.save(root / f"loc_{split}_bball.npy", loc[:, 1:])
+        np.save(root / f"vel_{split}_bball.npy", np.diff(loc, axis=1))
+
+
+def write_trajectories(path: Path, num: int, steps: int, agents: int) -> None:
+    """A bring-your-own npz of random walks, the last agent leaving after half the clip (NaN positions and a mask),
+    a random edge type per step and directed edge."""
+    rng = np.random.default_rng(0)
+    positions = np.cumsum(rng.normal(0, 0.1, (num, steps, agents, 2)), axis=1)
+    mask = np.ones((num, steps, agents), bool)
+    mask[:, steps // 2:, -1] = False
+    positions[~mask] = np.nan
+    edges = rng.integers(0, 3, (num, steps, num_edges(agents)))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, positions=positions, mask=mask, edges=edges)
+
+
+def write_scenes(folder: Path, scenes: int = 5, frames: int = 36, people: int = 4) -> None:
+    """ETH/UCY-style files: people walking at about 1.3 m/s, a frame number every 10 (every 6 in the first file, as
+    ETH's own), tab-separated, one file a scene."""
+    rng = np.random.default_rng(0)
+    folder.mkdir(parents=True, exist_ok=True)
+    for s in range(scenes):
+        step = 6 if s == 0 else 10
+        start, heading = rng.uniform(-5, 5, (people, 2)), rng.uniform(0, 2 * np.pi, people)
+        velocity = 1.3 * np.stack([np.cos(heading), np.sin(heading)], 1)
+        lines = []
+        for f in range(frames):
+            for p in range(people):
+                x, y = start[p] + velocity[p] * f * 0.4 + rng.normal(0, 0.02, 2)
+                lines.append(f"{(f + 3) * step}\t{p + 1}\t{x:.3f}\t{y:.3f}")
+        (folder / f"scene{s}.txt").write_text("\n".join(lines) + "\n")
+
+
+def write_dnri(root: Path, steps: int) -> None:
+    """The DNRI code's six synthetic files: float feats [S, T, 3, 4] and float 0/1 edges [S, T, 6]; 8, 3, 5 clips."""
+    root.mkdir(parents=True, exist_ok=True)
+    for i, (split, num) in enumerate({"train": 8, "val": 3, "test": 5}.items()):
+        feats, edges = simulate_push(num, steps, push_factor=0.05, seed=10 + i)
+        torch.save(feats, root / f"{split}_feats")
+        torch.save(edges.float(), root / f"{split}_edges")
 
 
 def inputs(root: Path) -> dict[str, str]:
@@ -48,7 +120,7 @@ def inputs(root: Path) -> dict[str, str]:
     write_ind_root(root / "ind", num_recordings=5, num_frames=2200)
     write_zhan(root / "zhan")
     write_dnri_bball(root / "dnri_bball")
-    write_trajectories(root / "traj.npz", num=40, steps=30, agents=3, mask=True, edges=True)
+    write_trajectories(root / "traj.npz", num=40, steps=30, agents=3)
     example_tracks(scenes=6).to_csv(root / "table.csv", index=False)
     write_scenes(root / "eth")
     write_dnri(root / "dnri_files", steps=50)

@@ -80,7 +80,7 @@ def fill_absent(states: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return torch.where(mask[..., None], states, torch.zeros((), dtype=states.dtype))
 
 
-def horizons_problem(horizons: object, longest: int | None, key: str = "model.horizons", context: str = "",
+def horizons_problem(horizons: object, longest: int | None, key: str = "protocol.horizons", context: str = "",
                      integers: bool = False) -> str | None:
     """The one rule for forecast horizons: a non-empty list, each h in 1..longest (h is the h-th predicted
     step after the burn-in, so ``longest`` = clip length - burn_in; None while the clip length is unknown:
@@ -99,15 +99,11 @@ def horizons_problem(horizons: object, longest: int | None, key: str = "model.ho
     return f"{key}={list(horizons)}: each must lie in 1..{longest}" + (f" ({context})" if context else "")  # type: ignore[arg-type]
 
 
-# What the protocol's messages add: the key a config sets the model's values by.
-SET_BY = " (set by protocol.{0})"
-
 
 def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, where: str = "", *,
                    length_key: str | None = None, integers: bool = False) -> None:
-    """Raise a ValueError naming ``model.burn_in`` or ``model.horizons`` (which the ``protocol`` node sets: the
-    message says so) unless the burn-in is shorter than the clips and every horizon fits after it
-    (:func:`horizons_problem`).
+    """Raise a ValueError naming ``protocol.burn_in`` or ``protocol.horizons`` unless the burn-in is shorter than
+    the clips and every horizon fits after it (:func:`horizons_problem`).
 
     seq_len: the clip length in steps, or None while it is unknown: then only that there is a horizon and none is
     below 1. where: appended to the clip length in messages (e.g. ", the test split's"); length_key: the config key
@@ -116,17 +112,17 @@ def check_horizons(horizons: Sequence[int], seq_len: int | None, burn_in: int, w
     """
     if seq_len is not None:
         if burn_in < 1:
-            raise ValueError(f"model.burn_in={burn_in}: must be >= 1{SET_BY.format('burn_in')}")
+            raise ValueError(f"protocol.burn_in={burn_in}: must be >= 1")
         if length_key is None:
             clip, clips = f"the clips ({seq_len} steps{where})", f"{seq_len}-step clips{where}"
         else:
             clip, clips = f"the clip ({length_key}={seq_len})", f"{length_key}={seq_len}"
         if burn_in >= seq_len:
-            raise ValueError(f"model.burn_in={burn_in} must be shorter than {clip}{SET_BY.format('burn_in')}")
+            raise ValueError(f"protocol.burn_in={burn_in} must be shorter than {clip}")
     longest = None if seq_len is None else seq_len - burn_in
-    context = "" if seq_len is None else f"the predicted steps after model.burn_in={burn_in} of {clips}"
-    if (found := horizons_problem(horizons, longest, "model.horizons", context, integers)) is not None:
-        raise ValueError(found + SET_BY.format("horizons"))
+    context = "" if seq_len is None else f"the predicted steps after protocol.burn_in={burn_in} of {clips}"
+    if (found := horizons_problem(horizons, longest, "protocol.horizons", context, integers)) is not None:
+        raise ValueError(found)
 
 
 def observed_inputs(x: torch.Tensor, mask: torch.Tensor, burn_in: int, end: int, mode: str

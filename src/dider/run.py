@@ -22,6 +22,7 @@ from lightning.pytorch.loggers import Logger, TensorBoardLogger
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from dider.evaluation.passes import ForecastRequest
 from dider.evaluation.scoring import cv_verdict, edges_verdict
 from dider.io import atomic_write_text
 from dider.outputs.prediction import PredictionWriter, PredictProgress
@@ -124,8 +125,10 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     ckpt = find_checkpoint(str(cfg.ckpt_path))  # a checkpoint file or a run folder, as dider.load takes
     trained = load(ckpt, trust=trusted(cfg))  # named errors for a foreign, older, damaged or unsafe checkpoint
     datamodule = _prediction_data(cfg, trained)
-    module = RelationalVAEModule.from_checkpoint(ckpt, trust=trained.trust)
-    burn_in = cfg.predict.burn_in or module.hparams.burn_in
+    burn_in = int(cfg.predict.burn_in or trained.config["protocol"]["burn_in"])
+    steps, samples = cfg.predict.forecast_steps, int(cfg.predict.samples)
+    module = RelationalVAEModule.from_checkpoint(
+        ckpt, trust=trained.trust, forecast=ForecastRequest(burn_in, int(steps), samples) if steps else None)
     datamodule.prepare_data()  # the clips are read and checked before the trainer starts
     datamodule.setup("predict")
     clips = datamodule.datasets["predict"]
@@ -135,8 +138,6 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
         raise ConfigError(problem)
     for warning in input_warnings(clips.states, clips.mask, trained.normalizer, where):
         log.warning(warning)
-    module.predict_forecast = (burn_in, cfg.predict.forecast_steps) if cfg.predict.forecast_steps else None
-    module.predict_samples = int(cfg.predict.samples) if cfg.predict.forecast_steps else 0
     open_run_folder(out_dir, cfg)
     shutil.rmtree(staging, ignore_errors=True)  # a killed prediction's files: never part of this one
     writer = PredictionWriter(staging, burn_in)
@@ -275,8 +276,7 @@ def _fit_and_test(cfg: DictConfig, ckpt: str | None, out_dir: Path, started: flo
     datamodule = instantiate(cfg.data, _convert_="all")  # plain lists: checkpoints stay weights_only-safe
     if trained is not None:  # an evaluation reads its clips as the checkpoint was trained to, never refitting
         datamodule.use_normalizer(trained.normalizer)
-    model = RelationalVAEModule.from_config(cfg.model)
-    model.cuda_graph = cfg.get("cuda_graph", False)
+    model = RelationalVAEModule.from_config(cfg.model, cuda_graph=cfg.get("cuda_graph", False))
     if cfg.get("compile"):
         compile_modules(model.model)
     loggers: list[Logger] = _build_list(cfg.get("logger"))

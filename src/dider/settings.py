@@ -16,7 +16,7 @@ from dider.validation import Rule, above, boolean, folder_name, integer, one_of,
 
 
 @dataclass
-class Protocol:
+class ForecastProtocol:
     """The forecast protocol (:mod:`dider.protocol`), which the model reads and checks against the clips
     (``conf/protocol``: one per data set; ``protocol=NAME`` picks another)."""
 
@@ -73,4 +73,4 @@ class PredictSettings:
 
 
 # The nodes, by the key that holds them.
-NODES: dict[str, type] = {"protocol": Protocol, "eval": EvalSettings, "predict": PredictSettings}
+NODES: dict[str, type] = {"protocol": ForecastProtocol, "eval": EvalSettings, "predict": PredictSettings}

@@ -88,9 +88,9 @@ def read_checkpoint(path: Path) -> dict[str, Any]:
 @dataclass
 class TrainedModel:
     """A trained network with what it needs to read new data: the normaliser and the training data's
-    settings (``data``: the data module's arguments, e.g. ``frame_rate``, ``burn_in``). ``config`` is the model
-    config as the app's ``cfg.model`` holds it: the LightningModule's settings, ``name``, ``num_edges`` and the
-    network's ``net``."""
+    settings (``data``: the data module's arguments as its config nests them; :meth:`data_setting` finds one).
+    ``config`` is the model config as the app's ``cfg.model`` holds it: the LightningModule's settings (the forecast
+    ``protocol`` among them), ``name``, ``num_edges`` and the network's ``net``."""
 
     network: RelationalVAE
     normalizer: Normalizer
@@ -118,6 +118,12 @@ class TrainedModel:
                 shown = now
         return parts
 
+    def data_setting(self, key: str) -> Any:
+        """The training data's setting ``key`` (``frame_rate``, ``downsample``) where its data module keeps it: its
+        source's, its cut's (``windows``) or its own; None where the data had none."""
+        path = setting_path(self.data, key)
+        return None if path is None else _get(self.data, path)
+
     @property
     def device(self) -> torch.device:
         return next(self.network.parameters()).device
@@ -144,9 +150,9 @@ class TrainedModel:
         if single:
             arrays = {k: v[None] for k, v in arrays.items()}
         if velocities is None and frame_rate is None:
-            frame_rate = self.data.get("frame_rate")
+            frame_rate = self.data_setting("frame_rate")
             if frame_rate is not None:  # the training data's steps: every downsample-th frame
-                frame_rate = frame_rate / self.data.get("downsample", 1)
+                frame_rate = frame_rate / (self.data_setting("downsample") or 1)
             if frame_rate is None:
                 raise ValueError("frame_rate: needed for finite-difference velocities (the training data did not "
                                  "record one); pass frame_rate=... or velocities=...")
@@ -237,10 +243,10 @@ def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_us
     with it."""
     take: dict[str, Any] = {}
     for key in FEATURE_SETTINGS:
-        path = next((p for p in (f"source.{key}", f"windows.{key}", key) if _has(given, p)), None)
-        if path is None or key not in trained.data or _get(given, path) == trained.data[key]:
+        path, recorded = setting_path(given, key), setting_path(trained.data, key)
+        if path is None or recorded is None or _get(given, path) == (theirs := _get(trained.data, recorded)):
             continue
-        name, theirs = f"{where}.{path}", trained.data[key]
+        name = f"{where}.{path}"
         if name not in set_by_user:
             take[path] = theirs
         elif not force:
@@ -248,6 +254,12 @@ def training_settings(trained: TrainedModel, given: Mapping[str, Any], set_by_us
                              f"{name}={theirs}, which shapes the features it reads (velocities); leave {name} out to "
                              f"use {theirs}, or set {force_key}=true to read the data with {_get(given, path)} anyway")
     return take
+
+
+def setting_path(node: Mapping[str, Any], key: str) -> str | None:
+    """Where a data config (or a checkpoint's data arguments) keeps the setting ``key``: ``source.<key>``,
+    ``windows.<key>`` or ``<key>``, the first it has; None where it has none."""
+    return next((p for p in (f"source.{key}", f"windows.{key}", key) if _has(node, p)), None)
 
 
 def _has(node: Mapping[str, Any], path: str) -> bool:

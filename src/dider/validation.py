@@ -22,7 +22,6 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from dider.perf import ALLOCATORS
-from dider.protocol import BURN_IN_MODES
 
 Rule = Callable[[Any], "str | None"]  # a value -> what is wrong with it, or None
 
@@ -163,11 +162,7 @@ RULES: dict[str, Rule] = {
     "trust": class_paths,
     "trainer.max_epochs": integer(-1, " (-1: no limit)"),
     "model.optimizer.lr": above(0),
-    "model.burn_in_mode": one_of(*BURN_IN_MODES, None),
     "model.check_finite": boolean,
-    "model.samples": integer(0),
-    "model.miss_threshold": optional(above(0)),
-    "model.burn_in": integer(1),
 }
 
 

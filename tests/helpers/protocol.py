@@ -12,6 +12,6 @@ from dider.training.callbacks import ProtocolFits
 
 
 def fits(dm: L.LightningDataModule, burn_in: int, horizons: Sequence[int], stage: str = "test") -> None:
-    """Raise as a run would at ``stage`` when the model's ``burn_in`` and ``horizons`` do not fit the clips."""
-    model = SimpleNamespace(hparams=SimpleNamespace(burn_in=burn_in, horizons=list(horizons)))
+    """Raise as a run would at ``stage`` when the protocol's ``burn_in`` and ``horizons`` do not fit the clips."""
+    model = SimpleNamespace(protocol=SimpleNamespace(burn_in=burn_in, horizons=list(horizons)))
     ProtocolFits().setup(SimpleNamespace(datamodule=dm), model, stage)  # type: ignore[arg-type]

@@ -30,7 +30,6 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from dider.data.legacy import upgrade_data_node
 from dider.evaluation.metrics import switches
 from dider.graph import edge_mask
 from dider.io import atomic_write_text, read_run_record
@@ -114,7 +113,7 @@ def diagnose(run: str | Path, clips: int = 200, draws: int = 4, lengths: Sequenc
     cfg = run_config(run)
     ckpt = find_checkpoint(run)
     net = RelationalVAE.from_checkpoint(ckpt, trust).eval()
-    data = upgrade_data_node(OmegaConf.to_container(cfg.data, resolve=True))
+    data = OmegaConf.to_container(cfg.data, resolve=True)
     datamodule = build(data, "data", run_config_file(run), "data", trust)
     datamodule.setup("test")
     batches, seen = [], 0

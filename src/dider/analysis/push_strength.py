@@ -67,10 +67,11 @@ def recall_by_distance(types: torch.Tensor, truth: torch.Tensor, dist: torch.Ten
 def score(path: str | Path, clips: int = 400, seed: int = 4242, bins: Sequence[float] = DEFAULT_BINS) -> dict[str, Any]:
     """Score one trained synthetic run (a run folder or checkpoint) on ``clips`` fresh clips."""
     model = load(path)
-    if "push_factor" not in model.data:
+    if model.data_setting("push_factor") is None:
         raise ValueError(f"{path}: not trained on the synthetic push set (data=synth): its data settings "
-                         f"{sorted(model.data)} have no push_factor")
-    states, edges = simulate_push(clips, int(model.data["num_steps"]), float(model.data["push_factor"]), seed=seed)
+                         f"(source: {sorted(model.data.get('source') or {})}) have no push_factor")
+    states, edges = simulate_push(clips, int(model.data_setting("num_steps")), float(model.data_setting("push_factor")),
+                                  seed=seed)
     x = model.normalizer.normalize(states)
     mask = torch.ones(x.shape[:3], dtype=torch.bool)
     said = model.describe(x, mask)  # argmax types in eval mode: no random draw

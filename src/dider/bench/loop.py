@@ -69,8 +69,7 @@ def loop_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
             cfg = compose(config_name="config", overrides=overrides)
         torch.manual_seed(0)
         datamodule = instantiate(cfg.data, _convert_="all")
-        module = RelationalVAEModule.from_config(cfg.model)
-        module.cuda_graph = cfg.cuda_graph
+        module = RelationalVAEModule.from_config(cfg.model, cuda_graph=cfg.cuda_graph)
         clock = StepClock(case.warmup, case.iters, counted)
         trainer = L.Trainer(max_epochs=1, accelerator="gpu" if device == "cuda" else "cpu", devices=1,
                             limit_val_batches=0, num_sanity_val_steps=0, enable_progress_bar=False,

@@ -25,7 +25,6 @@ from lightning.pytorch.overrides.distributed import UnrepeatedDistributedSampler
 from torch.utils.data import DataLoader, Dataset, RandomSampler
 
 from dider.data.batch import Batch, Normalizer
-from dider.data.legacy import flat_view
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
 from dider.validation import ConfigError, PickedBy, Rule, integer, node_problems, optional, text
@@ -203,19 +202,6 @@ def source_node(defaults: Any, given: Mapping[str, Any] | None) -> Any:
     if problems := node_problems(type(defaults), given, "data.source"):
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     return replace(defaults, **given)
-
-
-def data_description(dm: L.LightningDataModule | None) -> dict[str, object]:
-    """What a checkpoint records of the data it was trained on: the data module's class and arguments (flat: the
-    settings of its ``source`` and ``windows`` nodes beside its own, :func:`~dider.data.legacy.flat_view`), the
-    feature layout, its ``state_dict`` (the normaliser) and the input frames per step; {} without one."""
-    if dm is None:
-        return {}
-    cls = type(dm)
-    args = {k: v for k, v in flat_view(dict(getattr(dm, "hparams", {}))).items()
-            if isinstance(v, (int, float, str, bool, list, tuple, type(None)))}
-    return {"target": f"{cls.__module__}.{cls.__qualname__}", "args": args, "features": list(FEATURES),
-            "frame_step": int(getattr(dm, "frame_step", 1)), "state": dm.state_dict()}
 
 
 class EpochOrder(RandomSampler):

@@ -81,12 +81,15 @@ class TestMetrics(nn.Module):
         self.pairs = PairConsistency(num_types, num_kinds=len(KIND_NAMES))
         self.types = TypeProfile(num_types)  # what each posterior type means, in data units
 
-    def update(self, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
-               normalizer: Normalizer | None = None, by_edges: dict[str, Forecast] | None = None,
-               prior_per_step: torch.Tensor | None = None, own_cut: dict[str, torch.Tensor] | None = None,
-               cv: Forecast | None = None, futures: torch.Tensor | None = None,
-               no_edges: Forecast | None = None, posterior_probs: torch.Tensor | None = None) -> None:
+    def update(self, *, batch: Batch, forecast: Forecast, posterior: torch.Tensor, prior: torch.Tensor,
+               units: Callable[[torch.Tensor], torch.Tensor] | None = None,
+               by_edges: dict[str, Forecast] | None = None, prior_per_step: torch.Tensor | None = None,
+               own_cut: dict[str, torch.Tensor] | None = None, cv: Forecast | None = None,
+               futures: torch.Tensor | None = None, no_edges: Forecast | None = None,
+               posterior_probs: torch.Tensor | None = None) -> None:
         """posterior, prior: [B, E, T-1] long edge types inferred from the whole clip / online from the past.
+        units: model states to the data's units (:func:`data_units` of the data's normaliser; None: the model's
+        normalised units, and no ``test/mse_raw``).
         by_edges: forecasts driven by given edges, by their source (:data:`EDGE_SOURCES`).
         prior_per_step: [B, E, T-1] long, the prior's type at every step (no segments held).
         own_cut: the arguments of :meth:`OwnCut.update` (None: the model has no cut of its own).
@@ -97,11 +100,12 @@ class TestMetrics(nn.Module):
         self.mse.update(forecast.pred, forecast.target, forecast.mask, forecast.horizon)
         for source, f in (by_edges or {}).items():
             self.mse_by_edges[source].update(f.pred, f.target, f.mask, f.horizon)
-        units = data_units(normalizer)
+        raw = units is not None
+        units = units or data_units(None)
         for name, f in {"model": forecast, "cv": cv, "no_edges": no_edges}.items():
             if f is not None:
                 self.displacement[name].update(units(f.pred), units(f.target), f.mask, f.horizon)
-        if normalizer is not None:
+        if raw:
             self.mse_raw.update(units(forecast.pred), units(forecast.target), forecast.mask, forecast.horizon)
         if futures is not None:
             self.sampled.update(units(futures), units(forecast.target), forecast.mask, forecast.horizon)
@@ -196,7 +200,7 @@ def seeded_forecast(pl_module: Any, states: torch.Tensor, mask: torch.Tensor, bu
     model.eval()
     device = torch.device(pl_module.device)
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-        torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)))
+        torch.manual_seed(int(pl_module.eval_seed))
         parts = [model.forecast_after(x.to(pl_module.device), m.to(pl_module.device), burn_in, steps).float().cpu()
                  for x, m in zip(states.split(chunk), mask.split(chunk), strict=True)]
     model.train(was_training)

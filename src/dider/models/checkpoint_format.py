@@ -2,11 +2,13 @@
 
 Every checkpoint dider writes records ``checkpoint["dider"]["format"]`` (:data:`FORMAT`): ``net`` in the
 hyper-parameters (the network's config, every plugin's settings as its constructor names them), the
-LightningModule's settings beside it, the network's weights under ``model.`` in the state dict. Where a checkpoint
+LightningModule's settings beside it, the network's weights under ``model.`` in the state dict, and under
+``dider.data`` the data module's class and arguments nested as its config nests them (``source``, ``windows``,
+``loader``), its normaliser and the feature layout. Where a checkpoint
 is read (``dider.load``, ``mode=eval`` / ``predict``, a resumed run, ``RelationalVAEModule.load_from_checkpoint``,
 ``RelationalVAE``'s readers), :func:`check_format` refuses any other format by name: there is no reading of the
-layout that development versions before 0.2 wrote (format 1, no number); a model built from a config never passes
-through it.
+layout that development versions before 0.2.0 wrote (format 1, no number; format 2, the data arguments flat); a
+model built from a config never passes through it.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from typing import Any
 
 import torch
 
-FORMAT = 2
+FORMAT = 3
 
 
 def format_of(checkpoint: Mapping[str, Any]) -> int:

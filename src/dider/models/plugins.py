@@ -43,6 +43,10 @@ class Progress:
         return int(fraction * self.total) if self.total else 0
 
 
+# The network's plugin seams, by the key of the model config (``model.net.<seam>``) that picks each one's class.
+SEAMS = ("encoder", "prior", "duration", "decoder")
+
+
 class Encoder(Protocol):
     """Per-edge features: a teacher-forced pass over a whole clip, and the forward (past-only) LSTM alone,
     over given frames or one frame at a time for roll-outs."""

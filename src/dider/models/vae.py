@@ -155,7 +155,8 @@ class RelationalVAE(nn.Module):
         present = edge_mask(mask[:, :-1]).transpose(1, 2)  # [B, E, T-1]
         given = None if plugin_mask is None else present
         if cut is not None:
-            seg: Segmentation = cut_segmentation(self, enc.h_fwd, enc.h_rev, cut, present, enc.posterior_logits)
+            seg: Segmentation = cut_segmentation(self.duration, self.capabilities, enc.h_fwd, enc.h_rev, cut, present,
+                                                 enc.posterior_logits)
         elif self.capabilities.held_type:  # the end's prior reads each segment's type: the posterior's at each start
             seg = self.duration.segment(enc.h_fwd, enc.h_rev, x, progress, given,
                                         types=F.softmax(enc.posterior_logits.float(), -1))

@@ -121,7 +121,8 @@ class SegmentExport(L.Callback):
             first = {k: v[: self.explore_clips] for k, v in arrays.items()}
             scores = {k: float(v) for k, v in trainer.callback_metrics.items()}  # the test's, logged by now
             extra = explore_extras(pl_module, dm, "test", first, scores)
-            burn_in = int(getattr(pl_module, "hparams", {}).get("burn_in", 0))
+            protocol = getattr(pl_module, "protocol", None)
+            burn_in = int(protocol.burn_in) if protocol is not None else 0
             if hasattr(pl_module, "model") and 0 < burn_in < first["states"].shape[1]:
                 # the explorer draws the forecast from the burn-in against the true paths
                 steps = first["states"].shape[1] - burn_in

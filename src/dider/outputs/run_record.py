@@ -31,7 +31,7 @@ def hparam_metrics(cfg: DictConfig) -> list[str]:
     constant velocity's and its ADE in data units; the edge recall (where the data have ground truth); the
     model-selection objective. Not the normalised MSE: the tab shows three decimals, and MSEs of 1e-4 read 0.000
     there (they are in the scalars and the results card)."""
-    horizons = OmegaConf.select(cfg, "model.horizons", default=None) or []  # the scored ones: the protocol's
+    horizons = OmegaConf.select(cfg, "model.protocol.horizons", default=None) or []  # the scored ones
     return [*(f"test/ade_vs_cv/h{int(h):02d}" for h in horizons), *(f"test/ade/h{int(h):02d}" for h in horizons),
             "test/edge_acc/posterior/interaction", "test/edge_acc/prior/interaction", "val/select"]
 

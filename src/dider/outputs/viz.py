@@ -21,6 +21,7 @@ from matplotlib.collections import LineCollection  # noqa: E402
 from dider.evaluation.scoring import seeded_forecast  # noqa: E402
 from dider.graph import edge_index, num_agents  # noqa: E402
 from dider.io import atomic_write  # noqa: E402
+from dider.models.baselines import ConstantVelocity  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -245,8 +246,9 @@ class TimelineFigures(L.Callback):
                                 self.output_dir / f"trajectories_{i:02d}.png"))
             if (forecast := self._forecast(pl_module, data["states"][i], data["mask"][i], norm)) is not None:
                 pred, cv, futures = forecast
-                fig = forecast_figure(states[..., :2], data["mask"][i], pred, cv, pl_module.hparams.burn_in,
-                                      title=f"test clip {index}: forecast from frame {pl_module.hparams.burn_in}",
+                burn_in = pl_module.protocol.burn_in
+                fig = forecast_figure(states[..., :2], data["mask"][i], pred, cv, burn_in,
+                                      title=f"test clip {index}: forecast from frame {burn_in}",
                                       samples=futures)
                 written.append(_add(trainer, f"test/forecast/{i:02d}", fig, self.output_dir / f"forecast_{i:02d}.png"))
 
@@ -257,18 +259,20 @@ class TimelineFigures(L.Callback):
         """The model's and constant velocity's forecast of one clip [T, N, 4] after the model's burn-in, in data
         units: ([P, N, 2], [P, N, 2]), drawn from ``eval_seed`` as evaluation draws, and the test pass's sampled
         futures (``protocol.samples`` K: [K, P, N, 2], else None); None if nothing follows it."""
-        model, burn_in = pl_module.model, int(pl_module.hparams.burn_in)
+        if not hasattr(pl_module, "protocol"):  # not dider's module: nothing to roll out
+            return None
+        model, burn_in, samples = pl_module.model, int(pl_module.protocol.burn_in), int(pl_module.protocol.samples)
         steps = states.shape[0] - burn_in
-        if steps < 1 or not hasattr(pl_module, "constant_velocity"):
+        if steps < 1:
             return None
         pred = seeded_forecast(pl_module, states[None], mask[None], burn_in, steps)[0]
         x, m = states[None].to(pl_module.device), mask[None].to(pl_module.device)
-        cv = model.forecast_after(x, m, burn_in, steps, pl_module.constant_velocity)[0].float().cpu()
+        cv = model.forecast_after(x, m, burn_in, steps, ConstantVelocity())[0].float().cpu()
         futures = None
-        if int(pl_module.hparams.get("samples", 0) or 0) > 0 and model.decoder_edges:
+        if samples > 0 and model.decoder_edges:
             with torch.random.fork_rng(devices=[x.device] if x.device.type == "cuda" else []):
-                torch.manual_seed(int(pl_module.hparams.get("eval_seed", 0)) + 1)
-                futures = model.forecast_after(x, m, burn_in, steps, samples=int(pl_module.hparams.samples))
+                torch.manual_seed(int(pl_module.eval_seed) + 1)
+                futures = model.forecast_after(x, m, burn_in, steps, samples=samples)
             futures = futures[0].float().cpu()
         if norm is not None:
             user = lambda s: norm.to_user(norm.denormalize(s))  # noqa: E731

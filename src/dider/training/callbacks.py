@@ -28,17 +28,16 @@ class NonFiniteError(FloatingPointError):
 
 class ProtocolFits(L.Callback):
     """Once the data are read, before any step: the model's burn-in and horizons must fit the clips it forecasts
-    (validation's in a fit, the test's in a test), named by the model's keys. Training clips may be shorter (DNRI
+    (validation's in a fit, the test's in a test), named by the protocol's keys. Training clips may be shorter (DNRI
     trains basketball on 40-step crops); prediction checks its own forecast length."""
 
     SPLITS = {"fit": ("val",), "validate": ("val",), "test": ("test",)}
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        steps = getattr(trainer.datamodule, "clip_steps", dict)()
-        h = pl_module.hparams
+        steps, p = getattr(trainer.datamodule, "clip_steps", dict)(), pl_module.protocol
         for split in self.SPLITS.get(stage, ()):
             if split in steps:
-                check_horizons(h.horizons, steps[split], h.burn_in, where=f", the {split} split's", integers=True)
+                check_horizons(p.horizons, steps[split], p.burn_in, where=f", the {split} split's", integers=True)
 
 
 class EdgeLabelsFit(L.Callback):
@@ -362,3 +361,11 @@ def _time_remaining(trainer: L.Trainer) -> float | None:
 def _clock(seconds: float) -> str:
     minutes, s = divmod(int(round(seconds)), 60)
     return f"{minutes}m{s:02d}s" if minutes else f"{s}s"
+
+
+def every_run(eval_seed: int, check_finite: bool) -> list[L.Callback]:
+    """The callbacks of every fit, test and prediction (``RelationalVAEModule.configure_callbacks``), in order: the
+    data's checks before any step, evaluation's random state, the NaN/inf guard (``check_finite``), the mid-epoch
+    resume and the checkpoint on termination."""
+    guard = [FiniteGuard()] if check_finite else []
+    return [ProtocolFits(), EdgeLabelsFit(), EvalRandomState(eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]

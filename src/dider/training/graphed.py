@@ -11,7 +11,7 @@ moves at every replay.
 from __future__ import annotations
 
 from collections.abc import Hashable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import lightning as L
 import torch
@@ -20,8 +20,16 @@ from lightning.pytorch.accelerators import CUDAAccelerator
 from dider.models.plugins import Progress
 from dider.training.step_graph import StepGraph
 
-if TYPE_CHECKING:
-    from dider.training.module import RelationalVAEModule
+
+class TrainsOnBatches(Protocol):
+    """What a graphed step needs of its LightningModule (structural: the module is not imported here)."""
+
+    model: torch.nn.Module
+    trainer: L.Trainer
+
+    def train_values(self, batch: Any, progress: Progress) -> dict[str, torch.Tensor]: ...
+
+    def optimizers(self) -> Any: ...
 
 SETTING_VALUES = ("auto", True, False)
 
@@ -57,7 +65,7 @@ class GraphedSteps:
     """A module's graphed training steps: ``step(batch, schedule)`` trains on one batch and returns its
     :meth:`~dider.training.module.RelationalVAEModule.train_values` (detached), having taken the optimiser step."""
 
-    def __init__(self, module: RelationalVAEModule, warmup: int = 3) -> None:
+    def __init__(self, module: TrainsOnBatches, warmup: int = 3) -> None:
         self.module = module
         self.graph = StepGraph(self._forward_backward, warmup)
 

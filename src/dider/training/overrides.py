@@ -24,6 +24,8 @@ RENAMED: dict[str, str] = {
     **{f"data.{k}": f"data.source.{k}" for k in SOURCE_KEYS},
     **{f"data.{k}": f"data.windows.{k}" for k in WINDOW_KEYS},
     **{f"data.{k}": f"protocol.{k}" for k in ("burn_in", "horizons", "burn_in_mode")},
+    # the model reads the forecast protocol as one node, ``model.protocol: ${protocol}``
+    **{f"model.{k}": f"protocol.{k}" for k in ("burn_in", "horizons", "burn_in_mode", "samples", "miss_threshold")},
 }
 # Hydra's flags that take a value, and those after which no job runs.
 VALUED_FLAGS = {"-cn", "--config-name", "-cp", "--config-path", "-cd", "--config-dir", "-p", "--package",

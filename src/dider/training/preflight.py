@@ -18,7 +18,7 @@ from dider import __version__
 from dider.data.batch import Normalizer
 from dider.perf import native_bf16, trains_on_cpu
 from dider.protocol import MIN_STEPS, horizons_problem
-from dider.settings import NODES
+from dider.settings import NODES, ForecastProtocol
 from dider.shipped import resolve, unknown
 from dider.training.overrides import RENAMED
 from dider.validation import RULES, ConfigError, node_problems, problem, settings_problems
@@ -57,6 +57,8 @@ def validate_config(cfg: DictConfig) -> None:
     for key, cls in NODES.items():  # the app's own nodes: unknown keys (+predict.foo=1) and their rules
         if (node := get(key)) is not None:
             problems += node_problems(cls, OmegaConf.to_container(node, resolve=True), key)
+    if isinstance(node := get("model.protocol"), DictConfig):  # a model config that gives a protocol of its own
+        problems += node_problems(ForecastProtocol, OmegaConf.to_container(node, resolve=True), "model.protocol")
     mode = get("mode")
     problems += _checkpoint_problems(mode, get("ckpt_path"))
     if mode != "predict":  # prediction uses the checkpoint's model and scores no data horizons
@@ -122,7 +124,7 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
     clip_key = next((k for k in CLIP_LENGTH_KEYS if get(k) is not None), None)
     clip = get(clip_key) if clip_key else None
     protocol = {key: get(f"protocol.{key}") for key in ("burn_in", "horizons")}
-    for section in ("protocol", "model"):
+    for section in ("protocol", "model.protocol"):
         values = {key: get(f"{section}.{key}") for key in ("burn_in", "horizons")}
         if section != "protocol" and values == protocol:
             continue  # the protocol's, checked above
@@ -269,9 +271,9 @@ def stray_keys(node: Mapping[str, Any]) -> list[str]:
     """What is wrong with the top-level keys of a model config (``cfg.model``): a key that is neither the
     LightningModule's (its constructor's arguments) nor ``name`` / ``num_edges`` (a network setting written at the
     top, say, which would otherwise be ignored)."""
-    from dider.training.module import RelationalVAEModule  # the module imports the data and models: only here
+    from dider.training.building import SETTINGS  # it imports the models: only here
 
-    known = {*RelationalVAEModule.setting_names(), "name", "num_edges"}
+    known = {*SETTINGS, "name", "num_edges"}
     return [f"model.{k}: not a setting of the model's top level ({sorted(known)}); the network's settings are "
             f"under model.net (model.net.{k})" for k in node if k not in known and k != "_target_"]
 

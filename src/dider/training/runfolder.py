@@ -23,15 +23,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from dider.io import atomic_write_text
 from dider.models.checkpoint_format import network_config, read
+from dider.models.plugins import SEAMS
 from dider.training.preflight import version_problem
 from dider.validation import ConfigError
 
 log = logging.getLogger(__name__)
-
-# Settings that fix a network's parameter shapes (a checkpoint of another value cannot be loaded): the
-# model's name and edge types, and every plugin's target and integer sizes.
-PLUGINS = ("encoder", "prior", "duration", "decoder")
-
 
 def is_rank_zero() -> bool:
     """False in the extra processes a DDP launcher starts (they run the app again with RANK set)."""
@@ -146,8 +142,8 @@ def _flat(node: Any, prefix: str = "") -> dict[str, Any]:
 def shape_settings(model: Mapping[str, Any]) -> dict[str, Any]:
     """The settings of a model config that fix its parameter shapes (name, num_edges, each plugin's target, its
     integer sizes and the other settings its class names in ``SHAPES``), flattened with dots."""
-    flat = _flat({k: model.get(k) for k in ("name", "num_edges", *PLUGINS)})
-    shaped = {f"{plugin}.{name}" for plugin in PLUGINS
+    flat = _flat({k: model.get(k) for k in ("name", "num_edges", *SEAMS)})
+    shaped = {f"{plugin}.{name}" for plugin in SEAMS
               for name in getattr(_plugin_class(flat, plugin), "SHAPES", ())}
     out = {k: v for k, v in flat.items() if k in ("name", "num_edges") or k.endswith("_target_")
            or (isinstance(v, int) and not isinstance(v, bool)) or k in shaped}

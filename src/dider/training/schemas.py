@@ -86,11 +86,13 @@ def _field(default: Any) -> Any:
 
 
 def module_schema() -> type:
-    """The model config's top: the LightningModule's settings (``net`` holds the network's config; ``trust`` is the
-    caller's, not a setting), with the network's ``name`` and ``num_edges``, which the model's top holds so that
-    users type ``model.num_edges`` (``net`` interpolates them)."""
+    """The model config's top: the LightningModule's settings (``net`` holds the network's config, ``protocol`` the
+    forecast protocol's; the keyword-only arguments are the run's, not settings), with the network's ``name`` and
+    ``num_edges``, which the model's top holds so that users type ``model.num_edges`` (``net`` interpolates them)."""
     network = inspect.signature(RelationalVAE.__init__).parameters
-    return schema(RelationalVAEModule, exclude=("trust",), target=False,
+    module = inspect.signature(RelationalVAEModule.__init__).parameters
+    return schema(RelationalVAEModule, exclude=[k for k, p in module.items() if p.kind is p.KEYWORD_ONLY],
+                  target=False,
                   extra={k: network[k].default for k in ("name", "num_edges")})
 
 

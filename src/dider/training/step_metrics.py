@@ -5,7 +5,7 @@ and the module logs the step's own values only on the steps the trainer writes, 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 
 import torch
 
@@ -47,6 +47,12 @@ class EpochMeans:
             return {}
         tensors = {} if self.sums is None else dict(zip(self.names, (self.sums / self.weight).unbind(), strict=True))
         return tensors | {k: v / self.weight for k, v in self.host.items()}
+
+    def pop(self, suffixed: Collection[str] = ()) -> dict[str, torch.Tensor | float]:
+        """The :meth:`means`, each name in ``suffixed`` as ``<name>_epoch``; then :meth:`reset`."""
+        means = {f"{k}_epoch" if k in suffixed else k: v for k, v in self.means().items()}
+        self.reset()
+        return means
 
     def reset(self) -> None:
         if self.sums is not None:
