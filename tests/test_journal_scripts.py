@@ -224,16 +224,11 @@ def problems(source: str, local: set[str] = frozenset()) -> list[str]:
     return found
 
 
-# Read by a script under docs/journal/gpu/ (the lent GPU's checks, run by its shell scripts, not here): the count of
-# CUDA-graph replays, which only the training module's private GraphedSteps holds.
-KNOWN = {"gpu/step_timer.py": ["getattr(..., '_graphed') (a private name)"]}
-
-
 @pytest.mark.parametrize("path", sorted(JOURNAL.rglob("*.py")), ids=lambda p: str(p.relative_to(JOURNAL)))
 def test_no_script_reads_a_private_name_or_a_test_module(path):
     local = {p.stem for p in path.parent.glob("*.py")}
     found = [p.split(": ", 1)[1] for p in problems(path.read_text(), local)]
-    assert found == KNOWN.get(str(path.relative_to(JOURNAL)), []), found
+    assert not found, found
 
 
 @pytest.mark.parametrize("source", [

@@ -41,8 +41,9 @@ from dider.outputs.run_record import (
 from dider.outputs.summary import run_summary
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
-from dider.targets import named_targets
+from dider.targets import class_path, named_targets
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
+from dider.training.building import module_parts
 from dider.training.checkpoint import AtomicCheckpointIO
 from dider.training.interrupt import drop_resumed_from, stop_on_signals
 from dider.training.module import RelationalVAEModule
@@ -127,8 +128,9 @@ def _predict_into(cfg: DictConfig, out_dir: Path, final: Path, staging: Path, st
     datamodule = _prediction_data(cfg, trained)
     burn_in = int(cfg.predict.burn_in or trained.config["protocol"]["burn_in"])
     steps, samples = cfg.predict.forecast_steps, int(cfg.predict.samples)
-    module = RelationalVAEModule.from_checkpoint(
-        ckpt, trust=trained.trust, forecast=ForecastRequest(burn_in, int(steps), samples) if steps else None)
+    module = RelationalVAEModule(  # the loaded model's network and config: the file is read (and checked) once
+        **module_parts(trained.config, trained.trust, trained.network),
+        forecast=ForecastRequest(burn_in, int(steps), samples) if steps else None)
     datamodule.prepare_data()  # the clips are read and checked before the trainer starts
     datamodule.setup("predict")
     clips = datamodule.datasets["predict"]
@@ -181,7 +183,8 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
             OmegaConf.update(cfg.data, path, value)
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
-        what = getattr(getattr(datamodule, "source", None), "reader", None) or type(datamodule).__name__
+        source = getattr(datamodule, "source", None)
+        what = f"data.source._target_={class_path(type(source))}" if source is not None else type(datamodule).__name__
         raise ConfigError(f"data: {what} has no prediction set; mode=predict reads "
                           f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
     datamodule.use_normalizer(trained.normalizer)

@@ -33,7 +33,7 @@ class StepTimer(L.Callback):
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         if self.steps:
             self.record |= {"steps_timed": self.steps, "step_s": (self._now() - self.t0) / self.steps}
-        graphed = getattr(pl_module, "_graphed", None)
+        graphed = pl_module.graphed
         self.record["graph_replays"] = graphed.graph.replays if graphed is not None else 0
         self._write()
 

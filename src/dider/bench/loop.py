@@ -77,7 +77,7 @@ def loop_case(case: Case, device: str) -> tuple[float, dict[str, Any]]:
                             logger=CSVLogger(tmp, name="csv"), callbacks=[clock],
                             precision=cfg.trainer.precision if device == "cuda" else "32-true")
         trainer.fit(module, datamodule=datamodule)
-    graphed = module._graphed.graph if module._graphed is not None else None
+    graphed = module.graphed.graph if module.graphed is not None else None
     return clock.seconds / case.iters, {"host_syncs_per_step": clock.syncs.total / counted,
                                         "sync_sites": dict(clock.syncs.where.most_common(8)),
                                         "cuda_graph": cfg.cuda_graph,

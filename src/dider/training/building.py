@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Collection, Mapping
 from typing import Any
 
+import torch
 from omegaconf import DictConfig
 
 from dider.models.checkpoint_format import network_config
@@ -21,9 +22,11 @@ ADAM = {"_target_": "torch.optim.Adam", "_partial_": True}  # the optimiser of a
 SETTINGS = ("net", "protocol", "optimizer", "scheduler", "eval_seed", "check_finite")
 
 
-def module_parts(cfg: DictConfig | Mapping[str, Any], trust: Collection[str] | None = None) -> dict[str, Any]:
+def module_parts(cfg: DictConfig | Mapping[str, Any], trust: Collection[str] | None = None,
+                 net: torch.nn.Module | None = None) -> dict[str, Any]:
     """The constructor's arguments for a model config (``cfg.model``). trust: None when the config is the caller's
-    own (every class it names may be built), else the user's classes a file's config may build beside dider's."""
+    own (every class it names may be built), else the user's classes a file's config may build beside dider's.
+    net: the network its ``net`` node describes, already built (a loaded model's), else built here."""
     node = plain_config(cfg)
     if stray := sorted(set(node) - {*SETTINGS, "name", "num_edges"}):  # a checkpoint's too: nothing dropped unread
         raise ConfigError(f"model config: {', '.join(stray)}: not a setting of the model's top level "
@@ -32,7 +35,7 @@ def module_parts(cfg: DictConfig | Mapping[str, Any], trust: Collection[str] | N
     if problems := node_problems(ForecastProtocol, node.get("protocol"), "model.protocol"):
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     where = "model config"
-    parts = {"net": build(network_config(node), "network", where, "model.net", trust),
+    parts = {"net": net if net is not None else build(network_config(node), "network", where, "model.net", trust),
              "protocol": ForecastProtocol(**node["protocol"]),
              "optimizer": build(node.get("optimizer") or ADAM, "optimizer", where, "model.optimizer", trust),
              "config": {k: node[k] for k in SETTINGS if k in node}}

@@ -58,7 +58,7 @@ class RelationalVAEModule(L.LightningModule):
         self.val_pass = ValidationPass(protocol)
         self.test_pass = TestPass(protocol, net.num_types)
         self.predict_pass = PredictPass(net.num_types, list(protocol.horizons), forecast)
-        self._graphed: GraphedSteps | None = None
+        self.graphed: GraphedSteps | None = None  # the graphed steps, once a graphed fit has taken one
         self.epoch_means = EpochMeans()  # the training epoch's logged values, kept on the device
         self.test_values: dict[str, float] = {}  # the last test pass's values, unrounded
 
@@ -143,8 +143,8 @@ class RelationalVAEModule(L.LightningModule):
         schedule = self.model.schedule(progress)
         bs = batch["states"].shape[0]
         if not self.automatic_optimization:  # one CUDA graph's replay, then the optimiser step
-            self._graphed = self._graphed or GraphedSteps(self)
-            values = self._graphed.step(batch, schedule)
+            self.graphed = self.graphed or GraphedSteps(self)
+            values = self.graphed.step(batch, schedule)
         else:
             values = self.train_values(batch, progress)
         terms = {k: v for k, v in values.items() if not k.startswith("segments/")}
