@@ -124,11 +124,13 @@ def test_no_data_module_or_settings_node_takes_more_than_twelve_settings() -> No
     from dider.data.levelx.source import LevelXColumns, LevelXFiles, LevelXSource
     from dider.data.loader import Loader
     from dider.data.windowing import Windows
-    from dider.training.schemas import DATA, SOURCES
+    from dider.targets import builtin_classes
 
-    counts = {cls.__name__: len(inspect.signature(cls.__init__).parameters) - 1 for cls in DATA}  # less self
-    nodes = (*SOURCES, LevelXSource, LevelXFiles, LevelXColumns, Windows, Loader)  # SOURCES: every clip source
+    data = builtin_classes("data").values()
+    counts = {cls.__name__: len(inspect.signature(cls.__init__).parameters) - 1 for cls in data}  # less self
+    sources = [*builtin_classes("clip source").values(), *builtin_classes("track source").values()]
+    nodes = (*sources, LevelXSource, LevelXFiles, LevelXColumns, Windows, Loader)
     counts |= {cls.__name__: len(dataclasses.fields(cls)) for cls in nodes}
     over = {name: n for name, n in counts.items() if n > 12}
     assert not over, f"too many settings in one place: {over}"
-    assert all("source" in inspect.signature(cls.__init__).parameters for cls in DATA)
+    assert all("source" in inspect.signature(cls.__init__).parameters for cls in data)

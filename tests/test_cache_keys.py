@@ -10,9 +10,11 @@ import pytest
 
 import dider.data.cache as cache
 from dider.data.levelx.reading import WindowParams
-from dider.data.readers import push as push_reader
+from dider.data.simulators import push as push_simulator
 from dider.data.tracks import TracksDataModule
 from helpers.data import data_module
+
+LEVELX_SOURCE = "dider.data.levelx.source.LevelXSource"
 
 PUSH = {  # data=synth at its defaults, and with the positive control's step push
     "linear": {"train": "665bdfec1ceb0ee4", "val": "31036e376cd5978b", "test": "cc0f6d3fe258aad6"},
@@ -24,7 +26,7 @@ PUSH = {  # data=synth at its defaults, and with the positive control's step pus
 def test_the_push_simulators_cache_names(tmp_path, push):
     dm = data_module("synth", cache_dir=str(tmp_path), source={"push": push})
     sizes = {s: dm.hparams[f"num_{s}"] for s in PUSH[push]}
-    names = {s: push_reader.cache_path(dm.source, s, n, dm.cache_dir).name for s, n in sizes.items()}
+    names = {s: push_simulator.cache_path(dm.source, s, n, dm.cache_dir).name for s, n in sizes.items()}
     assert names == {s: f"synth_{s}_{k}.pt" for s, k in PUSH[push].items()}
 
 
@@ -50,5 +52,5 @@ def test_the_particle_simulators_cache_names(tmp_path, monkeypatch, simulate, na
 def test_a_levelx_recordings_cache_name(tmp_path):
     files = SimpleNamespace(id="00", signature=lambda: [
         ("00_tracks.csv", 100, 5), ("00_tracksMeta.csv", 10, 5), ("00_recordingMeta.csv", 1, 5)])
-    dm = TracksDataModule(source={"reader": "levelx", "root": str(tmp_path)}, cache_dir=str(tmp_path))
+    dm = TracksDataModule(source={"_target_": LEVELX_SOURCE, "root": str(tmp_path)}, cache_dir=str(tmp_path))
     assert dm.tracks().cache_path(files, WindowParams()).name == "ind_00_acc2bd9a07cc918a.pt"

@@ -200,16 +200,17 @@ def test_a_plugins_defaults_come_from_its_signature(make_cfg, tmp_path):
 
 def test_every_node_a_class_builds_holds_its_arguments(make_cfg, tmp_path):
     """The model's top (the LightningModule, with the network's name and num_edges), the network, its plugins,
-    the objective's terms and the data modules start from their schemas: each node holds exactly its class's
-    arguments, so every setting shows in the config, and an experiment file's typo at each level is refused."""
+    the objective's terms, the data modules and their sources start from their schemas: each node holds exactly its
+    class's arguments, so every setting shows in the config, and an experiment file's typo at each level is
+    refused."""
     import dataclasses
 
     from hydra.errors import ConfigCompositionException
     from omegaconf import DictConfig
 
-    from dider.training.schemas import DATA, PLUGINS, TERMS, module_schema, schema
+    from dider.training.schemas import PLUGINS, TERMS, data_classes, module_schema, schema
 
-    classes = {f"{c.__module__}.{c.__qualname__}": c for c in (*PLUGINS, *TERMS, *DATA, RelationalVAE)}
+    classes = {f"{c.__module__}.{c.__qualname__}": c for c in (*PLUGINS, *TERMS, *data_classes(), RelationalVAE)}
 
     def check(node, fields: set[str], where: str) -> None:
         assert set(node) == fields, where
@@ -225,10 +226,11 @@ def test_every_node_a_class_builds_holds_its_arguments(make_cfg, tmp_path):
     for data in options("data"):
         node = make_cfg([f"data={data}"], tiny=False).data
         check(node, {f.name for f in dataclasses.fields(schema(classes[node._target_]))}, data)
+        check(node.source, {f.name for f in dataclasses.fields(schema(classes[node.source._target_]))}, data)
     (tmp_path / "experiment").mkdir()
     typos = {"model": "model:\n  eval_sed: 1\n", "net": "model:\n  net:\n    gumbel_ta: 1\n",
              "term": "model:\n  net:\n    objective:\n      kl_edge:\n        wieght: 1\n",
-             "data": "data:\n  seq_le: 5\n"}
+             "data": "data:\n  seq_le: 5\n", "source": "data:\n  source:\n    num_step: 5\n"}
     for level, text in typos.items():
         (tmp_path / "experiment" / f"{level}.yaml").write_text(f"# @package _global_\n{text}")
         with pytest.raises(ConfigCompositionException, match=r"Key '\w+' not in '\w+Schema'"):

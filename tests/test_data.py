@@ -3,8 +3,12 @@ import torch
 
 from dider.data.batch import Normalizer
 from dider.data.clips import ClipsDataModule
-from dider.data.simulate import simulate_push
+from dider.data.simulators.push import simulate_push
 from helpers.data import data_module
+
+SIMULATION = "dider.data.simulators.particles.Simulation"
+PUSH = "dider.data.simulators.push.Push"
+NPZ = "dider.data.readers.trajectories.NpzFile"
 
 
 def make_dm(tmp_path, **kw) -> ClipsDataModule:
@@ -96,13 +100,13 @@ def test_a_split_setting_a_clip_source_does_not_read_is_refused(tmp_path):
     from dider.data.clips import ClipsDataModule
 
     sizes = {"num_train": 4, "num_val": 2, "num_test": 2}
-    with pytest.raises(ValueError, match=r"data.val_fraction=0.2: data.source.reader=push gives its splits as they "
-                                         r"are; read by a source whose files may lack a validation split"):
-        ClipsDataModule(source={"reader": "push"}, val_fraction=0.2, **sizes)
-    with pytest.raises(ValueError, match=r"data.split=\[0.6, 0.2, 0.2\]: data.source.reader=particles"):
-        ClipsDataModule(source={"reader": "particles"}, split=[0.6, 0.2, 0.2], **sizes)
-    ClipsDataModule(source={"reader": "push"}, split=(0.8, 0.1, 0.1), seed=1, **sizes)  # the defaults pass
-    ClipsDataModule(source={"reader": "trajectories"}, split=[0.6, 0.2, 0.2], seed=4)  # read there
+    with pytest.raises(ValueError, match=rf"data.val_fraction=0.2: data.source._target_={PUSH} gives its splits as "
+                                         r"they are; read by a source whose files may lack a validation split"):
+        ClipsDataModule(source={"_target_": PUSH}, val_fraction=0.2, **sizes)
+    with pytest.raises(ValueError, match=rf"data.split=\[0.6, 0.2, 0.2\]: data.source._target_={SIMULATION} gives"):
+        ClipsDataModule(source={"_target_": SIMULATION}, split=[0.6, 0.2, 0.2], **sizes)
+    ClipsDataModule(source={"_target_": PUSH}, split=(0.8, 0.1, 0.1), seed=1, **sizes)  # the defaults pass
+    ClipsDataModule(source={"_target_": NPZ}, split=[0.6, 0.2, 0.2], seed=4)  # read there
 
 
 def test_the_normalisers_ranges_by_hand():

@@ -8,7 +8,7 @@ from hydra.utils import instantiate
 
 from dider.data.batch import Normalizer
 from dider.data.clips import ClipsDataModule
-from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from dider.data.simulators.push import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 from helpers.data import data_module
 
 SIZES = {"train": 8, "val": 3, "test": 5}

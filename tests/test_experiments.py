@@ -42,8 +42,9 @@ def fake_data(data: str, tmp: Path) -> list[str]:
 @pytest.mark.parametrize("experiment", EXPERIMENTS)
 def test_experiment_runs(experiment, make_cfg, tmp_path):
     cfg = make_cfg([f"experiment={experiment}"], tiny=False)
-    data = {"kloppy": "soccer"}.get(cfg.data.source.reader, cfg.data.source.reader)  # push, particles, ..., levelx
-    if data == "levelx":
+    data = cfg.data.source._target_.rpartition(".")[2]  # the source's class: Push, Simulation, ..., LevelXSource
+    data = {"KloppySource": "soccer", "BasketballFiles": "basketball"}.get(data, data)
+    if data == "LevelXSource":
         data = "ind200" if cfg.data.windows.seq_len == 200 else "ind"
     cfg = make_cfg([f"experiment={experiment}", "debug=fdr", *fake_data(data, tmp_path), "protocol.samples=0",
                     "trainer.enable_progress_bar=false"], tiny=False, out=tmp_path / "run")

@@ -20,10 +20,12 @@ from dider.protocol import burn_in_mask
 from helpers.data import merged
 from helpers.fixtures import edit_csv, write_background, write_ind_root
 
+LEVELX_SOURCE = "dider.data.levelx.source.LevelXSource"
+
 # 4 recordings of 600 frames (24 s at 25 Hz = 60 steps at 2.5 Hz), 6 tracks each, 2 parked.
 SMALL = dict(split=(2, 1, 1), windows={"seq_len": 20}, loader={"batch_size": 4, "eval_batch_size": 4})
 # The levelX module as its data config (data=ind) reads: DNRI's inD batches, the consistency check's default rules.
-LEVELX = {"source": {"reader": "levelx"}, "loader": {"batch_size": 8, "eval_batch_size": 8}, "pairs": {}}
+LEVELX = {"source": {"_target_": LEVELX_SOURCE}, "loader": {"batch_size": 8, "eval_batch_size": 8}, "pairs": {}}
 
 
 @pytest.fixture
@@ -211,7 +213,7 @@ def test_splits_and_recording_selection(root, tmp_path):
 
 
 def test_default_is_dnri_protocol():
-    dm = TracksDataModule(source={"reader": "levelx"})
+    dm = TracksDataModule(source={"_target_": LEVELX_SOURCE})
     assert list(dm.hparams.split) == [19, 7, 7] and dm.windows.downsample == 10 and dm.windows.seq_len == 50
     assert list(dm.source.columns.features) == ["xCenter", "yCenter", "xVelocity", "yVelocity"]
     assert dm.source.classes is None and dm.windows.min_agents == 2

@@ -50,7 +50,7 @@ def test_windows_are_the_same_relative_to_the_tables_centre(tmp_path, offset):
     for shift in (0.0, offset):
         table = read_table(turning_vessels(tmp_path / f"t{shift:g}.csv", shift), COLUMNS)
         origin = midpoint(table["xy"])
-        cuts.append(table_windows(table, "t.csv", 1.0, w, range(12), 12, origin)["states"].double().numpy())
+        cuts.append(table_windows(table, "t.csv", 1.0, w, range(12), 12, origin).states.double().numpy())
     np.testing.assert_allclose(cuts[1], cuts[0], atol=2e-5)
     assert np.abs(cuts[0][..., :2]).max() < 400  # relative: the table's extent, not its offset
 

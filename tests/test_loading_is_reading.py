@@ -170,6 +170,16 @@ def test_no_payload_runs_through_diagnose(tmp_path, planted):
     (run / "metrics.json").write_text(json.dumps({"metrics": {}, "config": {"data": node}}))
     with pytest.raises(Untrusted, match=r"metrics\.json: data\._target_='pathlib\.Path\.write_text'"):
         diagnose(run)
+    for source, why in ((node, r"data\.source\._target_='pathlib\.Path\.write_text': not one of dider's clip "
+                               r"source classes"),
+                        ({"_target_": "dider.data.track_sources.TableFile"}, r"data\.source\._target_="
+                         r"'dider\.data\.track_sources\.TableFile': not one of dider's clip source classes"),
+                        ({"_target_": "dider.data.simulators.push.Push", "seed": node}, r"data\.source\.seed\."
+                         r"_target_='pathlib\.Path\.write_text': no class is built there")):
+        data = {"_target_": "dider.data.clips.ClipsDataModule", "source": source}  # the source planted
+        (run / "metrics.json").write_text(json.dumps({"metrics": {}, "config": {"data": data}}))
+        with pytest.raises(Untrusted, match=rf"metrics\.json: {why}"):
+            diagnose(run)
     assert not mark.exists()
 
 

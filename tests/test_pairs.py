@@ -11,6 +11,8 @@ from dider.graph import edge_index
 from dider.training.preflight import validate_config
 from helpers.fixtures import write_ind_root
 
+LEVELX_SOURCE = "dider.data.levelx.source.LevelXSource"
+
 T = 10
 
 
@@ -76,7 +78,7 @@ def test_pair_consistency_metric():
 def test_ind_test_batches_carry_the_parked_pairs(tmp_path, make_cfg):
     # The fixture's tracks 0 and 1 are parked cars present in every window; the other tracks move.
     root = write_ind_root(tmp_path / "inD")
-    dm = TracksDataModule(source={"reader": "levelx", "root": str(root)}, windows={"seq_len": 20}, pairs={},
+    dm = TracksDataModule(source={"_target_": LEVELX_SOURCE, "root": str(root)}, windows={"seq_len": 20}, pairs={},
                           cache_dir=str(tmp_path / "cache"), split=(2, 1, 1),
                           loader={"batch_size": 4, "eval_batch_size": 4})
     dm.prepare_data()
@@ -88,8 +90,8 @@ def test_ind_test_batches_carry_the_parked_pairs(tmp_path, make_cfg):
     assert not (batch["pair_kind"][:, (send >= 2) | (recv >= 2)] == PARKED).any()
     assert "pair_kind" not in next(iter(dm.train_dataloader()))
     with pytest.raises(ValueError, match="data.pairs"):
-        TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_speed": 0.0})
+        TracksDataModule(source={"_target_": LEVELX_SOURCE, "root": str(root)}, pairs={"parked_speed": 0.0})
     with pytest.raises(ValueError, match=r"data.pairs.parked_sped: no such setting \(expected one of \['parked_speed'"):
-        TracksDataModule(source={"reader": "levelx", "root": str(root)}, pairs={"parked_sped": 1.0})
+        TracksDataModule(source={"_target_": LEVELX_SOURCE, "root": str(root)}, pairs={"parked_sped": 1.0})
     with pytest.raises(ValueError, match=r"data.pairs.parked_sped: no such setting"):  # and before a run starts
         validate_config(make_cfg(["data=ind", "+data.pairs.parked_sped=1.0"]))

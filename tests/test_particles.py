@@ -6,13 +6,18 @@ import numpy as np
 import pytest
 import torch
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from dider.data.clips import ClipsDataModule
-from dider.data.particles import STIFFNESS, _forces, simulate_particles
 from dider.data.readers.nri_files import nri_path, read_nri_split, write_nri_split
+from dider.data.simulators.particles import STIFFNESS, _forces, simulate_particles
 from dider.graph import edge_index
+from dider.validation import settings_problems
 from helpers.data import data_module
 from helpers.protocol import fits
+
+NRI_FILES = "dider.data.readers.nri_files.NRIFiles"
+SIMULATION = "dider.data.simulators.particles.Simulation"
 
 SMALL = dict(loader={"batch_size": 4, "eval_batch_size": 4})
 
@@ -142,20 +147,29 @@ def test_the_data_module_reads_files_as_it_simulates(tmp_path):
 
 
 def test_the_data_module_names_bad_settings(tmp_path, make_cfg):
-    with pytest.raises(ValueError, match=r"data.source.root: no such setting \(expected one of \['reader', 'system'"):
-        ClipsDataModule(source={"reader": "particles", "root": str(tmp_path)}, num_train=2, num_val=2, num_test=2)
-    with pytest.raises(ValueError, match=r"data.source.reader='nri': expected one of \['basketball', 'dnri_files', "
-                       r"'nri_files', 'particles', 'push', 'trajectories'\]"):
-        ClipsDataModule(source={"reader": "nri"})
+    with pytest.raises(ValueError, match=r"data.source.root: no such setting \(expected one of \['system'"):
+        ClipsDataModule(source={"_target_": SIMULATION, "root": str(tmp_path)}, num_train=2, num_val=2, num_test=2)
+    with pytest.raises(ValueError, match=r"data.source._target_='dider.data.readers.nri': no such class \(module "
+                       r"'dider.data.readers' has no 'nri'\)"):
+        ClipsDataModule(source={"_target_": "dider.data.readers.nri"})
+    with pytest.raises(ValueError, match=r"data.source._target_: not set; name the clip source's class \(dider's: "
+                       r"dider.data.readers.basketball.BasketballFiles, .*, dider.data.simulators.push.Push; or"):
+        ClipsDataModule(source={"reader": "nri_files"})  # no _target_: a name picks no class
+    with pytest.raises(ValueError, match=r"data.source._target_='dider.data.track_sources.TableFile': not a clip "
+                       r"source \(missing \['clips'\]\)"):
+        ClipsDataModule(source={"_target_": "dider.data.track_sources.TableFile"})
     with pytest.raises(ValueError, match="data.num_train=None: must be an integer"):
-        ClipsDataModule(source={"reader": "particles"})
+        ClipsDataModule(source={"_target_": SIMULATION})
     with pytest.raises(ValueError, match="data.source.system='gravity'"):
         data_module("springs", source={"system": "gravity"}, num_train=2, num_val=2, num_test=2)
-    names = r"\['reader', 'system', 'num_balls', 'num_frames', 'sample_every', 'switch_prob', 'seed'\]"
-    with pytest.raises(Exception, match=rf"data.source.frames: no such setting \(expected one of {names}\)"):
-        instantiate(make_cfg(["data=springs", "+data.source.frames=3"]).data)
+    names = "['system', 'num_balls', 'num_frames', 'sample_every', 'switch_prob', 'seed']"
+    cfg = make_cfg(["data=springs", "+data.source.frames=3"])  # the preflight's message, before anything is built
+    assert settings_problems(OmegaConf.to_container(cfg.data), "data") == [
+        f"data.source.frames: no such setting (expected one of {names})"]
+    with pytest.raises(Exception, match=r"unexpected keyword argument 'frames'(.|\n)*full_key: data.source"):
+        instantiate(cfg.data)
     with pytest.raises(ValueError, match="data.source.root is not set"):
-        ClipsDataModule(source={"reader": "nri_files"}, **SMALL).setup()
+        ClipsDataModule(source={"_target_": NRI_FILES}, **SMALL).setup()
     write_sim(tmp_path / "f", frames=12)
     dm = data_module("nri_files", source={"root": str(tmp_path / "f"), "suffix": "_springs4"}, **SMALL)
     dm.setup()

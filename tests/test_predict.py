@@ -246,7 +246,8 @@ def test_api_page_example_runs(run, new_data):
 def test_predict_refuses_a_data_set_without_a_prediction_set(run, tmp_path):
     cfg = compose_cfg(["experiment=smoke", "mode=predict", f"ckpt_path={run / 'checkpoints' / 'last.ckpt'}"],
                       tmp_path)
-    with pytest.raises(ConfigError, match="data: push has no prediction set"):
+    with pytest.raises(ConfigError, match=r"data: data.source._target_=dider.data.simulators.push.Push has no "
+                                          r"prediction set"):
         predict(cfg)
 
 

@@ -22,12 +22,14 @@ from hypothesis.extra import numpy as hnp
 
 from dider.data.levelx.recordings import discover_recordings
 from dider.data.readers.trajectories import load_trajectories
-from dider.data.simulate import simulate_push
+from dider.data.simulators.push import simulate_push
 from dider.data.tracks import TracksDataModule
 from dider.graph import num_edges
 from dider.validation import ConfigError
 from helpers.data import data_module
 from helpers.fixtures import write_ind_root
+
+LEVELX_SOURCE = "dider.data.levelx.source.LevelXSource"
 
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow], database=None,
                 derandomize=True)  # the same examples on every run: a failure in CI reproduces locally
@@ -201,7 +203,7 @@ def test_levelx_reader_fails_cleanly_and_caches_atomically(ops, seed):
                                      num_parked=1, seed=seed), Path(tmp) / "cache"
         for op in ops:
             corrupt(root, op)
-        dm = TracksDataModule(source={"reader": "levelx", "root": str(root)}, windows={"seq_len": 10},
+        dm = TracksDataModule(source={"_target_": LEVELX_SOURCE, "root": str(root)}, windows={"seq_len": 10},
                               cache_dir=str(cache), split=(1, 1, 1))
         params = dm.tracks().params(10)
         try:

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from dider.analysis.push_strength import main, push_distances, recall_by_distance
-from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from dider.data.simulators.push import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 from dider.run import train
 
 

@@ -1,17 +1,29 @@
-"""A format as one reader: ETH/UCY pedestrians' text files (frame agent x y) read into the track table that
-``data=table`` windows, with each problem named by file and line, and a short training on them (``data=eth_ucy``)."""
+"""A format as one class: ETH/UCY pedestrians' text files (frame agent x y) read into the track table that
+``data=table`` windows, with each problem named by file and line, and a short training on them (``data=eth_ucy``);
+and a format of the user's own, outside the package (one class and one YAML in the user's config folder), trained
+on and read back from its run folder only when trusted."""
 
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hydra.utils import instantiate
 
-from dider.data.readers import read_tracks
+from dider.analysis.diagnose import diagnose
+from dider.data.clips import ClipsDataModule
+from dider.data.example import example_tracks
+from dider.data.readers.eth_ucy import EthUcyFiles
+from dider.data.tracks import TracksDataModule
+from dider.models.checkpoint_format import read
 from dider.run import train
+from dider.targets import Untrusted
+from dider.training.preflight import validate_config
+
+USER_CONF = Path(__file__).resolve().parent / "helpers" / "conf"  # a config folder of the user's own
+DELIMITED = "helpers.user_plugins.DelimitedTracks"
 
 
 def write_scenes(folder: Path, scenes: int = 5, frames: int = 36, people: int = 4, seed: int = 0) -> Path:
@@ -33,11 +45,11 @@ def write_scenes(folder: Path, scenes: int = 5, frames: int = 36, people: int = 
 
 
 def test_the_reader_makes_steps_of_frames_and_scenes_of_files(tmp_path):
-    table = read_tracks("eth_ucy", write_scenes(tmp_path / "eth", scenes=2, frames=3, people=2))
+    table = EthUcyFiles().read(write_scenes(tmp_path / "eth", scenes=2, frames=3, people=2))
     assert list(table.columns) == ["scene", "agent", "frame", "x", "y"]
     assert sorted(set(table.scene)) == ["scene0", "scene1"]
     assert sorted(set(table.frame)) == [3, 4, 5]  # frames 18, 24, 30 (step 6) and 30, 40, 50 (step 10)
-    one = read_tracks("eth_ucy", tmp_path / "eth" / "scene1.txt")
+    one = EthUcyFiles().read(tmp_path / "eth" / "scene1.txt")
     assert len(one) == 6 and set(one.scene) == {"scene1"}
 
 
@@ -49,16 +61,27 @@ def test_the_reader_makes_steps_of_frames_and_scenes_of_files(tmp_path):
 def test_a_bad_line_is_named_with_its_file(tmp_path, line, why):
     (tmp_path / "bad.txt").write_text(f"0 1 1.0 2.0\n{line}\n")
     with pytest.raises(ValueError, match=f"bad.txt: {why}"):
-        read_tracks("eth_ucy", tmp_path)
+        EthUcyFiles(path=str(tmp_path)).rows()
 
 
-def test_missing_input_and_unknown_readers_are_named(tmp_path):
+def test_missing_input_and_unknown_formats_are_named(tmp_path, make_cfg):
     with pytest.raises(FileNotFoundError, match="no .txt files in the folder"):
-        read_tracks("eth_ucy", tmp_path)
-    with pytest.raises(FileNotFoundError, match="no such file or folder"):
-        read_tracks("eth_ucy", tmp_path / "nowhere")
-    with pytest.raises(ValueError, match="data.source.reader='sdd': unknown; known: table .* eth_ucy"):
-        read_tracks("sdd", tmp_path)
+        EthUcyFiles(path=str(tmp_path)).rows()
+    with pytest.raises(FileNotFoundError, match="data.source.path=.*nowhere: no such file or folder"):
+        EthUcyFiles(path=str(tmp_path / "nowhere")).rows()
+    with pytest.raises(ValueError, match=r"data.source.path is not set: point it at what "
+                                         r"dider.data.readers.eth_ucy.EthUcyFiles reads"):
+        EthUcyFiles().rows()
+    with pytest.raises(ValueError, match=r"data.source._target_='dider.data.readers.sdd.SDD': no such class"):
+        TracksDataModule(source={"_target_": "dider.data.readers.sdd.SDD"})
+    with pytest.raises(ValueError, match=r"data.source._target_='dider.data.readers.trajectories.NpzFile': not a "
+                                         r"track source \(missing \['open'\]\)"):
+        TracksDataModule(source={"_target_": "dider.data.readers.trajectories.NpzFile"})
+    cfg = make_cfg([f"hydra.searchpath=[file://{USER_CONF}]", "data=delimited", "data.source._target_=mypkg.Nope"])
+    with pytest.raises(ValueError, match=r"data.source._target_='mypkg.Nope': no such class \(module 'mypkg' has "
+                                         rf"no 'Nope'\) \(data=delimited: {USER_CONF}/data/delimited.yaml, or the "
+                                         r"command line\)"):
+        validate_config(cfg)
 
 
 def test_a_short_training_on_pedestrian_files(make_cfg, tmp_path):
@@ -70,58 +93,47 @@ def test_a_short_training_on_pedestrian_files(make_cfg, tmp_path):
     assert all(math.isfinite(metrics[f"test/ade/h{h:02d}"]) for h in (1, 6, 12))
 
 
-def test_a_new_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
-    """A module beside the readers that says TRACKS = True is a reader under its own name, with no list to edit:
-    ``data.source.reader`` accepts it and ``read_tracks`` reads with it."""
-    import dider.data.readers as readers
-
-    package = tmp_path / "extra"
-    package.mkdir()
-    (package / "pairs_tsv.py").write_text(
-        "import pandas as pd\nTRACKS = True\n\n\ndef read(path):\n"
-        "    return pd.read_csv(path, sep='\\t', names=['agent', 'frame', 'x', 'y'])\n")
-    (tmp_path / "walk.tsv").write_text("1\t0\t0.0\t0.0\n1\t1\t0.5\t0.0\n2\t0\t1.0\t1.0\n2\t1\t1.0\t1.5\n")
-    monkeypatch.setattr(readers, "__path__", [*readers.__path__, str(package)])  # as if it sat beside eth_ucy
-    readers._modules.cache_clear()
-    try:
-        assert "pairs_tsv" in readers.track_readers() and "eth_ucy" in readers.track_readers()
-        assert "push" not in readers.track_readers()  # a clip source is not a track reader
-        assert readers.reader_problem("pairs_tsv") is None
-        assert "expected one of" in readers.reader_problem("no_such_format")
-        table = readers.read_tracks("pairs_tsv", tmp_path / "walk.tsv")
-        assert list(table.columns) == ["agent", "frame", "x", "y"] and len(table) == 4
-    finally:
-        readers._modules.cache_clear()
-        sys.modules.pop(f"{readers.__name__}.pairs_tsv", None)
+def test_a_users_own_format_is_one_class_and_one_yaml(make_cfg, tmp_path):
+    """A track format in the user's package (``helpers.user_plugins.DelimitedTracks``: its ``read`` and an option
+    of its own) and one YAML in the user's config folder: a run trains on it and its checkpoint records the class;
+    the run folder's config, read back (``dider.analysis.diagnose``), builds it only once the user trusts it."""
+    example_tracks(scenes=6, frames=60, walkers=4).to_csv(tracks := tmp_path / "walks.txt", sep=";", header=False,
+                                                          index=False)
+    run = tmp_path / "run"
+    cfg = make_cfg([f"hydra.searchpath=[file://{USER_CONF}]", "data=delimited", f"data.source.path={tracks}",
+                    "logger=none"], out=run)
+    assert cfg.data.source._target_ == DELIMITED and cfg.data.source.delimiter == ";"
+    metrics = train(cfg)
+    assert all(math.isfinite(metrics[f"test/ade/h{h:02d}"]) for h in (1, 5, 10))
+    recorded = read(run / "checkpoints" / "last.ckpt")["dider"]["data"]["args"]["source"]
+    assert recorded == {"_target_": DELIMITED, "path": str(tracks), "frame_rate": 10, "delimiter": ";"}
+    with pytest.raises(Untrusted, match=rf"metrics\.json: data\.source\._target_='{DELIMITED}': not one of dider's "
+                                        r"track source classes .*trust="):
+        diagnose(run, clips=4, lengths=(3,))
+    assert diagnose(run, clips=4, lengths=(3,), trust=[DELIMITED])["rows"]
 
 
-def test_a_new_clip_format_is_one_module_found_by_its_name(tmp_path, monkeypatch):
-    """A module beside the readers that names its settings class CLIPS is a clip source under its own name: the clips
-    module reads it, splits its one part by ``data.split``, caps and normalises it."""
-    import dider.data.readers as readers
-    from dider.data.clips import ClipsDataModule
+def test_a_format_with_the_bases_options_is_picked_on_the_command_line(make_cfg, tmp_path):
+    """``data.source._target_=`` over a data config whose source has the same settings (path, frame_rate)."""
+    example_tracks(scenes=3, frames=30, walkers=3).to_csv(tracks := tmp_path / "walks.tsv", sep="\t", header=False,
+                                                          index=False)
+    cfg = make_cfg(["data=eth_ucy", f"data.source._target_={DELIMITED}", f"data.source.path={tracks}"])
+    dm = instantiate(cfg.data, _convert_="all")
+    assert type(dm.source).__name__ == "DelimitedTracks" and dm.source.delimiter == "\t"
+    assert dm.tracks().scenes == ["0", "1", "2"]
+    with pytest.raises(ValueError, match=r"data.source.delimiter=';;': expected one character"):
+        TracksDataModule(source={"_target_": DELIMITED, "delimiter": ";;"})
 
-    package = tmp_path / "extra"
-    package.mkdir()
-    (package / "ramps.py").write_text(
-        "from dataclasses import dataclass\nimport torch\nfrom dider.data.clip_source import Clips\n\n\n"
-        "@dataclass(frozen=True)\nclass Ramps:\n    reader: str = 'ramps'\n    count: int = 20\n"
-        "    SPLIT_SETTINGS = ('split', 'seed')\n\n"
-        "    def clips(self, sizes, cache_dir):\n"
-        "        t = torch.arange(self.count * 6 * 2 * 4, dtype=torch.float32).reshape(self.count, 6, 2, 4)\n"
-        "        return {'all': Clips(t)}\n\n    def where(self):\n        return 'the ramps'\n\n\n"
-        "CLIPS = Ramps\n")
-    monkeypatch.setattr(readers, "__path__", [*readers.__path__, str(package)])  # as if it sat beside push
-    readers._modules.cache_clear()
-    try:
-        assert "ramps" in readers.clip_sources() and "ramps" not in readers.track_readers()
-        dm = ClipsDataModule(source={"reader": "ramps", "count": 30}, split=(0.6, 0.2, 0.2), seed=2, num_test=4)
-        dm.setup()
-        assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 18, "val": 6, "test": 4}
-        states = dm.datasets["train"].states
-        assert states[..., :2].min() == -1 and states[..., :2].max() == 1  # fitted on the training split
-        with pytest.raises(ValueError, match=r"data.source.counts: no such setting"):
-            ClipsDataModule(source={"reader": "ramps", "counts": 3})
-    finally:
-        readers._modules.cache_clear()
-        sys.modules.pop(f"{readers.__name__}.ramps", None)
+
+def test_a_users_own_clip_format_is_one_class(tmp_path):
+    """A clip source in the user's package: the clips module reads it, splits its one part by ``data.split``, caps
+    and normalises it."""
+    dm = ClipsDataModule(source={"_target_": "helpers.user_plugins.Ramps", "count": 30}, split=(0.6, 0.2, 0.2),
+                         seed=2, num_test=4)
+    dm.setup()
+    assert {s: len(d) for s, d in dm.datasets.items()} == {"train": 18, "val": 6, "test": 4}
+    states = dm.datasets["train"].states
+    assert states[..., :2].min() == -1 and states[..., :2].max() == 1  # fitted on the training split
+    assert dm.hparams["source"] == {"_target_": "helpers.user_plugins.Ramps", "count": 30}
+    with pytest.raises(ValueError, match=r"data.source.counts: no such setting"):
+        ClipsDataModule(source={"_target_": "helpers.user_plugins.Ramps", "counts": 3})

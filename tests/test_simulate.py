@@ -1,6 +1,6 @@
 import torch
 
-from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from dider.data.simulators.push import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 
 
 def test_shapes_and_determinism():

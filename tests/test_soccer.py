@@ -14,6 +14,8 @@ kloppy = pytest.importorskip("kloppy")
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows  # noqa: E402
 from dider.data.tracks import TracksDataModule  # noqa: E402
 
+KLOPPY = "dider.data.track_sources.KloppySource"
+
 FILES = Path(kloppy.__file__).parent / "tests" / "files"
 HAWKEYE = {"ball_feeds": str(FILES / "hawkeye_1_1.football.samples.ball"),
            "player_centroid_feeds": str(FILES / "hawkeye_1_1.football.samples.centroids")}
@@ -54,7 +56,7 @@ def test_every_provider_reads_into_metres(provider):
 
 def soccer(files: dict, **windows) -> TracksDataModule:
     """``data=soccer``'s module on Hawk-Eye's files (its window defaults: max_speed 12 m/s)."""
-    return TracksDataModule(source={"reader": "kloppy", "provider": "hawkeye", "files": files},
+    return TracksDataModule(source={"_target_": KLOPPY, "provider": "hawkeye", "files": files},
                            windows={"max_speed": 12.0, **windows})
 
 
@@ -92,7 +94,7 @@ def test_hawkeye_windows_velocities_and_rate():
 ])
 def test_bad_input_is_named(kwargs, match):
     with pytest.raises((ValueError, FileNotFoundError), match=match):
-        TracksDataModule(source={"reader": "kloppy", "files": HAWKEYE} | kwargs, windows={"seq_len": 12}).setup("fit")
+        TracksDataModule(source={"_target_": KLOPPY, "files": HAWKEYE} | kwargs, windows={"seq_len": 12}).setup("fit")
 
 
 def test_a_file_kloppy_cannot_read_is_named(tmp_path):

@@ -27,7 +27,8 @@ SPEED = {"amy": 1.0, "bob": 0.5, "cat": -1.0, "dan": 2.0}
 X0 = {"amy": 0.0, "bob": 10.0, "cat": 20.0, "dan": 5.0}
 Y0 = {"amy": 0.0, "bob": 1.0, "cat": 2.0, "dan": 3.0}
 RATE = 2.0  # frames per second
-SMALL = dict(source={"frame_rate": RATE}, windows={"seq_len": 4, "stride": 2},
+TABLE = "dider.data.track_sources.TableFile"
+SMALL = dict(source={"_target_": TABLE, "frame_rate": RATE}, windows={"seq_len": 4, "stride": 2},
              loader={"batch_size": 2, "eval_batch_size": 2})
 COLUMNS = {"scene": "place", "agent": "who", "frame": "t", "x": "px", "y": "py"}
 IDENTITY = Normalizer((-1.0, 1.0), (-1.0, 1.0))  # normalize() returns raw units: windows checked by value

@@ -14,6 +14,7 @@ from torchmetrics.functional.classification import binary_auroc
 
 import dider
 from dider.data.clips import ClipsDataModule
+from dider.data.simulators.particles import Simulation
 
 
 def diagnose(path: str, clips: int = 500, cache: str | None = None) -> dict[str, dict[str, float]]:
@@ -21,7 +22,7 @@ def diagnose(path: str, clips: int = 500, cache: str | None = None) -> dict[str,
     net = model.network.eval()
     # experiment=springs_dynamic's test clips (each split draws from its own stream: the training and validation
     # sizes do not change them, and the normaliser is the model's)
-    dm = ClipsDataModule(source={"reader": "particles", "switch_prob": 0.02}, num_train=8, num_val=8,
+    dm = ClipsDataModule(source=Simulation(switch_prob=0.02), num_train=8, num_val=8,
                          num_test=clips, loader={"eval_batch_size": 100}, **({"cache_dir": cache} if cache else {}))
     dm.use_normalizer(model.normalizer)
     dm.setup()

@@ -33,9 +33,9 @@ from hydra.utils import instantiate
 
 from dider.bench.fake_levelx import write_levelx_recording
 from dider.data.example import example_tracks
-from dider.data.particles import simulate_particles
 from dider.data.readers.nri_files import write_nri_split
-from dider.data.simulate import simulate_push
+from dider.data.simulators.particles import simulate_particles
+from dider.data.simulators.push import simulate_push
 from dider.graph import num_edges
 
 # The small inputs of the real formats, written here as the baseline's were (the same writers, seeds and sizes as

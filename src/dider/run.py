@@ -41,7 +41,7 @@ from dider.outputs.run_record import (
 from dider.outputs.summary import run_summary
 from dider.outputs.viz import draw_figures
 from dider.perf import compile_modules, tune_allocator
-from dider.targets import named_targets
+from dider.targets import class_path, named_targets
 from dider.trained import TrainedModel, find_checkpoint, load, training_settings
 from dider.training.building import module_parts
 from dider.training.checkpoint import AtomicCheckpointIO
@@ -183,7 +183,8 @@ def _prediction_data(cfg: DictConfig, trained: TrainedModel) -> L.LightningDataM
             OmegaConf.update(cfg.data, path, value)
     datamodule = instantiate(cfg.data, _convert_="all")
     if not getattr(datamodule, "predicts", False):
-        what = getattr(getattr(datamodule, "source", None), "reader", None) or type(datamodule).__name__
+        source = getattr(datamodule, "source", None)
+        what = f"data.source._target_={class_path(type(source))}" if source is not None else type(datamodule).__name__
         raise ConfigError(f"data: {what} has no prediction set; mode=predict reads "
                           f"data=trajectories (npz), table (CSV/Parquet), soccer, dnri_files or ind/round/unid")
     datamodule.use_normalizer(trained.normalizer)

@@ -6,7 +6,9 @@ did not choose. So a node is checked whole before anything is imported or called
 - a ``_target_`` is a *class of the kind its key expects*: a network at ``net``, an encoder at ``net.encoder``, a
   prior, duration or decoder plugin at theirs, the objective at ``net.objective`` and a term under it, an optimiser or
   a learning-rate scheduler at ``optimizer`` / ``scheduler`` (the only nodes that may be ``_partial_``), a data
-  module at ``data``. A ``_target_`` anywhere else, a function, ``_args_`` or any other ``_``-key is refused;
+  module at ``data`` and its source at ``data.source`` (a clip source or a track source, the kind its data module's
+  class reads: ``SOURCE_KIND``). A ``_target_`` anywhere else, a function, ``_args_`` or any other ``_``-key is
+  refused;
 - the classes a key accepts are dider's own for that kind (:func:`builtin_classes`) and the classes the user trusts
   (``trust``: dotted class paths). A run's own config (the command line and the user's config files) is the user's
   choice, so everything it names is trusted; what a file names is trusted only where the user says so:
@@ -29,12 +31,16 @@ from pathlib import Path
 from typing import Any
 
 # The kind of the node under each key of its parent's kind ("*": every key). Keys not listed hold plain data.
-# "module" is the LightningModule's settings (a checkpoint's hyper-parameters), a node without a class.
+# "module" is the LightningModule's settings (a checkpoint's hyper-parameters), a node without a class. SOURCE: the
+# kind that the data module's class reads (its ``SOURCE_KIND``; none: plain data), as a clips module reads clip
+# sources and a tracks module track sources.
+SOURCE = "the data module's source"
 CHILDREN: dict[str, dict[str, str]] = {
     "module": {"net": "network", "optimizer": "optimizer", "scheduler": "scheduler"},
     "network": {"encoder": "encoder", "prior": "prior", "duration": "duration", "decoder": "decoder",
                 "objective": "objective"},
     "objective": {"*": "term"},
+    "data": {"source": SOURCE},
 }
 PARTIAL_KINDS = ("optimizer", "scheduler")  # factories the module completes with its parameters
 PLAIN = (str, int, float, bool, type(None))
@@ -62,7 +68,7 @@ def check(node: Any, kind: str, where: str | Path, path: str = "", trust: Collec
     if not isinstance(node, Mapping) or (kind != "module" and "_target_" not in node):
         raise Untrusted(f"{where}: {path or 'the node'} is not a config node with a _target_ (expected a "
                         f"{kind} class)")
-    for key_path, value, expected in _walk(node, kind, path):
+    for key_path, value, expected in _walk(node, kind, path, where):
         if expected == "module":  # the LightningModule's settings: no class of their own, their children checked
             if "_target_" in value:
                 raise Untrusted(f"{where}: {key_path or 'the model config'}._target_={value['_target_']!r}: the "
@@ -71,8 +77,8 @@ def check(node: Any, kind: str, where: str | Path, path: str = "", trust: Collec
         if expected is None:  # plain data
             if isinstance(value, Mapping) and "_target_" in value:
                 raise Untrusted(f"{where}: {key_path}._target_={value['_target_']!r}: no class is built there "
-                                f"(a file's config may build classes only where a plugin, term, optimiser or data "
-                                f"module goes)")
+                                f"(a file's config may build classes only where a plugin, term, optimiser, data "
+                                f"module or its source goes)")
             if not isinstance(value, (*PLAIN, list, tuple, Mapping)):
                 raise Untrusted(f"{where}: {key_path}: a {type(value).__name__}, not plain data")
             if isinstance(value, Mapping) and (bad := [k for k in value if not isinstance(k, str)]):
@@ -80,6 +86,8 @@ def check(node: Any, kind: str, where: str | Path, path: str = "", trust: Collec
             continue
         target = value.get("_target_")
         here = f"{key_path}._target_" if key_path else "_target_"
+        if target is None:
+            raise Untrusted(f"{where}: {here}: not set (a {expected} class's dotted path)")
         if not isinstance(target, str):
             raise Untrusted(f"{where}: {here}={target!r}: not a class path")
         if target not in builtin_classes(expected) and target not in trusted:
@@ -101,17 +109,18 @@ def _container(node: Any) -> Any:
     return OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
 
 
-def _walk(node: Mapping[str, Any], kind: str, path: str) -> Iterator[tuple[str, Any, str | None]]:
-    """(key path, value, expected kind or None for plain data) for the node itself and everything below it."""
+def _walk(node: Mapping[str, Any], kind: str, path: str, where: str | Path) -> Iterator[tuple[str, Any, str | None]]:
+    """(key path, value, expected kind or None for plain data) for the node itself and everything below it. The
+    node comes first: its own target is checked before its children's kinds are looked up (a data module's class
+    says its source's)."""
     yield path, node, kind
-    children = CHILDREN.get(kind, {})
     for key, value in node.items():
         sub = f"{path}.{key}" if path else str(key)
         if key == "_target_":
             continue
-        child = children.get(key, children.get("*")) if isinstance(key, str) and not key.startswith("_") else None
+        child = _child_kind(node, kind, key, path, where) if isinstance(key, str) and not key.startswith("_") else None
         if child is not None and isinstance(value, Mapping):
-            yield from _walk(value, child, sub)
+            yield from _walk(value, child, sub, where)
         elif child is not None and value is None:
             continue  # a term (or scheduler) left out
         else:
@@ -128,14 +137,22 @@ def _in_data(value: Any, path: str) -> Iterator[tuple[str, Any, None]]:
             yield from _in_data(sub, f"{path}[{i}]")
 
 
+def _child_kind(node: Mapping[str, Any], kind: str, key: str, path: str, where: str | Path) -> str | None:
+    """The kind of the node under ``key`` of a node of ``kind`` (whose target is checked already), or None: data."""
+    children = CHILDREN.get(kind, {})
+    child = children.get(key, children.get("*"))
+    if child == SOURCE:  # the data module's class says which sources it reads; resolving it imports a trusted class
+        return getattr(resolve(node["_target_"], kind, path, where), "SOURCE_KIND", None)
+    return child
+
+
 def _make(node: Mapping[str, Any], kind: str, path: str, where: str | Path) -> Any:
     """Build a checked node: children first, then its class with the settings by name."""
-    children = CHILDREN.get(kind, {})
     kwargs: dict[str, Any] = {}
     for key, value in node.items():
         if key.startswith("_"):
             continue
-        child = children.get(key, children.get("*"))
+        child = _child_kind(node, kind, key, path, where)
         sub = f"{path}.{key}" if path else key
         kwargs[key] = _make(value, child, sub, where) if child and isinstance(value, Mapping) else plain(value)
     cls = resolve(node["_target_"], kind, path, where)
@@ -179,8 +196,14 @@ def kind_problem(cls: type, kind: str) -> str | None:
     if getattr(interface, "_is_protocol", False):
         methods = [n for n, v in vars(interface).items() if callable(v) and (not n.startswith("_") or n == "__call__")]
         missing = sorted(n for n in methods if not callable(getattr(cls, n, None)))
-        return f"not a {kind} plugin (missing {missing})" if missing else None
+        seam = kind if kind.endswith("source") else f"{kind} plugin"
+        return f"not a {seam} (missing {missing})" if missing else None
     return None if issubclass(cls, interface) else f"not a {kind} class (a {interface.__name__})"
+
+
+def class_path(cls: type) -> str:
+    """The dotted path a ``_target_`` names ``cls`` by (what a data module records of its source)."""
+    return f"{cls.__module__}.{cls.__qualname__}"
 
 
 # Each kind's base class or plugin seam, and dider's own classes of it, by dotted path: this module sits below the
@@ -189,7 +212,8 @@ INTERFACES = {"network": "dider.models.vae.RelationalVAE", "encoder": "dider.mod
               "prior": "dider.models.plugins.Prior", "duration": "dider.models.plugins.Duration",
               "decoder": "dider.models.plugins.Decoder", "objective": "dider.models.objective.Objective",
               "term": "dider.models.objective.Term", "optimizer": "torch.optim.Optimizer",
-              "scheduler": "torch.optim.lr_scheduler.LRScheduler", "data": "lightning.LightningDataModule"}
+              "scheduler": "torch.optim.lr_scheduler.LRScheduler", "data": "lightning.LightningDataModule",
+              "clip source": "dider.data.clip_source.ClipSource", "track source": "dider.data.tracks.TrackSource"}
 BUILTIN = {
     "network": ("dider.models.vae.RelationalVAE",),
     "encoder": ("dider.models.encoder.GNNLSTMEncoder",),
@@ -204,6 +228,12 @@ BUILTIN = {
                                                 "objective.Sparsity", "objective.Indifference", "objective.PriorFit",
                                                 "objective.BoundaryFit")),
     "data": ("dider.data.clips.ClipsDataModule", "dider.data.tracks.TracksDataModule"),
+    # the sources: the one list of dider's (the config schemas are made from these classes)
+    "clip source": ("dider.data.simulators.push.Push", "dider.data.simulators.particles.Simulation",
+                    *(f"dider.data.readers.{m}" for m in ("nri_files.NRIFiles", "dnri_files.DNRIFiles",
+                                                          "basketball.BasketballFiles", "trajectories.NpzFile"))),
+    "track source": ("dider.data.track_sources.TableFile", "dider.data.readers.eth_ucy.EthUcyFiles",
+                     "dider.data.track_sources.KloppySource", "dider.data.levelx.source.LevelXSource"),
 }
 
 

@@ -5,8 +5,8 @@ settings' rules in ``SETTINGS``: its constructor applies them to the values it r
 naming the class, ``RelationalVAE: num_edges=1: must be >= 2 (...)``, or the key, ``data.num_train=0: must be
 >= 1``) and ``dider.training.preflight.validate_config`` applies them to the node before any work starts
 (:func:`settings_problems`, naming the key: ``model.num_edges=1: ...``). A setting that is a node of its own
-(the data's ``loader``) names its class as its rule, or a :class:`PickedBy` where one of its keys picks the class
-(a data set's ``source`` by its ``reader``). The app's own keys (the seed, the trainer, the
+(the data's ``loader``) names its class as its rule, or a :class:`ClassNode` where the node names its own class
+(a data set's ``source``, by its ``_target_``). The app's own keys (the seed, the trainer, the
 LightningModule's) have theirs in :data:`RULES`, applied by :func:`require` and the preflight alike. Every
 problem is listed at once.
 """
@@ -22,6 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from dider.perf import ALLOCATORS
+from dider.targets import Untrusted, builtin_classes, class_path, kind_problem, resolve
 
 Rule = Callable[[Any], "str | None"]  # a value -> what is wrong with it, or None
 
@@ -177,7 +178,7 @@ def check_arguments(where: str, checks: Mapping[str, tuple[Any, Rule]]) -> None:
 def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[str, tuple[Any, Rule]] | None = None,
                    *, key: str | None = None) -> None:
     """Check a constructor's arguments (``locals()`` at its top) by the rules its class declares once
-    (``SETTINGS``: name -> rule, or name -> a class with ``SETTINGS`` of its own (or a :class:`PickedBy`) for a
+    (``SETTINGS``: name -> rule, or name -> a class with ``SETTINGS`` of its own (or a :class:`ClassNode`) for a
     nested node; arguments
     without one are left alone), and ``related`` ones whose rule depends on another argument (name -> (value,
     rule)); raises :class:`ConfigError` listing every setting that fails, named by the class
@@ -192,14 +193,14 @@ def check_settings(owner: object, values: Mapping[str, Any], related: Mapping[st
                           else f"{type(owner).__name__}: " + "; ".join(found))
 
 
-def _problems(rules: Mapping[str, Rule | type | PickedBy], values: Mapping[str, Any], prefix: str) -> list[str]:
+def _problems(rules: Mapping[str, Rule | type | ClassNode], values: Mapping[str, Any], prefix: str) -> list[str]:
     """``values`` checked by ``rules`` (see :func:`check_settings`): ``"prefix+name=value: why"`` for each."""
     found = []
     for name, value in values.items():
         rule = rules.get(name)
         if isinstance(rule, type):
             found += node_problems(rule, value, f"{prefix}{name}")
-        elif isinstance(rule, PickedBy):
+        elif isinstance(rule, ClassNode):
             found += rule.problems(value, f"{prefix}{name}")
         elif rule is not None and (why := rule(value)) is not None:
             found.append(f"{prefix}{name}={value!r}: {why}")
@@ -207,37 +208,43 @@ def _problems(rules: Mapping[str, Rule | type | PickedBy], values: Mapping[str, 
 
 
 @dataclasses.dataclass(frozen=True)
-class PickedBy:
-    """The rule of a nested node whose settings class one of its keys picks (a data set's ``source`` by its
-    ``reader``): ``classes()`` maps the key's values to classes; a value it lacks takes ``fallback`` (None: refused)."""
+class ClassNode:
+    """The rule of a nested node that names its own class (a data set's ``source``): its ``_target_`` is a class of
+    ``kind`` (:mod:`dider.targets`: dider's own, or one the config's author chose) and the class's settings sit
+    beside it, checked by the class's rules (``SETTINGS``). An object in the node's place (built already, by Hydra
+    or a caller) is checked to be of the kind."""
 
-    key: str
-    classes: Callable[[], Mapping[str, type]]
-    default: str | None = None  # the key's value where the node has none
-    fallback: type | None = None
-
-    def pick(self, node: Mapping[str, Any], where: str) -> type:
-        """The settings class of ``node`` (``where``: its key); an unknown value raises naming it."""
-        value, classes = node.get(self.key, self.default), self.classes()
-        if (cls := classes.get(value, self.fallback) if isinstance(value, str | None) else None) is None:
-            raise ConfigError(f"{where}.{self.key}={value!r}: expected one of {sorted(classes)}")
-        return cls
+    kind: str
 
     def problems(self, node: Any, where: str) -> list[str]:
-        """The node's problems (``where``: its key) as its picked class's node; null is left to the owner."""
+        """The node's problems (``where``: its key); null is left to the owner (its default)."""
+        if node is None:
+            return []
         if not isinstance(node, Mapping):
-            return [] if node is None else [f"{where}={node!r}: expected a mapping"]
+            if isinstance(node, (str, int, float, list, tuple)):
+                return [f"{where}={node!r}: expected a node with a _target_ (a {self.kind} class) and its settings"]
+            why = kind_problem(type(node), self.kind)
+            return [] if why is None else [f"{where}._target_={class_path(type(node))!r}: {why}"]
+        if (target := node.get("_target_")) is None:
+            return [f"{where}._target_: not set; name the {self.kind}'s class (dider's: "
+                    f"{', '.join(sorted(builtin_classes(self.kind)))}; or a class of your own)"]
+        if not isinstance(target, str):
+            return [f"{where}._target_={target!r}: not a class's dotted path"]
         try:
-            return node_problems(self.pick(node, where), node, where)
-        except ConfigError as e:
+            cls = resolve(target, self.kind, where)
+        except Untrusted as e:
             return [str(e)]
+        return node_problems(cls, {k: v for k, v in node.items() if k != "_target_"}, where)
 
 
 def node_problems(cls: type, node: Any, where: str) -> list[str]:
     """A nested settings node (e.g. the data's ``loader``) built into ``cls``: unknown keys and its rules."""
     if node is None:
         return []
-    names = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else list(cls.SETTINGS)
+    if dataclasses.is_dataclass(cls):
+        names = [f.name for f in dataclasses.fields(cls)]
+    else:  # a class of a user's own may declare no rules: its constructor's arguments
+        names = list(getattr(cls, "SETTINGS", None) or [k for k in inspect.signature(cls).parameters])
     if not isinstance(node, Mapping):
         return [f"{where}={node!r}: expected a mapping of {names}"]
     unknown = [f"{where}.{k}: no such setting (expected one of {names})" for k in node if k not in names]

@@ -10,22 +10,22 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from dider.data.clips import ClipsDataModule
-from dider.data.readers import clip_sources
+from dider.targets import builtin_classes
 
 CONF = Path(__file__).resolve().parents[2] / "conf" / "data"
 
 
 def data_module(name: str, **settings: Any) -> ClipsDataModule:
     """The module of ``conf/data/NAME.yaml`` (a data set of clips: ``synth``, ``springs``, ``basketball``, ...): the
-    YAML's own values (sizes, loader), the reader its source's schema names, and ``settings`` (nested as the YAML
-    nests them: the source's under ``source``) over them key by key. The settings reach the module as a config
-    gives them (tuples as lists) but not through OmegaConf, so that a test may hand it values no config file could
-    hold (a NumPy integer)."""
+    YAML's own values (sizes, loader), the class its source's schema names (``_target_``), and ``settings``
+    (nested as the YAML nests them: the source's under ``source``) over them key by key. The settings reach the
+    module as a config gives them (tuples as lists) but not through OmegaConf, so that a test may hand it values no
+    config file could hold (a NumPy integer)."""
     body = OmegaConf.load(CONF / f"{name}.yaml")
     defaults = OmegaConf.to_container(body.pop("defaults"))
     schema = next(d["/schema@source"] for d in defaults if isinstance(d, dict) and "/schema@source" in d)
-    reader = next(r for r, cls in clip_sources().items() if cls.__name__ == schema)
-    yaml = OmegaConf.to_container(OmegaConf.merge({"source": {"reader": reader}}, body), resolve=True)
+    target = next(path for path, cls in builtin_classes("clip source").items() if cls.__name__ == schema)
+    yaml = OmegaConf.to_container(OmegaConf.merge({"source": {"_target_": target}}, body), resolve=True)
     return ClipsDataModule(**merged(yaml, listed(settings)))
 
 

@@ -166,11 +166,13 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--lengths", type=_lengths, default=[3, 5, 10], help="fixed slot lengths (default 3,5,10)")
     parser.add_argument("--seed", type=int, default=0, help="the draws' seed (default 0)")
     parser.add_argument("--out", type=Path, help="write the result as JSON here")
+    parser.add_argument("--trust", nargs="+", default=[], metavar="CLASS",
+                        help="dotted paths of classes of your own the run's configs may build (a plugin, a source)")
     args = parser.parse_args(argv)
     if args.clips < 1 or args.draws < 1:
         parser.error(f"--clips and --draws must be >= 1, got {args.clips} and {args.draws}")
     result = {"command": command_line(parser.prog, argv)} | diagnose(args.run, args.clips, args.draws, args.lengths,
-                                                                   args.seed)
+                                                                   args.seed, args.trust)
     print(table(result))
     if args.out is not None:
         atomic_write_text(args.out, json.dumps(result, indent=1))

@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from dider.data.simulate import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
+from dider.data.simulators.push import EDGE_0_TO_2, EDGE_1_TO_2, simulate_push
 from dider.evaluation.metrics import EdgeAccuracy
 from dider.io import atomic_write_text
 from dider.outputs.run_record import command_line

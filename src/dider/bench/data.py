@@ -45,7 +45,7 @@ def benchmark_preprocess(tmpdir: str | Path | None = None, minutes: float = 20.0
 
 def data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[str, Any]]:
     if case.kind == "generate":
-        from dider.data.simulate import simulate_push
+        from dider.data.simulators.push import simulate_push
 
         return timed(lambda: simulate_push(case.batch, case.steps, seed=0), case.iters, case.warmup, device), {}
     if case.kind == "preprocess":
@@ -55,9 +55,10 @@ def data_case(case: Case, device: str, tmpdir: str | None) -> tuple[float, dict[
         return record["seconds"]["total"] / case.batch, {"seconds": record["seconds"], "edges": record["edges"]}
     # load: one epoch of the synthetic training loader (2000 clips) with the given workers
     from dider.data.clips import ClipsDataModule
+    from dider.data.simulators.push import Push
 
     with tempfile.TemporaryDirectory(dir=tmpdir) as cache:
-        dm = ClipsDataModule(source={"reader": "push"}, num_train=2000, num_val=16, num_test=16, cache_dir=cache,
+        dm = ClipsDataModule(source=Push(), num_train=2000, num_val=16, num_test=16, cache_dir=cache,
                              loader={"batch_size": case.batch, "num_workers": case.settings["num_workers"],
                                      "pin_memory": device == "cuda"})
         dm.prepare_data()

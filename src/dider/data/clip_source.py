@@ -1,6 +1,6 @@
 """What a clip source is (:class:`ClipSource`) and what it gives the data module: :class:`Clips`, a split of
-fixed-length clips already cut (the simulators, and the files that ship clips: NRI's, DNRI's, the basketball sets,
-``.npz`` trajectories)."""
+fixed-length clips already cut (the simulators of :mod:`dider.data.simulators`, and the files that ship clips,
+:mod:`dider.data.readers`: NRI's, DNRI's, the basketball sets, ``.npz`` trajectories)."""
 
 from __future__ import annotations
 
@@ -55,11 +55,11 @@ class Clips:
 
 
 class ClipSource(Protocol):
-    """A clip source's settings (its ``data.source`` node, a frozen dataclass that its reader module names ``CLIPS``),
-    as :class:`~dider.data.clips.ClipsDataModule` reads it. Optional members, read where present: ``predict_clips()
-    -> Clips`` (every clip, for ``mode=predict``) and the class constants below."""
+    """A clip source as :class:`~dider.data.clips.ClipsDataModule` reads it: a class that a data config's
+    ``data.source._target_`` names (dider's or one in a package of the user's own), its settings the node's other
+    keys, best a frozen dataclass (what a checkpoint records of it: the fields). Optional members, read where
+    present: ``predict_clips() -> Clips`` (every clip, for ``mode=predict``) and the class constants below."""
 
-    reader: str  # the reader module's name
     GENERATED: ClassVar[bool]  # data.num_* are the sizes to simulate (else caps on what the files hold)
     FIT_ON_FILE: ClassVar[bool]  # the normaliser is fitted on the whole training file, before any cap
     SPLIT_SETTINGS: ClassVar[tuple[str, ...]]  # which of data.split, data.val_fraction and data.seed it reads

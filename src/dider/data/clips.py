@@ -1,19 +1,20 @@
 """The data module of every data set that comes as fixed-length clips: the simulators (``data=synth``, ``springs``,
 ``charged``) and the files that ship clips (``nri_files``, ``dnri_files``, ``basketball``, ``trajectories``).
 
-``data.source`` says what is read or simulated; its ``reader`` picks the clip source (:mod:`dider.data.readers`),
-whose settings fill the rest of the node. The module makes the source's parts into the three splits (a file of clips
-split by ``split`` fractions, a validation split carved from the training files by ``val_fraction``; ``seed`` seeds
-both), crops the training clips (``train_len``), caps each split (``num_*``; a simulator's sizes), fits the
-normaliser (``normalization``) on the training split and serves the batches: states [B, T, N, 4] normalised, mask
-[B, T, N], edges [B, T-1, E] long where the source has them, and the clips' ids as ``source``.
+``data.source`` says what is read or simulated: its ``_target_`` names the clip source's class
+(:class:`~dider.data.clip_source.ClipSource`: dider's in :mod:`dider.data.simulators` and :mod:`dider.data.readers`,
+or one of the user's own), whose settings fill the rest of the node. The module makes the source's parts into the
+three splits (a file of clips split by ``split`` fractions, a validation split carved from the training files by
+``val_fraction``; ``seed`` seeds both), crops the training clips (``train_len``), caps each split (``num_*``; a
+simulator's sizes), fits the normaliser (``normalization``) on the training split and serves the batches: states
+[B, T, N, 4] normalised, mask [B, T, N], edges [B, T-1, E] long where the source has them, and the clips' ids as
+``source``.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict
 from typing import Any, ClassVar
 
 from dider.data.clip_source import Clips, ClipSource
@@ -27,21 +28,20 @@ from dider.data.clip_splits import (
     fractions_problem,
     split_indices,
 )
-from dider.data.common import SPLITS, BaseDataModule, source_node
-from dider.data.readers import clip_sources
-from dider.validation import ConfigError, PickedBy, Rule, check_settings, integer, one_of, optional, within_open
+from dider.data.common import SPLITS, BaseDataModule
+from dider.data.sources import data_source, recorded_source
+from dider.targets import class_path
+from dider.validation import ClassNode, ConfigError, Rule, check_settings, integer, one_of, optional, within_open
 
 log = logging.getLogger(__name__)
 
 # The settings that make the three splits, their defaults and the sources that read them: a source names those it
 # reads in ``SPLIT_SETTINGS``; another one set away from its default is refused.
 SPLIT_DEFAULTS = {"split": [0.8, 0.1, 0.1], "val_fraction": 0.1, "seed": 1}
-WHO_READS = {"split": "a source of one file of clips (reader trajectories)",
-             "val_fraction": "a source whose files may lack a validation split (reader basketball)",
-             "seed": "the sources that split or carve (readers trajectories, basketball)"}
-
-
-PICK = PickedBy("reader", clip_sources)  # a clip source's settings class by its reader
+WHO_READS = {"split": "a source of one file of clips (dider.data.readers.trajectories.NpzFile)",
+             "val_fraction": "a source whose files may lack a validation split "
+                             "(dider.data.readers.basketball.BasketballFiles)",
+             "seed": "the sources that split or carve (NpzFile, BasketballFiles)"}
 
 
 class ClipsDataModule(BaseDataModule):
@@ -49,14 +49,15 @@ class ClipsDataModule(BaseDataModule):
     ClipDataset per split); ``setup("predict")`` serves every clip of a source that has a prediction set (``.npz``
     trajectories, DNRI's files), normalised with the trained model's normaliser."""
 
-    SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
-        "source": PICK, "normalization": one_of(*RANGES), "split": fractions_problem,
+    SOURCE_KIND: ClassVar[str] = "clip source"  # what data.source builds (dider.targets)
+    SETTINGS: ClassVar[dict[str, Rule | type | ClassNode]] = BaseDataModule.SETTINGS | {
+        "source": ClassNode(SOURCE_KIND), "normalization": one_of(*RANGES), "split": fractions_problem,
         "val_fraction": within_open(0, 1), "seed": SPLIT_SEED,
         "train_len": optional(integer(2))}
 
     def __init__(
         self,
-        source: Mapping[str, Any] | None = None,
+        source: ClipSource | Mapping[str, Any] | None = None,
         normalization: str = "separate",
         split: Sequence[float] = (0.8, 0.1, 0.1),
         val_fraction: float = 0.1,
@@ -68,16 +69,16 @@ class ClipsDataModule(BaseDataModule):
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """source: what is read or simulated (its ``reader`` and that reader's settings).
+        """source: what is read or simulated: a clip source, or its node (``_target_``, the class, and its
+        settings).
         normalization: separate (positions and velocities each by their own range), same (one range) or none.
         split: train / val / test fractions of a source that gives one file of clips (a permutation seeded by
         ``seed``). val_fraction: the training clips carved off for validation where the files have no validation
         split (seeded by ``seed``). train_len: crop training clips to their first steps; null: whole clips.
         num_train, num_val, num_test: a simulator's split sizes (required); else a cap on each split's clips."""
         super().__init__()
-        given = dict(source or {})
-        cls = PICK.pick(given, "data.source")
-        self.source: ClipSource = source_node(cls(), given)
+        self.source: ClipSource = data_source(source, self.SOURCE_KIND)
+        cls = type(self.source)
         sizes = {"num_train": num_train, "num_val": num_val, "num_test": num_test}
         self.generated = getattr(cls, "GENERATED", False)  # num_* are the sizes to simulate, not caps
         related = {k: (v, integer(1, " (the simulated split's size)")) for k, v in sizes.items()} \
@@ -85,11 +86,11 @@ class ClipsDataModule(BaseDataModule):
         check_settings(self, locals(), related, key="data")
         reads = getattr(cls, "SPLIT_SETTINGS", ())
         splitting = {"split": list(split), "val_fraction": val_fraction, "seed": seed}
-        if unread := [f"data.{k}={v!r}: data.source.reader={self.source.reader} gives its splits as they are; read "
+        if unread := [f"data.{k}={v!r}: data.source._target_={class_path(cls)} gives its splits as they are; read "
                       f"by {WHO_READS[k]}" for k, v in splitting.items() if k not in reads and v != SPLIT_DEFAULTS[k]]:
             raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(unread))
         self.save_hyperparameters(logger=False)
-        self.hparams["source"] = asdict(self.source)  # as read
+        self.hparams["source"] = recorded_source(self.source)  # as read, the node that builds it again
         self.init_shared()
         self.units = getattr(cls, "UNITS", None)
         self.predicts = hasattr(self.source, "predict_clips")
@@ -105,7 +106,7 @@ class ClipsDataModule(BaseDataModule):
         if stage == "predict":  # every clip of the input, the trained model's normalisation
             if "predict" not in self.datasets:
                 if not self.predicts:
-                    raise ValueError(f"data.source.reader={self.source.reader}: has no prediction set")
+                    raise ValueError(f"data.source._target_={class_path(type(self.source))}: has no prediction set")
                 normalizer = self.predict_normalizer(self.source.where())
                 self.datasets.update(clip_datasets({"predict": self.source.predict_clips()}, normalizer))
             return

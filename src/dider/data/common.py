@@ -13,7 +13,7 @@ their names in ``source_names`` (key -> list indexed by the id).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, ClassVar
@@ -27,7 +27,7 @@ from torch.utils.data import DataLoader, Dataset, RandomSampler
 from dider.data.batch import Batch, Normalizer
 from dider.data.loader import Loader
 from dider.data.pairs import pair_kind_matrix
-from dider.validation import ConfigError, PickedBy, Rule, integer, node_problems, optional, text
+from dider.validation import ClassNode, Rule, integer, optional, text
 
 SPLITS = ("train", "val", "test")
 # The per-agent features of every batch, in order (raw units before normalisation).
@@ -195,15 +195,6 @@ def check_finite(name: str, array: torch.Tensor, where: torch.Tensor | None = No
         raise ValueError(f"{name}: {int(bad.sum())} NaN/inf values (first at index {first}: {what})")
 
 
-def source_node(defaults: Any, given: Mapping[str, Any] | None) -> Any:
-    """A data set's ``data.source`` node: ``defaults`` (its settings dataclass) overridden by the config's node key
-    by key; an unknown key or a bad value raises naming it (``data.source.<key>``)."""
-    given = dict(given or {})
-    if problems := node_problems(type(defaults), given, "data.source"):
-        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
-    return replace(defaults, **given)
-
-
 class EpochOrder(RandomSampler):
     """RandomSampler's shuffle, resumable mid-epoch: each epoch's order comes from a seed drawn from the global
     generator as the epoch starts, exactly as RandomSampler draws it (the same orders, the same random stream),
@@ -253,7 +244,7 @@ class BaseDataModule(L.LightningDataModule):
     """
 
     # The rules of the shared arguments; a subclass adds its own (``BaseDataModule.SETTINGS | {...}``).
-    SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = {
+    SETTINGS: ClassVar[dict[str, Rule | type | ClassNode]] = {
         "loader": Loader, "num_train": optional(integer(1)), "num_val": optional(integer(1)),
         "cache_dir": optional(text),
         "num_test": optional(integer(1)),

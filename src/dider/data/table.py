@@ -1,7 +1,7 @@
 """Cutting a table of long tracks into windows: a ``.csv`` or ``.parquet`` table (``data.source.path``), one row per
-agent per frame, or what a reader reads into the same rows (``data.source.reader``: :mod:`dider.data.track_sources`,
-e.g. ETH/UCY text files, a soccer provider's tracking data through kloppy), as the scenes of
-:class:`~dider.data.tracks.TracksDataModule`, which splits and serves the windows.
+agent per frame, or what a track format reads into the same rows (:mod:`dider.data.track_sources`: a
+:class:`~dider.data.track_sources.TrackFile`, e.g. ETH/UCY text files; a soccer provider's tracking data through
+kloppy), as the scenes of :class:`~dider.data.tracks.TracksDataModule`, which splits and serves the windows.
 
 A table's columns are named in ``data.source.columns``: ``agent``, ``frame`` (integer frame numbers), ``x``, ``y``
 (required), ``scene`` (null: a column called ``scene`` if the file has one, else the whole file is one scene),
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from dider.data.packed import join
+from dider.data.packed import PackedWindows, join
 from dider.data.table_reading import id_name
 from dider.data.windowing import MAX_GRID_CELLS, Windows, grid_windows, midpoint
 
@@ -86,14 +86,14 @@ def _too_few_frames(path: Path | str, seq_len: int, downsample: int, drop: int, 
 
 
 def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, w: Windows, scenes: Sequence[int],
-                  stride: int, origin: tuple[float, float] = (0.0, 0.0)) -> dict[str, Any]:
+                  stride: int, origin: tuple[float, float] = (0.0, 0.0)) -> PackedWindows:
     """Cut the ``scenes`` (indices, in order) of a read table (:func:`~dider.data.table_reading.read_table`'s dict;
     ``path`` names it in messages) into packed windows (raw units: positions less ``origin``) starting every
     ``stride`` steps: a cut of :class:`~dider.data.tracks.Tracks`. Steps faster than ``w.max_speed`` are absent (a
     warning counts them)."""
     lo_hi, first_frame, keep, step, hint = _scene_steps(t, path, w.downsample)
     drop = 1 if t["vel"] is None else 0
-    parts: list[dict[str, Any]] = []
+    parts: list[PackedWindows] = []
     longest = steps_kept = steps_fast = 0
     names = t["names"].get("agent_class")
     for z in scenes:  # scenes: dense grids of different sizes
@@ -111,21 +111,19 @@ def table_windows(t: dict[str, Any], path: Path | str, frame_rate: float, w: Win
         longest = max(longest, present.shape[0])
         states, mask, counts, starts, agent = grid_windows(grid, present, w.seq_len, stride, w.min_agent_steps,
                                                            w.min_agents, w.max_agents, origin)
-        parts.append({
-            "states": torch.from_numpy(states), "mask": torch.from_numpy(mask),
-            "offsets": torch.from_numpy(np.concatenate([[0], np.cumsum(counts)])),
-            "agent": torch.from_numpy(ids[agent]), "class_names": names,
-            "agent_class": None if names is None else torch.from_numpy(t["agent_class"][rows][first][agent]),
-            "start": torch.from_numpy(starts), "scene": torch.from_numpy(np.full(len(starts), z)),
-            "frame": torch.from_numpy(first_frame[z] + (starts + drop) * w.downsample),
-        })
+        parts.append(PackedWindows(
+            torch.from_numpy(states), torch.from_numpy(mask),
+            torch.from_numpy(np.concatenate([[0], np.cumsum(counts)])), torch.from_numpy(ids[agent]),
+            torch.from_numpy(starts), torch.from_numpy(np.full(len(starts), z)),
+            torch.from_numpy(first_frame[z] + (starts + drop) * w.downsample),
+            None if names is None else torch.from_numpy(t["agent_class"][rows][first][agent]), names))
     if steps_fast:
         log.warning("%s: %d of %d agent-steps (%.2f%%) move faster than data.windows.max_speed=%s per second: "
                     "tracking jumps, marked absent", path, steps_fast, steps_kept + steps_fast,
                     100 * steps_fast / (steps_kept + steps_fast), w.max_speed)
     if longest < w.seq_len:
         raise ValueError(_too_few_frames(path, w.seq_len, w.downsample, drop, longest))
-    if not sum(len(p["frame"]) for p in parts):
+    if not sum(len(p) for p in parts):
         raise ValueError(f"{path}: no window of data.windows.seq_len={w.seq_len} steps has >= "
                          f"data.windows.min_agents={w.min_agents} agents present in >= "
                          f"data.windows.min_agent_steps={w.min_agent_steps} of its steps{hint}")
@@ -204,7 +202,7 @@ class TableTracks:
         return self.table["agent_class"] is not None
 
     def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
-            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+            origin: tuple[float, float]) -> dict[str, PackedWindows]:
         """group -> (scene indices, stride) to the group's windows (:func:`table_windows`), relative to ``origin``."""
         return {group: table_windows(self.table, self.where(), self.frame_rate, self.windows, scenes, stride, origin)
                 for group, (scenes, stride) in groups.items()}

@@ -1,6 +1,7 @@
 """Reading a long-format trajectory table (``data=table``): one ``.csv`` or ``.parquet`` file, one row per agent
-per frame, columns named in ``data.source.columns``; every problem is named with the file, the column and the CSV line
-(parquet: the row) before any windowing. :mod:`dider.data.table` cuts the result into windows.
+per frame, columns named in ``data.source.columns`` (:func:`read_table`), or the DataFrame a track format's class read
+with the columns of :data:`TRACK_COLUMNS` (:func:`format_table`); every problem is named with the file, the column
+and the CSV line (parquet: the row) before any windowing. :mod:`dider.data.table` cuts the result into windows.
 """
 
 from __future__ import annotations
@@ -14,13 +15,13 @@ import numpy as np
 import pandas as pd
 
 from dider.data.columns import csv_header
-from dider.data.readers import read_tracks
 
 log = logging.getLogger(__name__)
 
 DEFAULT_COLUMNS: dict[str, str | None] = {"scene": None, "agent": "agent", "frame": "frame", "x": "x", "y": "y",
                                           "vx": None, "vy": None, "agent_class": None}
 REQUIRED = ("agent", "frame", "x", "y")
+TRACK_COLUMNS = ("scene", "agent", "frame", "x", "y", "vx", "vy", "agent_class")  # a format's DataFrame: these
 NUMERIC = ("frame", "x", "y", "vx", "vy")
 SUFFIXES = (".csv", ".parquet")
 
@@ -143,28 +144,40 @@ def _ids(path: Path, s: pd.Series, integers: bool = True) -> tuple[np.ndarray, l
     return codes.astype(np.int64), [str(n) for n in names]
 
 
-def read_table(path: Path, columns: Mapping[str, str | None], reader: str = "table") -> dict[str, Any]:
-    """Read and validate the table; rows sorted by (scene id, agent, frame). reader: ``table`` (a .csv or .parquet
-    file whose columns ``columns`` names) or a format's reader (:mod:`dider.data.readers`; ``columns`` unused).
+def read_table(path: Path, columns: Mapping[str, str | None]) -> dict[str, Any]:
+    """Read and validate the ``.csv`` or ``.parquet`` table ``path`` whose columns ``columns`` names
+    (:func:`check_columns`' result): :func:`table_rows`."""
+    named = {k: v for k, v in columns.items() if v is not None}
+    # A column called "scene" is the scene id unless data.source.columns names one (or uses "scene" for another key).
+    auto_scene = "scene" not in named and "scene" not in named.values()
+    df = _read_frame(path, list(named.values()), optional=["scene"] if auto_scene else [])
+    if auto_scene and "scene" in df.columns:
+        named["scene"] = "scene"
+        log.info("%s: column 'scene' read as the scene id (data.source.columns.scene is null); to read the file as one "
+                 "scene, rename that column", path)
+    return table_rows(path, df, named)
+
+
+def format_table(path: Path, df: pd.DataFrame, reader: str) -> dict[str, Any]:
+    """The rows that the track format ``reader`` (its class's dotted path, for the messages) read from ``path``: a
+    DataFrame with the columns agent, frame, x, y and optionally those of :data:`TRACK_COLUMNS`, others ignored;
+    validated as a table's (:func:`table_rows`)."""
+    if missing := [k for k in REQUIRED if k not in df.columns]:
+        raise ValueError(f"data.source._target_={reader}: its table of {path} lacks the column(s) {missing}")
+    if len(df) == 0:
+        raise ValueError(f"{path}: no rows (expected one row per agent per frame)")
+    df = df[[k for k in TRACK_COLUMNS if k in df.columns]]
+    return table_rows(path, df, {k: k for k in df.columns})
+
+
+def table_rows(path: Path, df: pd.DataFrame, named: Mapping[str, str]) -> dict[str, Any]:
+    """Validate a table's rows (``named``: key -> its column in ``df``); rows sorted by (scene id, agent, frame).
 
     Returns: scene [R] int64 (index into scene_ids), scene_ids [Z] int64 (each scene's source id, sorted), agent
     [R] int64 (ids or codes), frame [R] int64, xy [R, 2] float64, vel [R, 2] float64 or None,
     agent_class [R] int64 or None, line [R] int64 (each row's index in the file) and names (key -> names
     of string ids: scene, agent, agent_class), has_scene (whether a scene column was read).
     """
-    if reader != "table":
-        df = read_tracks(reader, path)
-        named, auto_scene = {k: k for k in df.columns}, False
-    else:
-        named = {k: v for k, v in columns.items() if v is not None}
-        # A column called "scene" is the scene id unless data.source.columns names one (or uses "scene" for another
-        # key).
-        auto_scene = "scene" not in named and "scene" not in named.values()
-        df = _read_frame(path, list(named.values()), optional=["scene"] if auto_scene else [])
-    if auto_scene and "scene" in df.columns:
-        named["scene"] = "scene"
-        log.info("%s: column 'scene' read as the scene id (data.source.columns.scene is null); to read the file as one "
-                 "scene, rename that column", path)
     nums = {k: _numbers(path, df[named[k]]) for k in NUMERIC if k in named}
     frame = nums["frame"]
     if (frac := frame != np.round(frame)).any():

@@ -1,14 +1,17 @@
-"""The ``source`` node of the data sets of long tracks (:class:`~dider.data.tracks.TracksDataModule`): the reader
-and what it reads. Each source's class says how its data set is cut and split: ``WINDOWS`` (the windows' defaults),
-``UNUSED`` (the window settings it does not read, and why), ``SPLIT`` (the split's default), ``IN_ORDER`` (its scenes
-are recordings split in order before the cut; else a table's, cut and then split by a seeded permutation), ``UNITS``;
-``open(windows, cache_dir)`` gives its scenes (:class:`~dider.data.tracks.Tracks`).
+"""The track sources of tables (:class:`~dider.data.tracks.TracksDataModule`'s ``data.source`` nodes whose scenes are
+a table's rows, cut by :mod:`dider.data.table`): the classes a data config's ``data.source._target_`` names. Each
+says how its data set is cut and split (:class:`TableLayout`: ``WINDOWS``, the windows' defaults; ``UNUSED``, the
+window settings it does not read, and why; ``SPLIT``, the split's default; ``IN_ORDER``; ``UNITS``) and gives its
+scenes by ``open(windows, cache_dir)`` (:class:`~dider.data.tracks.Tracks`).
 
-- :class:`FileSource`: a ``.csv`` / ``.parquet`` table whose columns ``columns`` names (reader ``table``), or the
-  files a track reader of :mod:`dider.data.readers` reads (``eth_ucy``, or a new format's module).
-- :class:`KloppySource`: a soccer provider's tracking files through kloppy (reader ``kloppy``); the frame rate is
-  the provider's unless given.
-- :class:`~dider.data.levelx.source.LevelXSource`: the inD / rounD / uniD recordings (reader ``levelx``).
+- :class:`TrackFile`: a file (or folder) in a format of its own, read into the table's rows by the class's ``read``:
+  the base of a track format, dider's (:class:`~dider.data.readers.eth_ucy.EthUcyFiles`) or a user's, whose own
+  options are the subclass's fields;
+- :class:`TableFile`: a ``.csv`` / ``.parquet`` table whose columns ``columns`` names (``data=table``);
+- :class:`KloppySource`: a soccer provider's tracking files through kloppy (``data=soccer``); the frame rate is the
+  provider's unless given.
+
+The levelX recordings are a source of their own (:class:`~dider.data.levelx.source.LevelXSource`).
 """
 
 from __future__ import annotations
@@ -19,14 +22,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from dider.data.common import source_node
-from dider.data.levelx.source import LevelXSource
-from dider.data.readers import reader_problem
+import pandas as pd
+
 from dider.data.readers.kloppy import PROVIDERS, kloppy_tracking, tracking_rows
+from dider.data.sources import SourceSettings
 from dider.data.table import TableTracks
-from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, columns_problem, read_table
+from dider.data.table_reading import DEFAULT_COLUMNS, check_columns, columns_problem, format_table, read_table
 from dider.data.windowing import Windows
-from dider.validation import PickedBy, Rule, above, boolean, finite, one_of
+from dider.targets import class_path
+from dider.validation import Rule, above, boolean, finite, one_of
 
 log = logging.getLogger(__name__)
 
@@ -54,21 +58,22 @@ class TableLayout:
 
 
 @dataclass(frozen=True)
-class FileSource(TableLayout):
-    """A table file, or what a track reader reads."""
+class TrackFile(SourceSettings, TableLayout):
+    """A file, or a folder of files, of tracks in a format of its own: a subclass (a frozen dataclass, its own options
+    its fields, their rules in ``SETTINGS``) defines :meth:`read`; the table's windows, split, normaliser and loader
+    do the rest (``data=table``'s: ``UNITS`` and the class constants of :class:`TableLayout` may be overridden)."""
 
-    reader: str = "table"  # ``table`` or a track reader's module name (dider.data.readers)
-    path: str | None = None  # the .csv / .parquet file, or the file or folder the reader reads
-    # the table's column names (reader table): agent, frame, x, y required; scene, vx, vy, agent_class optional
-    columns: Mapping[str, str | None] = field(default_factory=lambda: dict(DEFAULT_COLUMNS))
+    path: str | None = None  # the file or folder the format reads (required)
     frame_rate: float = 1.0  # frames per second of the frame column: differenced velocities are per second
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": lambda v: reader_problem(v, tuple(SOURCES)),
-                                           "frame_rate": _rate, "columns": columns_problem}
+    SETTINGS: ClassVar[dict[str, Rule | type]] = {"frame_rate": _rate}
     UNITS: ClassVar[str | None] = None  # unknown: the user's
 
-    def __post_init__(self) -> None:
-        check_columns(self.columns)  # before anything is read
+    def read(self, path: Path) -> pd.DataFrame:
+        """The tracks at ``path`` (an existing file or folder) as one long table: a DataFrame with the columns agent,
+        frame (integer steps), x, y and optionally scene, vx, vy, agent_class, one row per agent per frame; any
+        other column is ignored. A problem raises naming the file and line."""
+        raise NotImplementedError(f"{class_path(type(self))}: a track format defines read(path)")
 
     def where(self) -> str:
         """What messages name as the data's origin."""
@@ -76,21 +81,39 @@ class FileSource(TableLayout):
 
     def file(self) -> Path:
         if self.path is None:
-            raise ValueError("data.source.path is not set: point it at a .csv or .parquet table with one row per "
-                             "agent per frame (columns named in data.source.columns), or at what "
-                             "data.source.reader reads")
+            raise ValueError(f"data.source.path is not set: point it at what {class_path(type(self))} reads")
         return Path(self.path).expanduser()
 
     def rows(self) -> tuple[dict[str, Any], float]:
-        """The track table's rows and its frame rate."""
-        return read_table(self.file(), check_columns(self.columns), self.reader), self.frame_rate
+        """The track table's rows (:func:`~dider.data.table_reading.table_rows`) and its frame rate."""
+        if not (path := self.file()).exists():
+            raise FileNotFoundError(f"data.source.path={path}: no such file or folder")
+        return format_table(path, self.read(path), class_path(type(self))), self.frame_rate
 
 
 @dataclass(frozen=True)
-class KloppySource(TableLayout):
+class TableFile(TrackFile):
+    """A ``.csv`` / ``.parquet`` table, one row per agent per frame, its columns named by ``columns``."""
+
+    # the table's column names: agent, frame, x, y required; scene, vx, vy, agent_class optional
+    columns: Mapping[str, str | None] = field(default_factory=lambda: dict(DEFAULT_COLUMNS))
+
+    SETTINGS: ClassVar[dict[str, Rule | type]] = TrackFile.SETTINGS | {"columns": columns_problem}
+
+    def file(self) -> Path:
+        if self.path is None:
+            raise ValueError("data.source.path is not set: point it at a .csv or .parquet table with one row per "
+                             "agent per frame (columns named in data.source.columns)")
+        return Path(self.path).expanduser()
+
+    def rows(self) -> tuple[dict[str, Any], float]:
+        return read_table(self.file(), check_columns(self.columns)), self.frame_rate
+
+
+@dataclass(frozen=True)
+class KloppySource(SourceSettings, TableLayout):
     """A match's tracking data read through kloppy (``pip install 'dider[soccer]'``)."""
 
-    reader: str = "kloppy"
     provider: str = "hawkeye"  # kloppy's reader: hawkeye, skillcorner, metrica_csv, metrica_epts, tracab, ...
     files: Mapping[str, Any] | None = None  # the reader's files by its argument names, e.g. Hawk-Eye's ball_feeds
     options: Mapping[str, Any] | None = None  # further keyword arguments of the kloppy loader (sample_rate, limit)
@@ -120,16 +143,3 @@ class KloppySource(TableLayout):
         log.info("%s: %d players%s over %d period(s) at %s Hz", self.where(), len(rows["names"]["agent"]) -
                  int(self.ball), " and the ball" if self.ball else "", len(rows["scene_ids"]), rate)
         return rows, rate
-
-
-TrackSource = FileSource | KloppySource | LevelXSource
-# the readers with settings of their own; any other: FileSource
-SOURCES: dict[str, type] = {"kloppy": KloppySource, "levelx": LevelXSource}
-PICK = PickedBy("reader", lambda: SOURCES, default="table", fallback=FileSource)  # a source's class by its reader
-
-
-def track_source(given: Mapping[str, Any] | None) -> TrackSource:
-    """The ``data.source`` node as its reader's settings, checked: unknown keys and bad values raise naming them."""
-    given = dict(given or {})
-    cls = PICK.pick(given, "data.source")
-    return cls.of(given) if hasattr(cls, "of") else source_node(cls(), given)

@@ -1,9 +1,11 @@
 """The data module of every data set of long tracks: a table of rows (``data=table``, ``eth_ucy``, ``soccer``, a
-user's reader) and the levelX drone recordings (``data=ind``, ``ind200``, ``round``, ``unid``).
+user's own format) and the levelX drone recordings (``data=ind``, ``ind200``, ``round``, ``unid``).
 
-``data.source`` says what is read; its ``reader`` picks the source (:data:`dider.data.track_sources.SOURCES`), whose
-settings fill the rest of the node. The source reads its scenes (a table's scenes, a levelX data set's recordings)
-and cuts each into windows by ``data.windows``, anchored at the scene's frames (:class:`Tracks`). The module splits
+``data.source`` says what is read: its ``_target_`` names the track source's class (:class:`TrackSource`: dider's in
+:mod:`dider.data.track_sources`, :mod:`dider.data.readers` and :mod:`dider.data.levelx`, or one of the user's own),
+whose settings fill the rest of the node. The source reads its scenes (a table's scenes, a levelX data set's
+recordings) and cuts each into windows by ``data.windows``, anchored at the scene's frames (:class:`Tracks`, which
+gives :class:`~dider.data.packed.PackedWindows`). The module splits
 them, caps each split (``num_*``), fits the normaliser on the training windows and serves the batches: states [B, T,
 N, 4] normalised (zeros where absent), mask [B, T, N] bool, the windows' source ids (``clip``, ``scene``, ``frame``,
 ``agent``) and, with ``data.pairs``, the test windows' agent pairs of the consistency check; N is the largest agent
@@ -21,6 +23,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, replace
+from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
@@ -36,12 +39,14 @@ from dider.data.clip_splits import (
     split_problem,
 )
 from dider.data.common import SPLITS, BaseDataModule, PackedClipDataset, pad_collate, spread_indices
-from dider.data.packed import select_windows
+from dider.data.packed import PackedWindows
 from dider.data.pairs import PairRules, find_pairs
-from dider.data.track_sources import PICK, track_source
+from dider.data.sources import data_source, recorded_source
+from dider.data.track_sources import TableFile
 from dider.data.windowing import Windows
 from dider.protocol import fill_absent
-from dider.validation import PickedBy, Rule, check_settings
+from dider.targets import class_path
+from dider.validation import ClassNode, Rule, check_settings
 
 log = logging.getLogger(__name__)
 
@@ -49,15 +54,11 @@ log = logging.getLogger(__name__)
 class Tracks(Protocol):
     """A source's scenes once opened (``source.open(windows, cache_dir)``), as :class:`TracksDataModule` reads them.
 
-    ``cut`` returns, per group, the packed windows of its scenes in scene order (raw units: positions less the
-    ``origin`` it is given, subtracted before any float32 rounding): states [P, T, 4] float32 (zeros where absent),
-    mask [P, T] bool, offsets [W+1] long (window w owns rows offsets[w]:offsets[w+1], agents
-    by id), agent [P] long (ids, or codes into ``names["agent"]``), agent_class [P] long or None (codes into
-    class_names), class_names, start [W] long (the window's first step on its scene's grid of steps), scene [W] long
-    (index into ``scenes``), frame [W] long (the source's frame of the window's step 0: a table's steps count from
-    the scene's first frame, its first step dropped where velocities are differenced; a recording's from frame 0).
-    Optional: ``prepare(groups)`` (cache the groups' cuts; rank 0 under DDP) and ``background(scene)`` (an image to
-    draw the scene's windows on)."""
+    ``cut`` returns, per group, the windows of its scenes in scene order (:class:`~dider.data.packed.PackedWindows`,
+    raw units: positions less the ``origin`` it is given, subtracted before any float32 rounding; ``frame``: a
+    table's steps count from the scene's first frame, its first step dropped where velocities are differenced; a
+    recording's from frame 0). Optional: ``prepare(groups)`` (cache the groups' cuts; rank 0 under DDP) and
+    ``background(scene)`` (an image to draw the scene's windows on)."""
 
     scenes: list[str]  # the scenes' names, in reading order
     scene_ids: torch.Tensor  # [Z] long: each scene's source id (its number, or a code into names["scene"])
@@ -68,8 +69,30 @@ class Tracks(Protocol):
     origin: tuple[float, float]  # (x0, y0) the windows of a training run are relative to: the source's centre
 
     def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
-            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+            origin: tuple[float, float]) -> dict[str, PackedWindows]:
         """group -> (scene indices, stride) to the group's windows, positions relative to ``origin``."""
+        ...
+
+
+class TrackSource(Protocol):
+    """A track source as :class:`TracksDataModule` reads it: a class that a data config's ``data.source._target_``
+    names (dider's or one in a package of the user's own), its settings the node's other keys, best a frozen
+    dataclass (what a checkpoint records of it: the fields). A table format's class derives from
+    :class:`~dider.data.track_sources.TrackFile`, which has all of these but ``read``. Optional: ``frame_rate`` (a
+    setting; None: the tracks say theirs once cut, and the checkpoint records it)."""
+
+    WINDOWS: ClassVar[Windows]  # the windows' defaults (data.windows overrides them key by key)
+    UNUSED: ClassVar[dict[str, str]]  # the window settings it does not read, and why
+    SPLIT: ClassVar[tuple[float, ...]]  # data.split's default
+    IN_ORDER: ClassVar[bool]  # its scenes are recordings split in order before the cut (else a table's)
+    UNITS: ClassVar[str | None]  # the positions' unit, for scale bars (None: unknown)
+
+    def open(self, windows: Windows, cache_dir: Path) -> Tracks:
+        """Its scenes, to be cut by ``windows`` (cached under ``cache_dir`` where the source caches)."""
+        ...
+
+    def where(self) -> str:
+        """What error messages name the input by (``data.source.path=...``)."""
         ...
 
 
@@ -83,14 +106,15 @@ class TracksDataModule(BaseDataModule):
     predicts = True
     collate_fn = staticmethod(pad_collate)
 
-    SETTINGS: ClassVar[dict[str, Rule | type | PickedBy]] = BaseDataModule.SETTINGS | {
-        "source": PICK, "windows": Windows,
+    SOURCE_KIND: ClassVar[str] = "track source"  # what data.source builds (dider.targets)
+    SETTINGS: ClassVar[dict[str, Rule | type | ClassNode]] = BaseDataModule.SETTINGS | {
+        "source": ClassNode(SOURCE_KIND), "windows": Windows,
         "split": split_problem, "pairs": PairRules,
         "seed": SPLIT_SEED}
 
     def __init__(
         self,
-        source: Mapping[str, Any] | None = None,
+        source: TrackSource | Mapping[str, Any] | None = None,
         windows: Mapping[str, Any] | None = None,
         split: Sequence[float] | None = None,
         seed: int = 1,
@@ -101,9 +125,11 @@ class TracksDataModule(BaseDataModule):
         loader: Mapping[str, Any] | None = None,
         cache_dir: str | None = None,
     ) -> None:
-        """source: what is read (:mod:`dider.data.track_sources`): ``reader`` (``table``: a .csv / .parquet file's
-        columns; a format's reader of :mod:`dider.data.readers`, e.g. ``eth_ucy``; ``kloppy``: a soccer provider's
-        files; ``levelx``: inD / rounD / uniD recordings) and that reader's settings.
+        """source: what is read: a track source, or its node (``_target_``, the class, and its settings), e.g.
+        :class:`~dider.data.track_sources.TableFile` (a .csv / .parquet file's columns; the default),
+        :class:`~dider.data.readers.eth_ucy.EthUcyFiles` (a format's files),
+        :class:`~dider.data.track_sources.KloppySource` (a soccer provider's files) or
+        :class:`~dider.data.levelx.source.LevelXSource` (inD / rounD / uniD recordings).
         windows: how scenes are cut (:class:`~dider.data.windowing.Windows`) over the source's defaults (``WINDOWS``).
         split: train / val / test: fractions of a table's scenes (or windows), or recordings in order (counts or
         fractions); null: the source's (``SPLIT``). seed: the seed of a table's split.
@@ -111,19 +137,19 @@ class TracksDataModule(BaseDataModule):
         :class:`dider.data.pairs.PairRules` fields over its defaults; test batches carry ``pair_kind``); needs agent
         classes; null: no check."""
         super().__init__()
-        self.source = track_source(source)
+        self.source: TrackSource = data_source(source, self.SOURCE_KIND, default=TableFile)
         cls = type(self.source)
         split = cls.SPLIT if split is None else split
         in_order = "splits its recordings in order; the seed is a table's"
         check_settings(self, {**locals(), "split": None}, {  # the split by its source's rule alone
             "split": (split, counts_problem if cls.IN_ORDER else fractions_problem),
-            "seed": (seed, lambda v: f"data.source.reader={self.source.reader} {in_order}" if cls.IN_ORDER and v != 1
+            "seed": (seed, lambda v: f"data.source._target_={class_path(cls)} {in_order}" if cls.IN_ORDER and v != 1
                      else None)}, key="data")
         self.windows = Windows.of(cls.WINDOWS, windows, cls.UNUSED)
         self.pair_rules = None if pairs is None else _pair_rules(pairs)
         self.save_hyperparameters(logger=False)
         h = self.hparams
-        h["source"], h["windows"], h["split"] = asdict(self.source), asdict(self.windows), list(split)  # as read
+        h["source"], h["windows"], h["split"] = recorded_source(self.source), asdict(self.windows), list(split)
         self.init_shared()
         self.units = cls.UNITS
         self.frame_step = self.windows.downsample
@@ -177,69 +203,68 @@ class TracksDataModule(BaseDataModule):
         cuts = tracks.cut(self._groups(stage), origin)
         if getattr(self.source, "frame_rate", 0) is None:  # a source that reads its rate: the checkpoint carries it
             self.source = replace(self.source, frame_rate=tracks.frame_rate)
-            self.hparams["source"] = asdict(self.source)
+            self.hparams["source"] = recorded_source(self.source)
         self.dt = self.windows.downsample / tracks.frame_rate
         self.source_names = {k: v for k, v in tracks.names.items() if k in ("scene", "agent")}
         if normalizer is not None:
-            self.datasets["predict"] = self._dataset(_numbered(cuts["predict"]), normalizer, "predict")
+            self.datasets["predict"] = self._dataset(cuts["predict"].numbered(), normalizer, "predict")
             log.info("%s: %d windows to predict", self.source.where(), len(self.datasets["predict"]))
             return
         parts, by = self._split(cuts)
         train = parts["train"]
         try:
-            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train["states"], train["mask"], origin))
+            self.normalizer = self.train_normalizer(lambda: Normalizer.fit(train.states, train.mask, origin))
         except ValueError as e:  # e.g. agents that never move: a zero velocity range
-            scenes = [tracks.scenes[i] for i in torch.unique(train["scene"]).tolist()]
+            scenes = [tracks.scenes[i] for i in torch.unique(train.scene).tolist()]
             raise ValueError(f"{self.source.where()}: cannot fit the normalisation on the train split (scenes "
                              f"{scenes}): {e}") from None
         for split in SPLITS:
             self.datasets[split] = self._dataset(parts[split], self.normalizer, split)
-        used = len(torch.unique(torch.cat([p["scene"] for p in parts.values()])))
+        used = len(torch.unique(torch.cat([p.scene for p in parts.values()])))
         log.info("%s: %d windows of %d scenes, split by %s: %s", self.source.where(),
                  sum(len(d) for d in self.datasets.values()), used, by, {s: len(d) for s, d in self.datasets.items()})
 
-    def _split(self, cuts: dict[str, dict[str, Any]]) -> tuple[dict[str, dict[str, Any]], str]:
+    def _split(self, cuts: dict[str, PackedWindows]) -> tuple[dict[str, PackedWindows], str]:
         """The windows of each split, capped (``num_*``) and numbered (``clip``): a table's windows numbered over the
         table, then split by scene when >= 3 scenes have windows, else by window; recordings come cut by split, each
         split's windows numbered after its cap."""
         h = self.hparams
         caps = {"train": h.num_train, "val": h.num_val, "test": h.num_test}
 
-        def capped(cut: dict[str, Any], split: str) -> dict[str, Any]:
-            return select_windows(cut, spread_indices(len(cut["frame"]), caps[split]))
+        def capped(cut: PackedWindows, split: str) -> PackedWindows:
+            return cut.select(spread_indices(len(cut), caps[split]))
 
         if type(self.source).IN_ORDER:
-            return {split: _numbered(capped(cuts[split], split)) for split in SPLITS}, "recording, in order"
-        cut = _numbered(cuts["all"])
-        scenes = torch.unique(cut["scene"])
+            return {split: capped(cuts[split], split).numbered() for split in SPLITS}, "recording, in order"
+        cut = cuts["all"].numbered()
+        scenes = torch.unique(cut.scene)
         by = "scene" if len(scenes) >= 3 else "window"
         try:
-            idx = split_indices(len(scenes) if by == "scene" else len(cut["frame"]), h.split, h.seed)
+            idx = split_indices(len(scenes) if by == "scene" else len(cut), h.split, h.seed)
         except ValueError as e:
-            raise ValueError(f"{self.source.where()}: {len(cut['frame'])} windows: {e}") from None
+            raise ValueError(f"{self.source.where()}: {len(cut)} windows: {e}") from None
         if by == "scene":
-            idx = {s: torch.isin(cut["scene"], scenes[p]).nonzero().squeeze(1) for s, p in idx.items()}
+            idx = {s: torch.isin(cut.scene, scenes[p]).nonzero().squeeze(1) for s, p in idx.items()}
         elif (self.windows.stride or self.windows.seq_len) < self.windows.seq_len:
             log.warning("data.windows.stride=%d < data.windows.seq_len=%d with a split by window: val / test windows "
                         "share steps with training windows", self.windows.stride, self.windows.seq_len)
-        return {split: capped(select_windows(cut, idx[split]), split) for split in SPLITS}, by
+        return {split: capped(cut.select(idx[split]), split) for split in SPLITS}, by
 
-    def _dataset(self, cut: dict[str, Any], normalizer: Normalizer, split: str) -> PackedClipDataset:
+    def _dataset(self, cut: PackedWindows, normalizer: Normalizer, split: str) -> PackedClipDataset:
         """A split's windows, normalised, with their source ids (and the test split's pairs)."""
         tracks = self.tracks()
-        states = fill_absent(normalizer.normalize(cut["states"]), cut["mask"])
+        states = fill_absent(normalizer.normalize(cut.states), cut.mask)
         pairs = None
         if split == "test" and self.pair_rules is not None:  # the consistency check reads raw speeds and paths
-            vehicle = torch.tensor([c in self.pair_rules.vehicle_classes for c in cut["class_names"]])
-            pairs = find_pairs(cut["states"], cut["mask"], cut["offsets"], vehicle[cut["agent_class"]],
-                               self.pair_rules)
-        sources = {"clip": cut["clip"], "scene": tracks.scene_ids[cut["scene"]], "frame": cut["frame"]}
+            vehicle = torch.tensor([c in self.pair_rules.vehicle_classes for c in cut.class_names])
+            pairs = find_pairs(cut.states, cut.mask, cut.offsets, vehicle[cut.agent_class], self.pair_rules)
+        sources = {"clip": cut.clip, "scene": tracks.scene_ids[cut.scene], "frame": cut.frame}
         if not tracks.has_scene:
             sources.pop("scene")
-        ds = PackedClipDataset(states, cut["mask"], cut["offsets"], pairs, sources, cut["agent"])
-        ds.window_start, ds.window_scene, ds.scenes = cut["start"], cut["scene"], tracks.scenes
-        if cut["agent_class"] is not None:
-            ds.agent_class, ds.class_names = cut["agent_class"], cut["class_names"]
+        ds = PackedClipDataset(states, cut.mask, cut.offsets, pairs, sources, cut.agent)
+        ds.window_start, ds.window_scene, ds.scenes = cut.start, cut.scene, tracks.scenes
+        if cut.agent_class is not None:
+            ds.agent_class, ds.class_names = cut.agent_class, cut.class_names
         return ds
 
     def background(self, split: str, index: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
@@ -249,11 +274,6 @@ class TracksDataModule(BaseDataModule):
         if not hasattr(tracks, "background"):
             return None
         return tracks.background(int(self.datasets[split].window_scene[index]))
-
-
-def _numbered(cut: dict[str, Any]) -> dict[str, Any]:
-    """The cut with ``clip`` [W] long: each window's number among the cut's windows."""
-    return {**cut, "clip": torch.arange(len(cut["frame"]))}
 
 
 def _pair_rules(given: Mapping[str, Any]) -> PairRules:

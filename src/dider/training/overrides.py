@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 # Keys that 0.2 moved (a message, not a reading of the old layout): a data source's settings went under
 # data.source, the cut's under data.windows, the forecast protocol to protocol.
-SOURCE_KEYS = ("path", "root", "reader", "columns", "frame_rate", "num_steps", "push_factor", "push", "provider",
+SOURCE_KEYS = ("path", "root", "columns", "frame_rate", "num_steps", "push_factor", "push", "provider",
                "files", "options", "ball", "recordings", "classes", "background_scale", "format", "agents",
                "predict_split", "suffix")
 WINDOW_KEYS = ("seq_len", "stride", "eval_stride", "downsample", "min_agent_steps", "min_agents", "max_agents",

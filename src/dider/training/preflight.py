@@ -3,6 +3,7 @@ config, and the settings that are valid but probably not meant (warnings)."""
 
 from __future__ import annotations
 
+import importlib.resources
 import logging
 import os
 from collections.abc import Callable, Mapping
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 
 MODES = ("train", "eval", "predict")
 
+TABLE = "dider.data.track_sources.TableFile"  # data=table's source: its path is a .csv / .parquet file
 # The key holding the clip length of each data module that knows it from its config alone.
 CLIP_LENGTH_KEYS = ("data.source.num_steps", "data.windows.seq_len", "data.source.num_frames")
 
@@ -66,7 +68,7 @@ def validate_config(cfg: DictConfig) -> None:
     problems += _path_problems(get) + _logger_problems(get) + _trainer_choice_problems(get)
     if problems:
         moved = [f"{found}; 0.2 moved it to {RENAMED[key]}" if (key := found.split(":", 1)[0].split("=", 1)[0])
-                 in RENAMED else found for found in _once(problems, cfg)]
+                 in RENAMED else found for found in _in_data_config(_once(problems, cfg))]
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(moved))
     for warning in config_warnings(cfg):
         log.warning(warning)
@@ -93,6 +95,24 @@ def _once(problems: list[str], cfg: DictConfig) -> list[str]:
         if found not in out:
             out.append(found)
     return out
+
+
+def _in_data_config(problems: list[str]) -> list[str]:
+    """A data source's class named with the data config that sets it (``data=NAME`` and its file, unless the
+    command line set it): where the user changes it."""
+    if not HydraConfig.initialized() or (choice := HydraConfig.get().runtime.choices.get("data")) is None:
+        return problems
+    where = f"data={choice}"
+    for source in HydraConfig.get().runtime.config_sources:  # the first config folder that holds it is Hydra's
+        folder = {"file": lambda p: Path(p), "pkg": lambda p: importlib.resources.files(p)}.get(source.schema)
+        try:
+            if folder is not None and (file := folder(source.path) / "data" / f"{choice}.yaml").is_file():
+                where = f"data={choice}: {file}"
+                break
+        except (ImportError, TypeError, ValueError):  # a source that is not a folder here
+            continue
+    return [f"{found} ({where}, or the command line)" if found.startswith("data.source._target_") else found
+            for found in problems]
 
 
 def _checkpoint_problems(mode: Any, ckpt: Any) -> list[str]:
@@ -146,8 +166,8 @@ def _protocol_problems(get: Callable[[str], Any]) -> list[str]:
 def _path_problems(get: Callable[[str], Any]) -> list[str]:
     """The data's input folder or file, where the config names one: it must exist."""
     problems = []
-    # a format's reader (data.source.reader) may read a folder of files
-    path_kind = "file" if get("data.source.reader") in (None, "table") else "file or folder"
+    # a table's path is its file; a format's (any other source with a path) may be a folder of files
+    path_kind = "file" if get("data.source._target_") in (None, TABLE) else "file or folder"
     for key, kind in (("data.source.root", "folder"), ("data.source.path", path_kind)):
         value = get(key)
         if value is None:

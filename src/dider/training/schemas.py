@@ -21,12 +21,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING
 
-from dider.data.clips import ClipsDataModule
-from dider.data.levelx.source import LevelXSource
 from dider.data.pairs import PairRules
-from dider.data.readers import clip_sources
-from dider.data.track_sources import FileSource, KloppySource
-from dider.data.tracks import TracksDataModule
 from dider.models.decoders import MarkovDecoder, RecurrentDecoder
 from dider.models.durations import LearnedDuration, PerStepDuration, StaticDuration
 from dider.models.encoder import GNNLSTMEncoder
@@ -37,23 +32,30 @@ from dider.models.prior import FixedPrior, LearnedPrior
 from dider.models.segment_end import SegmentEnd
 from dider.models.vae import RelationalVAE
 from dider.settings import NODES
-from dider.targets import plain
+from dider.targets import builtin_classes, plain
 from dider.training.module import RelationalVAEModule
 
 # The classes the configs build, each stored as schema/<Class>: the network and its plugins (conf/model/net),
-# the objective's terms (conf/model/net/objective: the objective itself stays open to new terms) and the data
-# modules (conf/data). The LightningModule's is stored by register_schemas.
+# the objective's terms (conf/model/net/objective: the objective itself stays open to new terms), and dider's data
+# modules and sources (conf/data: ``- /schema@source: <Class>``), the classes dider.targets builds at ``data`` and
+# ``data.source``. The LightningModule's is stored by register_schemas.
 PLUGINS = (GNNLSTMEncoder, LearnedPrior, FixedPrior, PerStepDuration, StaticDuration, LearnedDuration, SegmentEnd,
            HoldGate, MarkovDecoder, RecurrentDecoder)
 TERMS = (GaussianNLL, EdgeKL, DurationKL, Sparsity, Indifference, PriorFit, BoundaryFit)
-DATA = (ClipsDataModule, TracksDataModule)
-# The settings of a data set's source where its reader has its own (data.source: ``- /schema@source: <Class>``):
-# the track sources' and every clip source's.
-SOURCES = (FileSource, KloppySource, LevelXSource, *clip_sources().values())
-# Nodes of their own under a data set: the consistency check's rules (``- /schema@pairs: PairRules``), and each track
-# source's window defaults (``- /schema@windows: <Source>Windows``), so the YAML shows every key its class defaults.
-DATA_NODES = {"PairRules": PairRules(), **{f"{cls.__name__}Windows": cls.WINDOWS
-                                        for cls in (FileSource, KloppySource, LevelXSource)}}
+SOURCE_KINDS = ("clip source", "track source")
+
+
+def data_classes() -> tuple[type, ...]:
+    """dider's data modules and sources (:func:`dider.targets.builtin_classes`)."""
+    return tuple(cls for kind in ("data", *SOURCE_KINDS) for cls in builtin_classes(kind).values())
+
+
+def data_nodes() -> dict[str, Any]:
+    """Nodes of their own under a data set: the consistency check's rules (``- /schema@pairs: PairRules``), and each
+    track source's window defaults (``- /schema@windows: <Source>Windows``), so the YAML shows every key its class
+    defaults."""
+    return {"PairRules": PairRules(), **{f"{cls.__name__}Windows": cls.WINDOWS
+                                        for cls in builtin_classes("track source").values()}}
 
 
 def schema(cls: type, exclude: Iterable[str] = (), target: bool = True,
@@ -99,12 +101,10 @@ def module_schema() -> type:
 def register_schemas() -> None:
     """Store the schema of every class the configs build as ``schema/<Class>``."""
     store = ConfigStore.instance()
-    for cls in (*PLUGINS, RelationalVAE, *TERMS, *DATA):
+    for cls in (*PLUGINS, RelationalVAE, *TERMS, *data_classes()):
         store.store(group="schema", name=cls.__name__, node=schema(cls))
     store.store(group="schema", name=RelationalVAEModule.__name__, node=module_schema())
-    for cls in SOURCES:
-        store.store(group="schema", name=cls.__name__, node=schema(cls, target=False))
-    for name, node in DATA_NODES.items():
+    for name, node in data_nodes().items():
         store.store(group="schema", name=name, node=plain(dataclasses.asdict(node)))
     for cls in NODES.values():  # the app's own nodes (protocol, eval, predict): dataclasses already
         store.store(group="schema", name=cls.__name__, node=cls)

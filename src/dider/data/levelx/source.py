@@ -1,10 +1,10 @@
-"""The ``source`` node of the levelX data sets (``data=ind``, ``round``, ``unid``; reader ``levelx``): where the
-recordings are, which of them, what their files and columns are called and which road users are kept; and how they
-are cut and split (DNRI's inD setup: 50-step windows of 2.5 Hz, recordings 19 / 7 / 7 in order)."""
+"""The ``source`` node of the levelX data sets (``data=ind``, ``round``, ``unid``; ``data.source._target_``:
+:class:`LevelXSource`): where the recordings are, which of them, what their files and columns are called and which
+road users are kept; and how they are cut and split (DNRI's inD setup: 50-step windows of 2.5 Hz, recordings
+19 / 7 / 7 in order)."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,8 +13,9 @@ from typing import Any, ClassVar
 from dider.data.levelx.reading import DEFAULT_FEATURES
 from dider.data.levelx.recordings import pattern_regex
 from dider.data.levelx.tracks import LevelXTracks
+from dider.data.sources import SourceSettings
 from dider.data.windowing import Windows
-from dider.validation import ConfigError, Rule, above, node_problems, optional, text, texts
+from dider.validation import Rule, above, optional, text, texts
 
 
 def _pattern(value: Any) -> str | None:
@@ -62,10 +63,10 @@ def _recording_ids(value: object) -> str | None:
 
 
 @dataclass(frozen=True)
-class LevelXSource:
-    """A levelX data set's recordings."""
+class LevelXSource(SourceSettings):
+    """A levelX data set's recordings. Its nested settings (``files``, ``columns``) may be given as mappings, over
+    their defaults key by key, and its lists as lists (as a config holds them)."""
 
-    reader: str = "levelx"
     root: str | None = None  # the folder with each recording's files
     name: str = "ind"  # the data set's name: the cache files' prefix and the log messages
     recordings: tuple[int | str, ...] | None = None  # the recording ids used, e.g. [0, 1, 7]; null: every one found
@@ -92,15 +93,15 @@ class LevelXSource:
         """The recordings found (read and cached when cut)."""
         return LevelXTracks(self, windows, cache_dir)
 
-    @classmethod
-    def of(cls, given: Mapping[str, Any] | None) -> LevelXSource:
-        """The ``data.source`` node over the defaults, key by key (``files`` and ``columns`` too), checked: unknown
-        keys and bad values raise naming them."""
-        given = dict(given or {})
-        if problems := node_problems(cls, given, "data.source"):
-            raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
-        nested = {k: dataclasses.replace(getattr(cls(), k), **{f: tuple(v) if isinstance(v, list) else v
-                                                                for f, v in dict(given[k] or {}).items()})
-                  for k in ("files", "columns") if k in given}
-        listed = {k: tuple(given[k]) for k in ("recordings", "classes") if given.get(k) is not None}
-        return cls(**{**given, **nested, **listed})
+    def __post_init__(self) -> None:
+        super().__post_init__()  # the settings as given (nested mappings checked key by key), before any conversion
+        for key in ("files", "columns"):
+            if isinstance(given := getattr(self, key), Mapping):
+                nested = {k: tuple(v) if isinstance(v, list) else v for k, v in given.items()}
+                object.__setattr__(self, key, NESTED[key](**nested))
+        for key in ("recordings", "classes"):
+            if isinstance(given := getattr(self, key), list):
+                object.__setattr__(self, key, tuple(given))
+
+
+NESTED = {"files": LevelXFiles, "columns": LevelXColumns}  # the source's nested settings, by key

@@ -21,7 +21,7 @@ from dider.data.columns import csv_header, read_columns
 from dider.data.levelx.reading import WindowParams
 from dider.data.levelx.recordings import RecordingFiles, discover_recordings
 from dider.data.levelx.windows import preprocess_recording
-from dider.data.packed import join
+from dider.data.packed import PackedWindows, join
 from dider.data.windowing import Windows
 
 if TYPE_CHECKING:
@@ -112,7 +112,7 @@ class LevelXTracks:
     origin = (0.0, 0.0)
 
     def cut(self, groups: Mapping[str, tuple[Sequence[int], int]],
-            origin: tuple[float, float]) -> dict[str, dict[str, Any]]:
+            origin: tuple[float, float]) -> dict[str, PackedWindows]:
         """Each group's windows, relative to ``origin`` (a trained model's); every recording must run at one frame
         rate (one downsample factor, one step)."""
         out, rates, seen = {}, {}, set()
@@ -123,7 +123,7 @@ class LevelXTracks:
             rates.update({b["recording"]: b["frame_rate"] for b in blobs})
             seen.update(*(b["class_names"] for b in blobs))
             out[group] = join([_part(b, i, w.downsample) for b, i in zip(blobs, scenes, strict=True)], w.seq_len)
-            if len(out[group]["frame"]) == 0:
+            if len(out[group]) == 0:
                 raise ValueError(
                     f"{self.source.name} {group} split (recordings {[self.files[i].id for i in scenes]}): no window "
                     f"of data.windows.seq_len={w.seq_len} steps (x data.windows.downsample={w.downsample} = "
@@ -138,10 +138,7 @@ class LevelXTracks:
                              f"{self.source.columns.frame_rate}); select recordings of one rate with "
                              f"data.source.recordings")
         self.frame_rate = next(iter(rates.values()))
-        if origin != (0.0, 0.0):
-            for cut in out.values():
-                cut["states"] = cut["states"] - cut["mask"][..., None] * torch.tensor([*origin, 0.0, 0.0])
-        return out
+        return {group: windows.shifted(origin) for group, windows in out.items()}
 
     def background(self, scene: int) -> tuple[np.ndarray, tuple[float, float, float, float]] | None:
         """The background image of recording ``scene`` and its extent (left, right, bottom, top) in the tracks'
@@ -171,9 +168,10 @@ class LevelXTracks:
         return pixels, (0.0, cols * meters, -rows * meters, 0.0)
 
 
-def _part(blob: dict[str, Any], scene: int, downsample: int) -> dict[str, Any]:
-    """A recording's cached windows as a part of a cut (:func:`~dider.data.packed.join`): steps anchored at frame 0."""
-    return {"states": blob["states"], "mask": blob["mask"], "offsets": blob["offsets"], "agent": blob["track_id"],
-            "agent_class": blob["agent_class"], "class_names": blob["class_names"], "start": blob["window_start"],
-            "scene": torch.full((len(blob["window_start"]),), scene, dtype=torch.long),
-            "frame": blob["window_start"] * downsample}
+def _part(blob: dict[str, Any], scene: int, downsample: int) -> PackedWindows:
+    """A recording's cached windows (the cache file's dict) as a part of a cut (:func:`~dider.data.packed.join`):
+    steps anchored at frame 0."""
+    start = blob["window_start"]
+    return PackedWindows(blob["states"], blob["mask"], blob["offsets"], blob["track_id"], start,
+                         torch.full((len(start),), scene, dtype=torch.long), start * downsample, blob["agent_class"],
+                         blob["class_names"])

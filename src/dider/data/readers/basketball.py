@@ -23,6 +23,7 @@ import torch
 from dider.data.clip_source import Clips
 from dider.data.common import check_finite
 from dider.data.readers.folder import data_root
+from dider.data.sources import SourceSettings
 from dider.validation import Rule, above, one_of
 
 log = logging.getLogger(__name__)
@@ -112,10 +113,9 @@ def load_dnri(root: Path, split: str) -> torch.Tensor:
 
 
 @dataclass(frozen=True)
-class BasketballFiles:
+class BasketballFiles(SourceSettings):
     """``data=basketball``'s ``data.source`` node."""
 
-    reader: str = "basketball"
     root: str | None = None  # the folder of the files (required)
     format: str = "auto"  # auto (from the files in root) | zhan | dnri
     agents: str = "offence"  # the Zhan files' agents: offence (DNRI's) | defence | players (all 10) | all (+ ball)
@@ -123,7 +123,7 @@ class BasketballFiles:
 
     UNITS: ClassVar[str] = "ft"
     SPLIT_SETTINGS: ClassVar[tuple[str, ...]] = ("val_fraction", "seed")  # Zhan's files have no validation split
-    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("basketball"), "format": one_of("auto", "zhan", "dnri"),
+    SETTINGS: ClassVar[dict[str, Rule]] = {"format": one_of("auto", "zhan", "dnri"),
                                            "agents": one_of(*AGENT_COLUMNS), "frame_rate": above(0)}
 
     def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
@@ -134,9 +134,6 @@ class BasketballFiles:
 
     def where(self) -> str:
         return f"data.source.root={self.root}"
-
-
-CLIPS = BasketballFiles  # a clip source: data.source.reader=basketball
 
 
 def read(root: str | Path | None, format: str = "auto", agents: str = "offence",

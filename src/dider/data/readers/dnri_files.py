@@ -12,7 +12,7 @@ A folder ``root`` holds six files written by ``torch.save``, without extension:
 Edge alignment. In the generator's loop over time steps, edge[t] is set from the distances between the
 positions before the step's update; the pushed particle's velocity is then changed, every position is
 advanced, and the result is stored as feats[t]. So raw edges[:, t] is the interaction that produced step t
-from step t-1: the convention of our own simulator (:mod:`dider.data.simulate`). The clips carry
+from step t-1: the convention of our own simulator (:mod:`dider.data.simulators.push`). The clips carry
 edges[:, 1:], [S, T-1, E], labelling the transitions t -> t+1 of the clip, as ``data=synth`` does. (The
 DNRI code's own edge scoring, ``eval_edges`` in ``dnri/experiments/small_synth_experiment.py``, compares
 its T-1 inferred edges with gt_edges[:, :-1], one step earlier; docs/journal/results_history.md discusses the
@@ -35,6 +35,7 @@ import torch
 from dider.data.clip_source import Clips
 from dider.data.common import SPLITS, check_finite
 from dider.data.readers.folder import data_root
+from dider.data.sources import SourceSettings
 from dider.graph import num_edges
 from dider.validation import Rule, one_of
 
@@ -44,15 +45,14 @@ _READ_ERRORS = (pickle.UnpicklingError, RuntimeError, EOFError, KeyError, ValueE
 
 
 @dataclass(frozen=True)
-class DNRIFiles:
+class DNRIFiles(SourceSettings):
     """``data=dnri_files``'s ``data.source`` node."""
 
-    reader: str = "dnri_files"
     root: str | None = None  # the folder holding the six files (required)
     predict_split: str = "test"  # the split whose files mode=predict reads
 
     FIT_ON_FILE: ClassVar[bool] = True  # DNRI fits the ranges on the whole training file, before any cap
-    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("dnri_files"), "predict_split": one_of(*SPLITS)}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"predict_split": one_of(*SPLITS)}
 
     def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
         return read(self.root)
@@ -63,9 +63,6 @@ class DNRIFiles:
 
     def where(self) -> str:
         return f"data.source.root={self.root}"
-
-
-CLIPS = DNRIFiles  # a clip source: data.source.reader=dnri_files
 
 
 def load_tensor(path: Path) -> torch.Tensor:

@@ -2,25 +2,33 @@
 per pedestrian per frame, ``frame agent x y`` separated by tabs or spaces, no header, positions in metres, frames
 numbered in the original video (a step every 10 frames, or 6 in ETH's own file). A folder reads each ``.txt`` file
 in it as one scene named by the file; a file alone is one scene. Frames become steps: each file's frame numbers
-divided by their common step, so that every scene is at the data set's 2.5 steps a second."""
+divided by their common step, so that every scene is at the data set's 2.5 steps a second (``data=eth_ucy``)."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-TRACKS = True  # a track reader: data.source.reader=eth_ucy
+from dider.data.track_sources import TrackFile
+
 FIELDS = ("frame", "agent", "x", "y")
 
 
-def read(path: Path) -> pd.DataFrame:
-    files = sorted(path.glob("*.txt")) if path.is_dir() else [path]
-    if not files:
-        raise FileNotFoundError(f"data.source.path={path}: no .txt files in the folder")
-    return pd.concat([_scene(f) for f in files], ignore_index=True)
+@dataclass(frozen=True)
+class EthUcyFiles(TrackFile):
+    """``data=eth_ucy``'s ``data.source`` node: ``path``, a folder of the text files or one of them."""
+
+    frame_rate: float = 2.5  # the data set's steps a second, once frames are steps
+
+    def read(self, path: Path) -> pd.DataFrame:
+        files = sorted(path.glob("*.txt")) if path.is_dir() else [path]
+        if not files:
+            raise FileNotFoundError(f"data.source.path={path}: no .txt files in the folder")
+        return pd.concat([_scene(f) for f in files], ignore_index=True)
 
 
 def _scene(file: Path) -> pd.DataFrame:

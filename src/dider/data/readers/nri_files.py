@@ -16,7 +16,7 @@ rows); NRI's own systems are symmetric, where this does not matter. Every proble
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
@@ -26,36 +26,29 @@ import torch
 from dider.data.clip_source import Clips
 from dider.data.common import SPLITS, check_finite
 from dider.data.readers.folder import data_root
+from dider.data.sources import SourceSettings
 from dider.graph import edge_index
 from dider.io import atomic_write
-from dider.validation import Rule, check_settings, one_of
+from dider.validation import Rule
 
 SPLIT_FILES = {"train": "train", "val": "valid", "test": "test"}  # our split -> NRI's name
 
 
 @dataclass(frozen=True)
-class NRIFiles:
+class NRIFiles(SourceSettings):
     """``data=nri_files``'s ``data.source`` node: ``{loc,vel,edges}_{train,valid,test}{suffix}.npy`` in ``root``."""
 
-    reader: str = "nri_files"
     root: str | None = None  # the folder of the files (required)
     suffix: str = "_springs5"  # NRI's file names: _springs5, _charged5, ...
 
     FIT_ON_FILE: ClassVar[bool] = True  # NRI fits the ranges on the whole training file, before any cap
-    SETTINGS: ClassVar[dict[str, Rule]] = {
-        "reader": one_of("nri_files"), "suffix": lambda v: None if isinstance(v, str) else "expected a string"}
-
-    def __post_init__(self) -> None:
-        check_settings(self, asdict(self), key="data.source")
+    SETTINGS: ClassVar[dict[str, Rule]] = {"suffix": lambda v: None if isinstance(v, str) else "expected a string"}
 
     def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
         return read(self.root, self.suffix)
 
     def where(self) -> str:
         return f"data.source.root={self.root}"
-
-
-CLIPS = NRIFiles  # a clip source: data.source.reader=nri_files
 
 
 def nri_path(root: Path, kind: str, split: str, suffix: str) -> Path:

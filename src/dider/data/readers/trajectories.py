@@ -25,25 +25,25 @@ import torch
 
 from dider.data.clip_source import Clips
 from dider.data.common import check_finite
+from dider.data.sources import SourceSettings
 from dider.data.windowing import midpoint
 from dider.graph import num_edges
 from dider.protocol import fill_absent
-from dider.validation import Rule, above, one_of
+from dider.validation import Rule, above
 
 # What a damaged or foreign file can raise while numpy opens or decompresses it.
 _READ_ERRORS = (ValueError, OSError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
 
 
 @dataclass(frozen=True)
-class NpzFile:
+class NpzFile(SourceSettings):
     """``data=trajectories``'s ``data.source`` node."""
 
-    reader: str = "trajectories"
     path: str | None = None  # the .npz file (required)
     frame_rate: float = 1.0  # finite-difference velocities = (pos[t] - pos[t-1]) * frame_rate (no 'velocities')
 
     SPLIT_SETTINGS: ClassVar[tuple[str, ...]] = ("split", "seed")  # the module splits the file's clips
-    SETTINGS: ClassVar[dict[str, Rule]] = {"reader": one_of("trajectories"), "frame_rate": above(0)}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"frame_rate": above(0)}
 
     def clips(self, sizes: Mapping[str, int | None], cache_dir: Path) -> dict[str, Clips]:
         """Every clip of the file as one part (``all``): the data module splits them."""
@@ -54,9 +54,6 @@ class NpzFile:
 
     def where(self) -> str:
         return f"data.source.path={self.path}"
-
-
-CLIPS = NpzFile  # a clip source: data.source.reader=trajectories
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:

@@ -1,4 +1,5 @@
-"""NRI's particle systems (Kipf et al. 2018), the relational-inference field's shared benchmark, vectorised over clips.
+"""NRI's particle systems (Kipf et al. 2018), the relational-inference field's shared benchmark, vectorised over clips,
+and their clip source (``data=springs``, ``data=charged``).
 
 N balls move in a 2-D box of half-width 5 with elastic walls, integrated with a step of 1e-3 and recorded every
 ``sample_every`` steps (NRI's 100), each force component clipped to 100:
@@ -14,13 +15,32 @@ within a clip, the case segment models exist for: before each recorded frame aft
 or forms (springs) or each ball's charge flips (charged) with that probability, so the labels are per step.
 
 Alignment: ``edges[:, t]`` is the graph that moved the balls from frame t-1 to frame t (for t = 0, from the start
-of the simulation), the convention of :mod:`dider.data.simulate`; frame 0 is the state after ``sample_every``
-integration steps, as in NRI's generator, which records from there.
+of the simulation), the convention of :mod:`dider.data.simulators.push`; frame 0 is the state after
+``sample_every`` integration steps, as in NRI's generator, which records from there.
+
+The source (:class:`Simulation`) simulates each split from its own seed, cached under the cache folder by every
+setting that made it. Its clips' edges come receiver-major as in NRI's files, one per transition t -> t+1; ids:
+``clip``, the clip's index.
 """
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, ClassVar
+
 import torch
+
+from dider.data.cache import cache_key, cached_splits
+from dider.data.clip_source import Clips
+from dider.data.common import SPLITS
+from dider.data.sources import SourceSettings
+from dider.graph import edge_index
+from dider.validation import Rule, integer, one_of, within
+
+log = logging.getLogger(__name__)
 
 SYSTEMS = ("springs", "charged")
 BOX = 5.0
@@ -110,3 +130,48 @@ def simulate_particles(system: str, num_samples: int, num_frames: int = 49, num_
     if not (torch.isfinite(loc).all() and torch.isfinite(vel).all()):
         raise ValueError(f"simulate_particles: {system} produced non-finite states")
     return loc.transpose(2, 3).contiguous(), vel.transpose(2, 3).contiguous(), labels
+
+
+@dataclass(frozen=True)
+class Simulation(SourceSettings):
+    """What ``data=springs`` / ``data=charged`` simulate (:func:`simulate_particles`): their ``data.source`` node; the
+    split sizes are ``data.num_train``, ``num_val`` and ``num_test``."""
+
+    system: str = "springs"  # springs or charged (data=nri_files reads NRI's files: dider.data.readers.nri_files)
+    num_balls: int = 5
+    num_frames: int = 49  # frames per clip (NRI: 49 for training, 99 in its test files)
+    sample_every: int = 100  # integration steps per frame
+    switch_prob: float = 0.0  # chance per frame that a spring breaks or forms / a charge flips (0: NRI's static graph)
+    seed: int = 1  # the data seed; each split draws from its own stream
+
+    GENERATED: ClassVar[bool] = True  # data.num_* are the splits' sizes
+
+    SETTINGS: ClassVar[dict[str, Rule]] = {
+        "system": one_of(*SYSTEMS), "num_balls": integer(2), "num_frames": integer(2),
+        "sample_every": integer(1), "switch_prob": within(0.0, 1.0), "seed": integer(0, "", 2**31 - 1)}
+
+    def clips(self, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
+        return read(self, sizes, cache_dir)
+
+    def where(self) -> str:
+        return f"the {self.system} simulation"
+
+
+def cache_path(sim: Simulation, split: str, size: int, cache_dir: Path) -> Path:
+    params = {**asdict(sim), "split": split, "num_samples": size, "version": 1}  # every setting
+    return cache_dir / f"{sim.system}_{split}_{cache_key(params)}.pt"
+
+def read(sim: Simulation, sizes: Mapping[str, int], cache_dir: Path) -> dict[str, Clips]:
+    """Each split of ``sizes`` (split -> number of clips), from the cache or simulated and cached."""
+
+    def build(split: str, size: int, path: Path) -> dict[str, Any]:
+        log.info("simulating %d %s clips of %s (%d balls) -> %s", size, split, sim.system, sim.num_balls, path)
+        loc, vel, edges = simulate_particles(sim.system, size, sim.num_frames, sim.num_balls, sim.sample_every,
+                                             sim.switch_prob, seed=sim.seed * 1000 + SPLITS.index(split))
+        send, recv = edge_index(sim.num_balls)
+        states = torch.cat([loc, vel], dim=2).transpose(2, 3).float()  # [S, T, N, 4]
+        return {"states": states.contiguous(), "edges": edges[:, 1:, recv, send].contiguous()}
+
+    blobs = cached_splits(sizes, lambda split, size: cache_path(sim, split, size, cache_dir), build)
+    return {split: Clips(b["states"], edges=b["edges"], ids={"clip": torch.arange(len(b["states"]))})
+            for split, b in blobs.items()}
