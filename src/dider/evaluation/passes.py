@@ -160,8 +160,8 @@ class PredictPass(nn.Module):
         super().__init__()
         self.forecast = forecast
         self.types = TypeProfile(num_types)
-        scored = [h for h in horizons if forecast is not None and h <= forecast.steps] or (
-            [forecast.steps] if forecast is not None else [])
+        # the protocol's horizons the forecast reaches, else its last step
+        scored = [] if forecast is None else [h for h in horizons if h <= forecast.steps] or [forecast.steps]
         self.ade = nn.ModuleDict({k: HorizonDisplacement(scored) for k in ("model", "cv")} if scored else {})
         self.constant_velocity = ConstantVelocity()
 
