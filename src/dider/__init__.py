@@ -1,7 +1,8 @@
 """dider: relational inference of dynamically evolving interactions (DIDER, DNRI, NRI).
 
-``dider.load(run_or_checkpoint)`` gives a trained model for new data (:mod:`dider.trained`); ``dider.pretrained()``
-lists the trained models shipped with the package, each loaded by its name (``dider.load("synth/dider")``)."""
+``dider.load(run_or_checkpoint)`` gives a trained model for new data (:mod:`dider.trained`);
+``dider.pretrained()`` lists the trained models shipped with the package, each loaded by its name
+(``dider.load("synth/dider")``)."""
 
 from __future__ import annotations
 

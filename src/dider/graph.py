@@ -13,20 +13,23 @@ import torch
 
 @lru_cache(maxsize=256)
 def _edge_index(num_agents: int, device: str) -> tuple[torch.Tensor, torch.Tensor]:
-    # Built by arithmetic (no nonzero: its output shape depends on the values) directly on the device, once per
-    # device and agent count: a per-call copy from the host would make every training step wait for it.
-    # Normal tensors even when first asked for under inference mode (an evaluation or prediction first in the
-    # process): a cached inference tensor could never be saved for a later training step's backward.
+    # Built by arithmetic (no nonzero: its output shape depends on the values) directly on the
+    # device, once per device and agent count: a per-call copy from the host would make every
+    # training step wait for it. Normal tensors even when first asked for under inference mode (an
+    # evaluation or prediction first in the process): a cached inference tensor could never be saved
+    # for a later training step's backward.
     with torch.inference_mode(False):
-        send = torch.arange(num_agents, device=device).view(-1, 1).expand(num_agents, max(num_agents - 1, 0))
+        send = (torch.arange(num_agents, device=device).view(-1, 1)
+                .expand(num_agents, max(num_agents - 1, 0)))
         other = torch.arange(max(num_agents - 1, 0), device=device).view(1, -1)
         recv = other + (other >= send).long()  # every agent but the sender, in order
         return send.reshape(-1), recv.reshape(-1)
 
 
-def edge_index(num_agents: int, device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
-    """Sender and receiver agent index of every directed edge, each [E] long, E = N(N-1), on ``device`` (cached
-    there: never copied again)."""
+def edge_index(num_agents: int,
+               device: torch.device | str = "cpu") -> tuple[torch.Tensor, torch.Tensor]:
+    """Sender and receiver agent index of every directed edge, each [E] long, E = N(N-1), on
+    ``device`` (cached there: never copied again)."""
     return _edge_index(num_agents, str(torch.device(device)))
 
 
@@ -40,7 +43,8 @@ def num_agents(num_edges: int) -> int:
 
 
 def edge_id(send: torch.Tensor, recv: torch.Tensor, num_agents: int) -> torch.Tensor:
-    """Position of the directed edges send -> recv (long tensors, send != recv) in :func:`edge_index`'s order."""
+    """Position of the directed edges send -> recv (long tensors, send != recv) in
+    :func:`edge_index`'s order."""
     return send * (num_agents - 1) + recv - (recv > send).long()
 
 
@@ -56,8 +60,9 @@ def edge_mask(agent_mask: torch.Tensor) -> torch.Tensor:
 def pair_sum(send_values: torch.Tensor, recv_values: torch.Tensor) -> torch.Tensor:
     """For every directed edge, sender value + receiver value: two [..., N, F] -> [..., E, F]."""
     send, recv = edge_index(send_values.shape[-2], send_values.device)
-    # index_select (backward: index_add): faster on the CPU than advanced indexing (backward: index_put) or a
-    # dense N x N broadcast with the diagonal sliced out (docs/journal/performance_history.md).
+    # index_select (backward: index_add): faster on the CPU than advanced indexing (backward:
+    # index_put) or a dense N x N broadcast with the diagonal sliced out
+    # (docs/journal/performance_history.md).
     return send_values.index_select(-2, send) + recv_values.index_select(-2, recv)
 
 

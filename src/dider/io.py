@@ -1,9 +1,9 @@
-"""Atomic file writing: a killed process never leaves a half-written file behind; and the one reader of a run's
-record (``metrics.json``), which names the file when it is not one.
+"""Atomic file writing: a killed process never leaves a half-written file behind; and the one reader
+of a run's record (``metrics.json``), which names the file when it is not one.
 
 Every writer goes through :func:`atomic_write`: the content goes to a temporary file in the target's
-folder, which is flushed to disk and then renamed over the target, so readers (a cache lookup, a resumed
-run, a report) see either the old file or the complete new one.
+folder, which is flushed to disk and then renamed over the target, so readers (a cache lookup, a
+resumed run, a report) see either the old file or the complete new one.
 """
 
 from __future__ import annotations
@@ -20,10 +20,10 @@ import torch
 
 
 def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
-    """Call ``write(file)`` on a temporary file in ``path``'s folder, fsync it, rename it over ``path``
-    and fsync the folder. Readers see the old file or the complete new one, never a partial one; on any
-    error (or a KeyboardInterrupt) the temporary file is removed. The file gets the permissions an
-    ordinary ``open()`` would give it (mkstemp makes it 0600)."""
+    """Call ``write(file)`` on a temporary file in ``path``'s folder, fsync it, rename it over
+    ``path`` and fsync the folder. Readers see the old file or the complete new one, never a partial
+    one; on any error (or a KeyboardInterrupt) the temporary file is removed. The file gets the
+    permissions an ordinary ``open()`` would give it (mkstemp makes it 0600)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -36,10 +36,11 @@ def atomic_write(path: Path, write: Callable[[BinaryIO], object]) -> None:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except (OSError, RuntimeError) as e:  # torch.save reports a full disk as "inline_container ... unexpected pos"
+    # torch.save reports a full disk as "inline_container ... unexpected pos"
+    except (OSError, RuntimeError) as e:
         Path(tmp).unlink(missing_ok=True)
-        raise OSError(f"{path}: could not be written ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
-                      f"{_space(path.parent)}") from e
+        raise OSError(f"{path}: could not be written ({type(e).__name__}: "
+                      f"{str(e).splitlines()[0] if str(e) else ''}); {_space(path.parent)}") from e
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -83,8 +84,9 @@ def atomic_torch_save(obj: Any, path: Path) -> None:
 
 
 def read_run_record(path: Path) -> dict[str, Any]:
-    """A run's ``metrics.json`` as a dict; ValueError naming ``path`` for one that is not JSON (half-written, or
-    another file) or not a run's record (a JSON object with a ``metrics`` object)."""
+    """A run's ``metrics.json`` as a dict; ValueError naming ``path`` for one that is not JSON
+    (half-written, or another file) or not a run's record (a JSON object with a ``metrics``
+    object)."""
     try:
         record = json.loads(Path(path).read_text())
     except ValueError as e:

@@ -1,11 +1,11 @@
 """Process-level performance settings.
 
-On Linux/glibc every tensor above the mmap threshold (128 KiB to 32 MiB, adaptive) is a fresh
-mmap whose pages fault in on first touch and are unmapped on free. Training allocates and frees
-tens-of-MiB activations many times per step, so page faults take a large share of a CPU training step.
-Raising the thresholds lets glibc keep and reuse that memory, but only up to 32 MiB, glibc's largest
-threshold: the recurrent step's 100-200 MiB edge tensors would still come fresh from mmap every time.
-``heap`` serves every size from the heap. The measurements: ``docs/performance.md``.
+On Linux/glibc every tensor above the mmap threshold (128 KiB to 32 MiB, adaptive) is a fresh mmap
+whose pages fault in on first touch and are unmapped on free. Training allocates and frees
+tens-of-MiB activations many times per step, so page faults take a large share of a CPU training
+step. Raising the thresholds lets glibc keep and reuse that memory, but only up to 32 MiB, glibc's
+largest threshold: the recurrent step's 100-200 MiB edge tensors would still come fresh from mmap
+every time. ``heap`` serves every size from the heap. The measurements: ``docs/performance.md``.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import sys
 import torch
 
 _M_TRIM_THRESHOLD, _M_TOP_PAD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -2, -3, -4
-# heap: thresholds raised and no mmap at all, every freed block reused (faster steps where tensors exceed 32 MiB,
-# for a higher peak: a heap is never returned; docs/performance.md); thresholds: the thresholds only; system:
-# glibc's own settings.
+# heap: thresholds raised and no mmap at all, every freed block reused (faster steps where tensors
+# exceed 32 MiB, for a higher peak: a heap is never returned; docs/performance.md); thresholds: the
+# thresholds only; system: glibc's own settings.
 ALLOCATORS = ("heap", "thresholds", "system")
 _applied: str | None = None
 
@@ -28,13 +28,14 @@ _applied: str | None = None
 def allocator_mode(mode: str | None = None) -> str:
     """The allocator setting a process takes: ``mode``, else ``$DIDER_ALLOCATOR``, else ``heap``;
     ``DIDER_NO_MALLOPT=1`` means ``system`` whatever was asked."""
-    return "system" if os.environ.get("DIDER_NO_MALLOPT") else mode or os.environ.get("DIDER_ALLOCATOR") or "heap"
+    return ("system" if os.environ.get("DIDER_NO_MALLOPT")
+            else mode or os.environ.get("DIDER_ALLOCATOR") or "heap")
 
 
 def tune_allocator(mode: str | None = None) -> bool:
-    """Keep freed memory for reuse (glibc only; a no-op elsewhere). ``mode``: one of :data:`ALLOCATORS`,
-    resolved by :func:`allocator_mode`. Settings only grow more permissive within a process: glibc applies
-    them to later allocations. -> whether applied."""
+    """Keep freed memory for reuse (glibc only; a no-op elsewhere). ``mode``: one of
+    :data:`ALLOCATORS`, resolved by :func:`allocator_mode`. Settings only grow more permissive
+    within a process: glibc applies them to later allocations. -> whether applied."""
     global _applied
     mode = allocator_mode(mode)
     if mode not in ALLOCATORS:
@@ -58,17 +59,18 @@ def tune_allocator(mode: str | None = None) -> bool:
 
 
 def native_bf16(device: str = "cpu") -> bool:
-    """Whether ``device`` computes in bf16 natively. A CPU without AVX-512 (oneDNN's test) emulates bf16
-    autocast, far slower than fp32 (``docs/journal/performance_history.md``)."""
+    """Whether ``device`` computes in bf16 natively. A CPU without AVX-512 (oneDNN's test) emulates
+    bf16 autocast, far slower than fp32 (``docs/journal/performance_history.md``)."""
     if device.startswith("cuda"):
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
 
 
 def compile_modules(model: torch.nn.Module) -> None:
-    """``torch.compile`` a RelationalVAE's hot plugins in place: the encoder and decoder (the GNN and its
-    element-wise chains). The segment logic stays eager: its slot boundaries change every step. Shapes are
-    static at first and marked dynamic when they change (real data: the agent count varies per batch)."""
+    """``torch.compile`` a RelationalVAE's hot plugins in place: the encoder and decoder (the GNN
+    and its element-wise chains). The segment logic stays eager: its slot boundaries change every
+    step. Shapes are static at first and marked dynamic when they change (real data: the agent count
+    varies per batch)."""
     for name in ("encoder", "decoder"):
         getattr(model, name).compile()
 

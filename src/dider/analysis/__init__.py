@@ -1,1 +1,2 @@
-"""Reading runs after the fact: sweep reports, committed records, the explorer, diagnoses, search."""
+"""Reading runs after the fact: sweep reports, committed records, the explorer, diagnoses,
+search."""

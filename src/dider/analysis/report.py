@@ -1,11 +1,12 @@
 """Aggregate a Hydra sweep into tables and plots: `python -m dider.analysis.report multirun/SWEEP [--out DIR]`.
 
-Reads every job's metrics.json, groups the jobs by model (and num_edges, or any other swept setting, when
-it varies), and writes to DIR (default: the sweep folder) report.md and report.csv (mean ± sample std over
-the seeds), runs.csv (one row per job: its swept settings and metrics), horizons.png (forecast MSE by
-horizon with 95% confidence bands, Student's t), edge_ablation.png (when num_edges varies) and one job's
-timeline figures per group. Failed jobs (a .hydra/ folder without a readable metrics.json) and missing ones
-(combinations that multirun.yaml's sweep expects but no folder holds) are listed, never dropped silently.
+Reads every job's metrics.json, groups the jobs by model (and num_edges, or any other swept setting,
+when it varies), and writes to DIR (default: the sweep folder) report.md and report.csv (mean ±
+sample std over the seeds), runs.csv (one row per job: its swept settings and metrics), horizons.png
+(forecast MSE by horizon with 95% confidence bands, Student's t), edge_ablation.png (when num_edges
+varies) and one job's timeline figures per group. Failed jobs (a .hydra/ folder without a readable
+metrics.json) and missing ones (combinations that multirun.yaml's sweep expects but no folder holds)
+are listed, never dropped silently.
 """
 
 from __future__ import annotations
@@ -111,9 +112,10 @@ def expected_jobs(sweep: Path) -> list[frozenset[str]] | None:
     hydra_cfg = OmegaConf.load(path).hydra
     if "BasicSweeper" not in str(hydra_cfg.sweeper.get("_target_", "")):
         return None
-    lines = [f"{k}={v}" for k, v in (hydra_cfg.sweeper.get("params") or {}).items()] + list(hydra_cfg.overrides.task)
-    # The basic sweeper's job list: the Cartesian product of every swept key's values, a later setting of a
-    # key (the command line) replacing an earlier one (the config's sweeper params).
+    lines = ([f"{k}={v}" for k, v in (hydra_cfg.sweeper.get("params") or {}).items()]
+             + list(hydra_cfg.overrides.task))
+    # The basic sweeper's job list: the Cartesian product of every swept key's values, a later
+    # setting of a key (the command line) replacing an earlier one (the config's sweeper params).
     choices: dict[str, list[str]] = {}
     for o in OverridesParser.create().parse_overrides(lines):
         key = o.get_key_element()
@@ -160,8 +162,9 @@ def collect(sweep: Path) -> tuple[list[dict[str, Any]], list[str], list[str], in
 
 
 def _warn_twins(records: list[dict[str, Any]], sweep: Path) -> None:
-    """Two finished jobs with the same overrides (a job run twice, copied in): both stay in the tables, each a row
-    of runs.csv, and the warning names them (a ratio to the baseline is then ambiguous and left out)."""
+    """Two finished jobs with the same overrides (a job run twice, copied in): both stay in the
+    tables, each a row of runs.csv, and the warning names them (a ratio to the baseline is then
+    ambiguous and left out)."""
     by_key: dict[frozenset[str], list[str]] = {}
     for r in records:
         by_key.setdefault(r["_key"], []).append(str(r["dir"].relative_to(sweep)))
@@ -219,8 +222,8 @@ def _save(fig: plt.Figure, path: Path) -> None:
 
 
 def horizons_figure(s: Summary, path: Path) -> bool:
-    """Forecast MSE against horizon per group: the mean with a 95% confidence band for it (mean ± t std /
-    sqrt(n), Student's t with n-1 degrees of freedom; no band for a single job)."""
+    """Forecast MSE against horizon per group: the mean with a 95% confidence band for it (mean ± t
+    std / sqrt(n), Student's t with n-1 degrees of freedom; no band for a single job)."""
     mse = [m for m in s.metrics if re.fullmatch(r"test/mse/h\d+", m)]
     if not mse:
         return False
@@ -243,8 +246,9 @@ def horizons_figure(s: Summary, path: Path) -> bool:
 
 
 def ablation_figure(s: Summary, path: Path) -> list[str]:
-    """MSE against num_edges per horizon (error bars: std over seeds), drawn only when some model was run
-    with several num_edges (not for tables whose models merely differ in it). Returns the best-e lines."""
+    """MSE against num_edges per horizon (error bars: std over seeds), drawn only when some model
+    was run with several num_edges (not for tables whose models merely differ in it). Returns the
+    best-e lines."""
     mse = [m for m in s.metrics if re.fullmatch(r"test/mse/h\d+", m)]
     rows: dict[str, list[Group]] = {}
     for g in s.groups:
@@ -277,8 +281,8 @@ def paired_caveat(groups: list[Group], best: int, metric: str) -> str:
     Student-t interval of the per-seed differences lies below 0. -> a note for the claim's line."""
     supported, n, other = paired_support(jobs_frame(groups, [metric]), best, metric)
     if not supported:
-        return (f", not established: paired over {n} seed(s), the 95% interval of its difference to "
-                f"num_edges={groups[other].key['num_edges']} reaches 0")
+        return (f", not established: paired over {n} seed(s), the 95% interval of its difference "
+                f"to num_edges={groups[other].key['num_edges']} reaches 0")
     return f" (paired over {n} seeds, 95%)"
 
 
@@ -307,8 +311,8 @@ def write_csv(s: Summary, path: Path) -> None:
 
 
 def write_runs_csv(s: Summary, sweep: Path, path: Path) -> None:
-    """One row per finished job: its folder, model, seed, swept settings (the overrides of its command line)
-    and every test metric, a tidy table for pandas and plotting."""
+    """One row per finished job: its folder, model, seed, swept settings (the overrides of its
+    command line) and every test metric, a tidy table for pandas and plotting."""
     jobs = [j for g in s.groups for j in g.jobs]
     settings = list(dict.fromkeys(o.split("=", 1)[0] for j in jobs for o in j.get("overrides", []) if "=" in o))
     settings = [k for k in settings if k not in ("model", "seed")]
@@ -350,9 +354,10 @@ def markdown(s: Summary, sweep: Path, figures: list[str], best: list[str], timel
         lines += ["## Interaction timelines (one job per row)", ""]
         for label, job, paths in timelines:
             lines += [f"**{label}** (`{job}`)", "", *(f"![{label}]({p})" for p in paths), ""]
-    lines += ["## Failed, missing or ignored jobs", "", "(failed: a job folder without a readable metrics.json, with "
-              "why, or one still running; missing: swept values that no job folder holds; ignored: a finished run "
-              "whose overrides are not a job of this sweep, e.g. copied in, left out of the tables)", ""]
+    lines += ["## Failed, missing or ignored jobs", "", "(failed: a job folder without a readable "
+              "metrics.json, with why, or one still running; missing: swept values that no job "
+              "folder holds; ignored: a finished run whose overrides are not a job of this sweep, "
+              "e.g. copied in, left out of the tables)", ""]
     lines += ([f"- failed: `{f}`" for f in s.failed] + [f"- missing: `{m}`" for m in s.missing]
               + [f"- ignored: `{i}`" for i in s.ignored]) or ["none"]
     return "\n".join(lines) + "\n"
@@ -378,11 +383,11 @@ def main(argv: Sequence[str] | None = None) -> Summary:
     atomic_write_text(out / "report.tex", latex_table(s))
     write_runs_csv(s, sweep, out / "runs.csv")
     print(text)
-    print(f"report: {out / 'report.md'}  table: {out / 'report.csv'} (LaTeX: {out / 'report.tex'})  per job: "
-          f"{out / 'runs.csv'}")
+    print(f"report: {out / 'report.md'}  table: {out / 'report.csv'} (LaTeX: "
+          f"{out / 'report.tex'})  per job: {out / 'runs.csv'}")
     if s.failed or s.missing or s.ignored:
-        print(f"warning: {len(s.failed)} failed, {len(s.missing)} missing and {len(s.ignored)} ignored job folders "
-              f"(listed in the report)")
+        print(f"warning: {len(s.failed)} failed, {len(s.missing)} missing and {len(s.ignored)} "
+              "ignored job folders (listed in the report)")
     return s
 
 

@@ -1,10 +1,10 @@
 """The largest scene that trains within a memory budget: a search over the number of agents N.
 
 A training step's peak grows with the edges, a + b * N (N - 1). The search measures a few N (each a
-fresh process, so each peak is its own), fits that line through the two largest measured so far to aim
-at the budget, then bisects between the largest N that fitted and the smallest that did not. It never
-starts a probe whose predicted peak exceeds ``ceiling_mb`` (the machine's memory, with a margin): such an
-N counts as not fitting, and the record says the bound was predicted, not measured.
+fresh process, so each peak is its own), fits that line through the two largest measured so far to
+aim at the budget, then bisects between the largest N that fitted and the smallest that did not. It
+never starts a probe whose predicted peak exceeds ``ceiling_mb`` (the machine's memory, with a
+margin): such an N counts as not fitting, and the record says the bound was predicted, not measured.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ def largest_agents(probe: Callable[[int], float], limit_mb: float, ceiling_mb: f
                    start: dict[int, float] | None = None, max_probes: int = 8) -> dict[str, Any]:
     """The largest N with ``probe(N) <= limit_mb`` (``probe``: N -> measured peak in MB).
 
-    ``start``: peaks already measured (e.g. the fixed memory cases). Returns ``largest_agents`` (None when
-    even the smallest measured N does not fit), ``bound`` (``measured`` when N + 1 was run and did not fit,
-    ``predicted`` when its predicted peak was over ``ceiling_mb`` so it was not run, ``probes`` when the
-    probe budget ran out) and the ``probes`` {N: peak MB}."""
+    ``start``: peaks already measured (e.g. the fixed memory cases). Returns ``largest_agents``
+    (None when even the smallest measured N does not fit), ``bound`` (``measured`` when N + 1 was
+    run and did not fit, ``predicted`` when its predicted peak was over ``ceiling_mb`` so it was not
+    run, ``probes`` when the probe budget ran out) and the ``probes`` {N: peak MB}."""
     probes: dict[int, float] = dict(start or {})
     predicted: dict[int, float] = {}
     if not probes:
@@ -57,7 +57,8 @@ def largest_agents(probe: Callable[[int], float], limit_mb: float, ceiling_mb: f
     over = [n for n, p in probes.items() if p > limit_mb]
     lo, hi = max(fits, default=None), min(over, default=None)
     if lo is None:
-        return {"largest_agents": None, "bound": "measured", "probes": probes, "predicted": predicted}
+        return {"largest_agents": None, "bound": "measured", "probes": probes,
+                "predicted": predicted}
     runs = 0
     while (hi is None or hi - lo > 1) and runs < max_probes:
         n = _aim(probes, limit_mb, lo) if hi is None else (lo + hi) // 2
@@ -74,6 +75,7 @@ def largest_agents(probe: Callable[[int], float], limit_mb: float, ceiling_mb: f
             lo = n
         else:
             hi = n
-    bound = "probes" if hi is None or hi - lo > 1 else ("predicted" if hi in predicted else "measured")
+    bound = ("probes" if hi is None or hi - lo > 1
+             else ("predicted" if hi in predicted else "measured"))
     return {"largest_agents": lo, "bound": bound, "probes": dict(sorted(probes.items())),
             "predicted": dict(sorted(predicted.items()))}

@@ -1,6 +1,7 @@
-"""The end-of-run outputs at many agents per window: what a test pass writes after its metrics (the segment
-list of every test clip, the explorer's clips, the timeline and trajectory figures), timed on synthetic
-outputs of the shapes a scene of ``agents`` agents gives, so a large scene's cost shows without training."""
+"""The end-of-run outputs at many agents per window: what a test pass writes after its metrics (the
+segment list of every test clip, the explorer's clips, the timeline and trajectory figures), timed
+on synthetic outputs of the shapes a scene of ``agents`` agents gives, so a large scene's cost shows
+without training."""
 
 from __future__ import annotations
 
@@ -19,19 +20,21 @@ from dider.outputs.export import segments_json
 from dider.outputs.viz import timeline_figure, trajectory_figure
 
 
-def fake_outputs(clips: int, agents: int, steps: int, num_types: int = 2, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Stacked test outputs of ``clips`` clips: types in runs (a switch on 5% of steps, a quarter of the
-    edges interacting), agents leaving and entering, random-walk positions.
+def fake_outputs(clips: int, agents: int, steps: int, num_types: int = 2,
+                 seed: int = 0) -> dict[str, torch.Tensor]:
+    """Stacked test outputs of ``clips`` clips: types in runs (a switch on 5% of steps, a quarter of
+    the edges interacting), agents leaving and entering, random-walk positions.
 
-    -> segments/per_step/prior/truth [S, E, T-1] long (-1 absent), probs [S, E, T-1], states [S, T, N, 4],
-    mask [S, T, N] bool.
+    -> segments/per_step/prior/truth [S, E, T-1] long (-1 absent), probs [S, E, T-1], states [S, T,
+    N, 4], mask [S, T, N] bool.
     """
     g = torch.Generator().manual_seed(seed)
     e = agents * (agents - 1)
     switch = torch.rand(clips, e, steps - 1, generator=g) < 0.05
     run = switch.long().cumsum(-1)
     active = torch.rand(clips, e, 1, generator=g) < 0.25
-    types = torch.where(active, (run + torch.randint(num_types, (clips, e, 1), generator=g)) % num_types, 0)
+    types = torch.where(active,
+                        (run + torch.randint(num_types, (clips, e, 1), generator=g)) % num_types, 0)
     mask = torch.ones(clips, steps, agents, dtype=torch.bool)
     leave = torch.randint(steps // 2, steps + 1, (clips, 1, agents), generator=g)
     mask &= torch.arange(steps)[None, :, None] < leave
@@ -47,14 +50,15 @@ def fake_outputs(clips: int, agents: int, steps: int, num_types: int = 2, seed: 
 
 def time_outputs(agents: int, clips: int = 64, steps: int = 50, figures: int = 4,
                  tmpdir: str | Path | None = None) -> dict[str, Any]:
-    """Seconds of each end-of-run output at ``agents`` agents per clip: {"segments_json", "clips_npz",
-    "timelines", "trajectories", "total"} and the edge count."""
+    """Seconds of each end-of-run output at ``agents`` agents per clip: {"segments_json",
+    "clips_npz", "timelines", "trajectories", "total"} and the edge count."""
     arrays = fake_outputs(clips, agents, steps)
     seconds: dict[str, float] = {}
     with tempfile.TemporaryDirectory(dir=tmpdir) as out:
         out_dir = Path(out)
         t0 = time.perf_counter()
-        stacked = stack_clips(split_clips(arrays))  # as the export callback holds them at the end of a test
+        # as the export callback holds them at the end of a test
+        stacked = stack_clips(split_clips(arrays))
         atomic_write_text(out_dir / "segments.json", json.dumps(segments_json(stacked)))
         seconds["segments_json"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -70,9 +74,11 @@ def time_outputs(agents: int, clips: int = 64, steps: int = 50, figures: int = 4
         seconds["timelines"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         for i in range(figures):
-            fig = trajectory_figure(arrays["states"][i, ..., :2], arrays["mask"][i], arrays["segments"][i], 2)
+            fig = trajectory_figure(arrays["states"][i, ..., :2], arrays["mask"][i],
+                                    arrays["segments"][i], 2)
             fig.savefig(out_dir / f"trajectories_{i}.png", dpi=100)
             plt.close(fig)
         seconds["trajectories"] = time.perf_counter() - t0
     seconds["total"] = sum(seconds.values())
-    return {"seconds": seconds, "edges": agents * (agents - 1), "clips": clips, "steps": steps, "figures": figures}
+    return {"seconds": seconds, "edges": agents * (agents - 1), "clips": clips, "steps": steps,
+            "figures": figures}

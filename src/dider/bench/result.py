@@ -1,9 +1,9 @@
-"""Time to a result: the wall time of a whole documented job (``make demo``, the CPU-sized synthetic table)
-beside the edge accuracy and forecast error it produced.
+"""Time to a result: the wall time of a whole documented job (``make demo``, the CPU-sized synthetic
+table) beside the edge accuracy and forecast error it produced.
 
-The job runs as its own ``python -m dider.run`` process, exactly as a user would start it, into a throw-away
-folder; its ``metrics.json`` files are then read back through the report's reader. ``--quick`` shrinks the
-job to seconds (a check that the measurement works, not a measurement).
+The job runs as its own ``python -m dider.run`` process, exactly as a user would start it, into a
+throw-away folder; its ``metrics.json`` files are then read back through the report's reader.
+``--quick`` shrinks the job to seconds (a check that the measurement works, not a measurement).
 
 Used by ``python -m dider.bench --only result/demo`` (the cases ``result/*`` run only when named).
 """
@@ -21,8 +21,8 @@ from typing import Any
 
 from dider.analysis.report import summarise
 
-# What a record keeps of each model's metrics: edge recall (posterior and the online prior's) and the
-# forecast error at the synthetic horizons.
+# What a record keeps of each model's metrics: edge recall (posterior and the online prior's) and
+# the forecast error at the synthetic horizons.
 RESULT_METRICS = ("test/edge_acc/posterior/none", "test/edge_acc/posterior/interaction",
                   "test/edge_acc/prior/interaction", "test/mse/h15", "test/mse/h25")
 
@@ -42,13 +42,16 @@ class Job:
 
 JOBS = {
     "result/demo": Job("result/demo", ("experiment=demo",), sweep=False),
-    "result/synth_cpu_table": Job("result/synth_cpu_table", ("experiment=synth_cpu_table",), sweep=True),
+    "result/synth_cpu_table": Job("result/synth_cpu_table", ("experiment=synth_cpu_table",),
+                                  sweep=True),
 }
 
 
-def time_to_result(job: Job, quick: bool = False, tmpdir: str | Path | None = None) -> dict[str, Any]:
-    """Run ``job`` end to end and return its wall time and, per model, the mean of ``RESULT_METRICS`` over
-    its runs (seeds). Raises ``RuntimeError`` with the job's last output when it fails."""
+def time_to_result(job: Job, quick: bool = False,
+                   tmpdir: str | Path | None = None) -> dict[str, Any]:
+    """Run ``job`` end to end and return its wall time and, per model, the mean of
+    ``RESULT_METRICS`` over its runs (seeds). Raises ``RuntimeError`` with the job's last output
+    when it fails."""
     with tempfile.TemporaryDirectory(dir=tmpdir) as tmp:
         folder = Path(tmp) / "job"
         where = f"hydra.sweep.dir={folder}" if job.sweep else f"hydra.run.dir={folder}"
@@ -60,7 +63,8 @@ def time_to_result(job: Job, quick: bool = False, tmpdir: str | Path | None = No
         wall = time.perf_counter() - t0
         if proc.returncode != 0:
             tail = (proc.stdout + proc.stderr)[-2000:]
-            raise RuntimeError(f"{' '.join(argv[2:])} failed with exit code {proc.returncode}:\n{tail}")
+            raise RuntimeError(f"{' '.join(argv[2:])} failed with exit code "
+                               f"{proc.returncode}:\n{tail}")
         summary = summarise(folder)
     models: dict[str, dict[str, float | int]] = {}
     for i, group in enumerate(summary.groups):
@@ -70,6 +74,7 @@ def time_to_result(job: Job, quick: bool = False, tmpdir: str | Path | None = No
                 values[metric] = float(summary.stats.loc[i, (metric, "mean")])
         models[group.label] = values
     failed = len(summary.failed) + len(summary.missing)
-    return {"wall_s": wall, "command": "python -m dider.run " + " ".join(job.overrides), "quick": quick,
-            "runs": sum(int(m["runs"]) for m in models.values()), "failed_runs": failed, "models": models,
-            "complete": failed == 0 and all(not math.isnan(float(v)) for m in models.values() for v in m.values())}
+    return {"wall_s": wall, "command": "python -m dider.run " + " ".join(job.overrides),
+            "quick": quick, "runs": sum(int(m["runs"]) for m in models.values()),
+            "failed_runs": failed, "models": models, "complete": failed == 0
+            and all(not math.isnan(float(v)) for m in models.values() for v in m.values())}

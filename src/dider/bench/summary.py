@@ -1,5 +1,5 @@
-"""What a benchmark run adds up to: derived figures (speed-ups, the roofline, growth exponents) and the
-scaling plot, from the per-case records that :mod:`dider.bench` writes."""
+"""What a benchmark run adds up to: derived figures (speed-ups, the roofline, growth exponents) and
+the scaling plot, from the per-case records that :mod:`dider.bench` writes."""
 
 from __future__ import annotations
 
@@ -12,22 +12,26 @@ import numpy as np
 from dider.bench.reference import REFERENCE_CASES
 
 
-def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Derived figures: DIDER's step time over DNRI's (same run); the growth exponents of the step time in
-    N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets: N^2, i.e. 1 in
-    edges, and 1 in T); speed-ups over the reference implementation; and the roofline, the samples/s a
-    step would reach doing only its matmuls at the measured ``gemm/*`` rate.
+def summary(records: list[dict[str, Any]],
+            reference: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Derived figures: DIDER's step time over DNRI's (same run); the growth exponents of the step
+    time in N, in the edge count N(N-1) and in T (least-squares slopes on log-log axes; the budgets:
+    N^2, i.e. 1 in edges, and 1 in T); speed-ups over the reference implementation; and the
+    roofline, the samples/s a step would reach doing only its matmuls at the measured ``gemm/*``
+    rate.
 
-    ``reference``: the results JSON's ``reference`` section (:func:`dider.bench.compare_with_reference`). The
-    speed-ups come only from there (reference and ours timed in the same process, alternating), with the
-    matmul-only ceiling of the same run beside them: a throughput measured on another machine or at another time
-    is no denominator for this run's."""
+    ``reference``: the results JSON's ``reference`` section
+    (:func:`dider.bench.compare_with_reference`). The speed-ups come only from there (reference and
+    ours timed in the same process, alternating), with the matmul-only ceiling of the same run
+    beside them: a throughput measured on another machine or at another time is no denominator for
+    this run's."""
     by = {r["name"]: r for r in records if "error" not in r}
     measured = (reference or {}).get("cases", {})
     out: dict[str, Any] = {}
     for name, case in measured.items():
         for dtype, variant in (("fp32", ""), ("bf16", "/bf16")):
-            if dtype in case["speedup"]:  # ours in bf16 against the reference in fp32; bf16 may be left out
+            # ours in bf16 against the reference in fp32; bf16 may be left out
+            if dtype in case["speedup"]:
                 out[f"speedup_over_reference/{name}{variant}"] = case["speedup"][dtype]
                 ceiling = case.get("ceiling", {}).get("speedup", {})  # absent in older JSON
                 if dtype in ceiling:  # the most any implementation of our arithmetic reaches here
@@ -47,7 +51,8 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
             if a and b:
                 out[f"step_ratio/{model}_over_dnri/{setting}"] = a["step_s"] / b["step_s"]
     for axis, key in (("agents", "agents"), ("steps", "steps")):
-        pts = [(r["settings"][key], r["step_s"]) for r in by.values() if r["name"].startswith(f"scale/{axis}/")]
+        pts = [(r["settings"][key], r["step_s"]) for r in by.values()
+               if r["name"].startswith(f"scale/{axis}/")]
         if len(pts) >= 2:
             x, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
             out[f"growth_exponent/{axis}"] = float(np.polyfit(x, y, 1)[0])
@@ -58,27 +63,31 @@ def summary(records: list[dict[str, Any]], reference: dict[str, Any] | None = No
 
 
 def allocator_ratios(records: list[dict[str, Any]]) -> dict[str, float]:
-    """An ``--allocator A B ...`` comparison: for each case, the median over the rounds of each setting's step time
-    and peak memory over the first setting's in the same round (``allocator/B_over_A/<case>/step`` and ``/peak``);
-    records without a ``round`` (a plain run) give nothing."""
+    """An ``--allocator A B ...`` comparison: for each case, the median over the rounds of each
+    setting's step time and peak memory over the first setting's in the same round
+    (``allocator/B_over_A/<case>/step`` and ``/peak``); records without a ``round`` (a plain run)
+    give nothing."""
     rounds: dict[str, dict[int, dict[str, dict[str, Any]]]] = {}
     for r in records:
         if "round" in r and "error" not in r:
             rounds.setdefault(r["name"], {}).setdefault(r["round"], {})[r["allocator"]] = r
     out: dict[str, float] = {}
     for name, by_round in rounds.items():
-        base, *others = by_round[min(by_round)]  # round 0 runs the settings in the order they were given
+        # round 0 runs the settings in the order they were given
+        base, *others = by_round[min(by_round)]
         for mode in others:
             pairs = [(rd[mode], rd[base]) for rd in by_round.values() if mode in rd and base in rd]
             if pairs:
                 for key, field in (("step", "step_s"), ("peak", "peak_memory_mb")):
-                    out[f"allocator/{mode}_over_{base}/{name}/{key}"] = float(np.median([a[field] / b[field]
-                                                                                       for a, b in pairs]))
+                    out[f"allocator/{mode}_over_{base}/{name}/{key}"] = float(
+                        np.median([a[field] / b[field]
+                                 for a, b in pairs]))
     return out
 
 
 def plot(records: list[dict[str, Any]], path: Path) -> None:
-    """Step time against N and T on log-log axes, with N^2 and T^1 guides through the first point."""
+    """Step time against N and T on log-log axes, with N^2 and T^1 guides through the first
+    point."""
     import matplotlib
     import matplotlib.ticker
 

@@ -1,1 +1,2 @@
-"""What a run is scored by: torchmetrics classes, the test pass, what each learned edge type means."""
+"""What a run is scored by: torchmetrics classes, the test pass, what each learned edge type
+means."""

@@ -1,10 +1,12 @@
-"""Scoring sampled futures as the trajectory-forecasting field does: of K forecasts per clip, the best one per agent.
+"""Scoring sampled futures as the trajectory-forecasting field does: of K forecasts per clip, the
+best one per agent.
 
-For each agent and horizon h, over K sampled roll-outs: minADE_K is the smallest, over the samples, mean
-displacement of its scored frames up to horizon h; minFDE_K the smallest displacement at horizon h; the miss rate the
-share of agents whose minFDE_K exceeds a threshold (data units). Each is averaged over the agents that reach the
-horizon (a scored frame at h; for minADE, one at h or before). A model whose edges are latent variables forecasts a
-distribution, which one deterministic roll-out cannot show.
+For each agent and horizon h, over K sampled roll-outs: minADE_K is the smallest, over the samples,
+mean displacement of its scored frames up to horizon h; minFDE_K the smallest displacement at
+horizon h; the miss rate the share of agents whose minFDE_K exceeds a threshold (data units). Each
+is averaged over the agents that reach the horizon (a scored frame at h; for minADE, one at h or
+before). A model whose edges are latent variables forecasts a distribution, which one deterministic
+roll-out cannot show.
 
 Shapes: B clips, K samples, P predicted steps, N agents, D features, H horizons.
 """
@@ -20,29 +22,34 @@ from dider.evaluation.metrics import horizon_list
 
 
 class MinDisplacement(Metric):
-    """update(pred [B, K, P, N, D], target [B, P, N, D], mask [B, P, N] bool (the scored frames), horizon [B, P, N]
-    long or None: as :class:`~dider.evaluation.metrics.HorizonDisplacement`'s); compute() -> [3, H]: minADE_K,
-    minFDE_K and the miss rate (minFDE_K > ``miss_threshold``; NaN without a threshold), NaN at a horizon no agent
-    reached."""
+    """update(pred [B, K, P, N, D], target [B, P, N, D], mask [B, P, N] bool (the scored frames),
+    horizon [B, P, N] long or None: as :class:`~dider.evaluation.metrics.HorizonDisplacement`'s);
+    compute() -> [3, H]: minADE_K, minFDE_K and the miss rate (minFDE_K > ``miss_threshold``; NaN
+    without a threshold), NaN at a horizon no agent reached."""
 
     is_differentiable = False
     higher_is_better = False
     full_state_update = False
 
-    def __init__(self, horizons: Sequence[int], miss_threshold: float | None = None, **kwargs) -> None:
+    def __init__(self, horizons: Sequence[int], miss_threshold: float | None = None,
+                 **kwargs) -> None:
         super().__init__(**kwargs)
         self.horizons = horizon_list(horizons)
         self.miss_threshold = miss_threshold
         for name in ("ade", "fde", "miss", "ade_agents", "fde_agents"):
-            self.add_state(name, torch.zeros(len(self.horizons), dtype=torch.float64), dist_reduce_fx="sum")
+            self.add_state(name, torch.zeros(len(self.horizons), dtype=torch.float64),
+                           dist_reduce_fx="sum")
 
     def update(self, pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
                horizon: torch.Tensor | None = None) -> None:
         if max(self.horizons) > pred.shape[2]:
-            raise ValueError(f"horizon {max(self.horizons)} exceeds the {pred.shape[2]} predicted steps")
+            raise ValueError(f"horizon {max(self.horizons)} exceeds the {pred.shape[2]} predicted "
+                             "steps")
         if horizon is None:
-            horizon = torch.arange(1, mask.shape[1] + 1, device=mask.device).view(1, -1, 1).expand_as(mask)
-        dist = (pred[..., :2].double() - target.unsqueeze(1)[..., :2].double()).norm(dim=-1)  # [B, K, P, N]
+            horizon = (torch.arange(1, mask.shape[1] + 1, device=mask.device).view(1, -1, 1)
+                       .expand_as(mask))
+        # [B, K, P, N]
+        dist = (pred[..., :2].double() - target.unsqueeze(1)[..., :2].double()).norm(dim=-1)
         scored = mask & (horizon >= 1)
         for i, h in enumerate(self.horizons):
             upto = (scored & (horizon <= h)).unsqueeze(1)  # [B, 1, P, N]
@@ -66,7 +73,8 @@ class MinDisplacement(Metric):
 
 
 def sampled_values(prefix: str, metric: MinDisplacement, samples: int) -> dict[str, torch.Tensor]:
-    """``prefix/min_ade_K/hXX``, ``prefix/min_fde_K/hXX`` and, with a threshold, ``prefix/miss_rate_K/hXX``."""
+    """``prefix/min_ade_K/hXX``, ``prefix/min_fde_K/hXX`` and, with a threshold,
+    ``prefix/miss_rate_K/hXX``."""
     ade, fde, miss = metric.compute()
     out: dict[str, torch.Tensor] = {}
     for h, a, f, m in zip(metric.horizons, ade, fde, miss, strict=True):

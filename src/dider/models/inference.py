@@ -1,7 +1,8 @@
-"""What the relational VAE's teacher-forced pass returns (:class:`Inference`), and the small helpers that its
-callers share: a model config as a plain dict, edge types from logits.
+"""What the relational VAE's teacher-forced pass returns (:class:`Inference`), and the small helpers
+that its callers share: a model config as a plain dict, edge types from logits.
 
-Shapes: B batch, T frames, N agents, D features, E edges, K edge types, S segment slots, R LSTM width.
+Shapes: B batch, T frames, N agents, D features, E edges, K edge types, S segment slots, R LSTM
+width.
 """
 
 from __future__ import annotations
@@ -29,28 +30,34 @@ class Inference:
     seg: Segmentation
     h_fwd: torch.Tensor  # [B, E, T-1, R]
     present: torch.Tensor  # [B, E, T-1] bool: the edges present at each transition
-    terms: dict[str, torch.Tensor] = field(default_factory=dict)  # the objective's terms per clip, name -> [B]
-    # [B] the duration plugin's fit of its online boundary model (plugins with runs of one type), else None
+    # the objective's terms per clip, name -> [B]
+    terms: dict[str, torch.Tensor] = field(default_factory=dict)
+    # [B] the duration plugin's fit of its online boundary model (plugins with runs of one type),
+    # else None
     boundary_fit: torch.Tensor | None = None
-    # [B, E, T-1] what each edge's interaction tells the decoder (nats), where an objective term reads it, else None;
-    # inf where the receiver's next state is absent (nothing to score: never "indifferent")
+    # [B, E, T-1] what each edge's interaction tells the decoder (nats), where an objective term
+    # reads it, else None; inf where the receiver's next state is absent (nothing to score: never
+    # "indifferent")
     evidence: torch.Tensor | None = None
 
     def posterior_types(self) -> torch.Tensor:
         """[B, E, T-1] long: the argmax type of each step's segment."""
         k = self.posterior_logits.shape[-1]
         # a comparison, not F.one_hot, whose range check synchronises with the host
-        one_hot = (self.posterior_logits.argmax(-1, keepdim=True) == torch.arange(k, device=self.pred.device)).float()
+        one_hot = (self.posterior_logits.argmax(-1, keepdim=True)
+                   == torch.arange(k, device=self.pred.device)).float()
         return self.seg.spread(one_hot).argmax(-1)
 
 
 def plain_config(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
-    """A model config as a plain, resolved dict (what checkpoints keep: they load with weights_only)."""
+    """A model config as a plain, resolved dict (what checkpoints keep: they load with
+    weights_only)."""
     return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
 
 
 def pick_types(logits: torch.Tensor, sample: bool) -> torch.Tensor:
-    """Edge types from logits [..., K] -> [...] long: a categorical draw (Gumbel-max) or the argmax."""
+    """Edge types from logits [..., K] -> [...] long: a categorical draw (Gumbel-max) or the
+    argmax."""
     if sample:
         logits = logits - torch.empty_like(logits).exponential_().log()  # + Gumbel noise
     return logits.argmax(-1)

@@ -1,7 +1,7 @@
 """Prior plugins: edge-type logits from the forward (past-only) LSTM state. h: [..., R] -> [..., K].
 
-Logits are fp32 under autocast too: the softmaxes and KL terms computed from them lose the prior's small
-probabilities in bf16.
+Logits are fp32 under autocast too: the softmaxes and KL terms computed from them lose the prior's
+small probabilities in bf16.
 """
 
 from __future__ import annotations
@@ -19,10 +19,12 @@ from dider.validation import NUM_TYPES, Rule, check_settings, integer, optional,
 class LearnedPrior(nn.Module):
     """DNRI's learned prior: an MLP head on the forward LSTM state (conditions on x_0..x_t only)."""
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {**{k: integer(1) for k in ("rnn_hidden", "hidden", "num_layers")},
+    SETTINGS: ClassVar[dict[str, Rule]] = {**{k: integer(1)
+                                              for k in ("rnn_hidden", "hidden", "num_layers")},
                                            "num_types": NUM_TYPES}
 
-    def __init__(self, num_types: int, rnn_hidden: int = 64, hidden: int = 128, num_layers: int = 3) -> None:
+    def __init__(self, num_types: int, rnn_hidden: int = 64, hidden: int = 128,
+                 num_layers: int = 3) -> None:
         super().__init__()
         check_settings(self, locals())
         self.net = head(rnn_hidden, hidden, num_types, num_layers)
@@ -37,7 +39,8 @@ class FixedPrior(nn.Module):
     ``no_edge_prob: null`` gives the uniform prior.
     """
 
-    SETTINGS: ClassVar[dict[str, Rule]] = {"num_types": NUM_TYPES, "no_edge_prob": optional(within_open(0.0, 1.0))}
+    SETTINGS: ClassVar[dict[str, Rule]] = {"num_types": NUM_TYPES,
+                                           "no_edge_prob": optional(within_open(0.0, 1.0))}
 
     def __init__(self, num_types: int, no_edge_prob: float | None = 0.9) -> None:
         super().__init__()

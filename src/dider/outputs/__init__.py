@@ -1,1 +1,2 @@
-"""What a run writes for its users: clip tables, segment export, predictions, figures, the results card."""
+"""What a run writes for its users: clip tables, segment export, predictions, figures, the results
+card."""

@@ -1,2 +1,2 @@
-"""The training shell: the LightningModule around the network, its callbacks, run folders, checkpoints and random
-state."""
+"""The training shell: the LightningModule around the network, its callbacks, run folders,
+checkpoints and random state."""

@@ -1,6 +1,7 @@
-"""Callbacks every training of the relational VAE runs with (``RelationalVAEModule.configure_callbacks``): the
-forecast protocol checked against the clips, evaluation that depends on the weights only, a guard that stops on
-NaN/inf naming where it came from, and a checkpoint saved when the run is terminated."""
+"""Callbacks every training of the relational VAE runs with
+(``RelationalVAEModule.configure_callbacks``): the forecast protocol checked against the clips,
+evaluation that depends on the weights only, a guard that stops on NaN/inf naming where it came
+from, and a checkpoint saved when the run is terminated."""
 
 from __future__ import annotations
 
@@ -23,13 +24,15 @@ log = logging.getLogger(__name__)
 
 
 class NonFiniteError(FloatingPointError):
-    """A NaN/inf loss term or gradient during training: the message names the step, batch and term."""
+    """A NaN/inf loss term or gradient during training: the message names the step, batch and
+    term."""
 
 
 class ProtocolFits(L.Callback):
-    """Once the data are read, before any step: the model's burn-in and horizons must fit the clips it forecasts
-    (validation's in a fit, the test's in a test), named by the protocol's keys. Training clips may be shorter (DNRI
-    trains basketball on 40-step crops); prediction checks its own forecast length."""
+    """Once the data are read, before any step: the model's burn-in and horizons must fit the clips
+    it forecasts (validation's in a fit, the test's in a test), named by the protocol's keys.
+    Training clips may be shorter (DNRI trains basketball on 40-step crops); prediction checks its
+    own forecast length."""
 
     SPLITS = {"fit": ("val",), "validate": ("val",), "test": ("test",)}
 
@@ -37,38 +40,42 @@ class ProtocolFits(L.Callback):
         steps, p = getattr(trainer.datamodule, "clip_steps", dict)(), pl_module.protocol
         for split in self.SPLITS.get(stage, ()):
             if split in steps:
-                check_horizons(p.horizons, steps[split], p.burn_in, where=f", the {split} split's", integers=True)
+                check_horizons(p.horizons, steps[split], p.burn_in, where=f", the {split} split's",
+                               integers=True)
 
 
 class EdgeLabelsFit(L.Callback):
-    """Once the data are read, before any step: ground-truth edge labels must be types the model has. A label
-    beyond ``model.num_edges`` has no row to score against (nor an oracle roll-out), so the run is refused here,
-    naming the file, the largest label and the key, not after its last epoch (a test: every split of a fit, the
-    test split of an evaluation)."""
+    """Once the data are read, before any step: ground-truth edge labels must be types the model
+    has. A label beyond ``model.num_edges`` has no row to score against (nor an oracle roll-out), so
+    the run is refused here, naming the file, the largest label and the key, not after its last
+    epoch (a test: every split of a fit, the test split of an evaluation)."""
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         dm, k = trainer.datamodule, pl_module.model.num_types
         for split, largest in getattr(dm, "largest_edge_label", dict)().items():
             if largest >= k and (stage == "fit" or split == stage):
-                where = dm.source.where() if hasattr(getattr(dm, "source", None), "where") else "the data"
-                fix = (f"set model.num_edges={largest + 1} or more to train and score against these labels"
-                       if stage == "fit" else f"this model cannot score them (train one with model.num_edges="
-                       f"{largest + 1} or more)")
-                raise ValueError(f"{where}: the {split} split's edge labels go up to {largest}, and the model has "
-                                 f"model.num_edges={k} types (0..{k - 1}): {fix}")
+                where = (dm.source.where() if hasattr(getattr(dm, "source", None), "where")
+                         else "the data")
+                fix = (f"set model.num_edges={largest + 1} or more to train and score against "
+                       "these labels"
+                       if stage == "fit" else "this model cannot score them (train one with "
+                       f"model.num_edges={largest + 1} or more)")
+                raise ValueError(f"{where}: the {split} split's edge labels go up to {largest}, "
+                                 f"and the model has model.num_edges={k} types (0..{k - 1}): {fix}")
 
 
 class EvalRandomState(L.Callback):
-    """Validation, test and prediction draw (roll-out edge samples, hard Gumbel samples) from a generator seeded with
-    ``seed``; the training run's random state is put back afterwards. Metrics are then a function of the
-    weights, and checkpoints carry the training run's state, so a resumed run draws exactly what the
-    uninterrupted one would have drawn."""
+    """Validation, test and prediction draw (roll-out edge samples, hard Gumbel samples) from a
+    generator seeded with ``seed``; the training run's random state is put back afterwards. Metrics
+    are then a function of the weights, and checkpoints carry the training run's state, so a resumed
+    run draws exactly what the uninterrupted one would have drawn."""
 
     CHECKPOINT_KEY = "dider_rng"
 
     def __init__(self, seed: int = 0) -> None:
         self.seed = seed
-        self._outside: dict[str, Any] | None = None  # the training run's random state during evaluation
+        # the training run's random state during evaluation
+        self._outside: dict[str, Any] | None = None
 
     def _enter(self, *_: Any) -> None:
         if self._outside is None:
@@ -83,29 +90,34 @@ class EvalRandomState(L.Callback):
     on_validation_epoch_start = on_test_epoch_start = on_predict_epoch_start = _enter
     on_validation_epoch_end = on_test_epoch_end = on_predict_epoch_end = _exit
 
-    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           checkpoint: dict[str, Any]) -> None:
         checkpoint[self.CHECKPOINT_KEY] = self._outside or rng_state()
 
-    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           checkpoint: dict[str, Any]) -> None:
         if self.CHECKPOINT_KEY in checkpoint and trainer.state.fn == "fit":
             set_rng_state(checkpoint[self.CHECKPOINT_KEY])
 
 
 class FiniteGuard(L.Callback):
-    """Stops training with :class:`NonFiniteError` on a NaN/inf loss term or gradient, naming the step, the
-    batch and the loss term: for a gradient, the step is replayed (same batch, same random state) and each
-    term differentiated on its own. Costs one device sync per step for the loss and one for the gradients.
+    """Stops training with :class:`NonFiniteError` on a NaN/inf loss term or gradient, naming the
+    step, the batch and the loss term: for a gradient, the step is replayed (same batch, same random
+    state) and each term differentiated on its own. Costs one device sync per step for the loss and
+    one for the gradients.
 
-    ``every`` steps instead (None: on a GPU, the trainer's ``log_every_n_steps``; on a CPU, every step): the
-    checks then accumulate on the device and are read back once per ``every`` steps, so a GPU's step never waits
-    for them; the error names the first bad step, and the term is named by a rerun on a CPU.
+    ``every`` steps instead (None: on a GPU, the trainer's ``log_every_n_steps``; on a CPU, every
+    step): the checks then accumulate on the device and are read back once per ``every`` steps, so a
+    GPU's step never waits for them; the error names the first bad step, and the term is named by a
+    rerun on a CPU.
 
-    The module's ``training_step`` returns its loss terms (the objective's, ``loss`` and ``nelbo``) and offers
-    ``loss_terms(batch)``, which recomputes them."""
+    The module's ``training_step`` returns its loss terms (the objective's, ``loss`` and ``nelbo``)
+    and offers ``loss_terms(batch)``, which recomputes them."""
 
     def __init__(self, every: int | None = None) -> None:
         self.every = every
-        self._step: tuple[Any, int, dict[str, Any], str] | None = None  # batch, index, random state, where
+        # batch, index, random state, where
+        self._step: tuple[Any, int, dict[str, Any], str] | None = None
         self._loss_finite = True
         self._deferred: int | None = None  # the steps between read-backs, once training starts (None: each step)
         self._first_bad: torch.Tensor | None = None  # [2] long on the device: the first bad loss / gradient step
@@ -114,7 +126,8 @@ class FiniteGuard(L.Callback):
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         on_gpu = pl_module.device.type == "cuda"
-        self._deferred = self.every if self.every is not None else (trainer.log_every_n_steps if on_gpu else None)
+        self._deferred = (self.every if self.every is not None
+                          else (trainer.log_every_n_steps if on_gpu else None))
         if self._deferred is not None:
             self._reset(trainer, pl_module.device)
 
@@ -131,19 +144,21 @@ class FiniteGuard(L.Callback):
         self._step = (batch, batch_idx, rng_state(full=False), where)
 
     def _note(self, which: int, finite: torch.Tensor) -> None:
-        """Deferred: record the window's first step where ``finite`` (a device bool) is false (0 loss, 1 grads)."""
+        """Deferred: record the window's first step where ``finite`` (a device bool) is false (0
+        loss, 1 grads)."""
         first = self._first_bad[which]
         self._first_bad[which] = torch.where((first < 0) & ~finite, self._count, first)
 
-    def on_before_backward(self, trainer: L.Trainer, pl_module: L.LightningModule, loss: torch.Tensor) -> None:
+    def on_before_backward(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           loss: torch.Tensor) -> None:
         if self._deferred is not None:
             self._note(0, torch.isfinite(loss.detach()).all())
             return
         self._loss_finite = bool(torch.isfinite(loss.detach()).all())
 
     def on_after_backward(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        # A non-finite loss is reported with its terms at the end of the batch; fp16 mixed precision skips
-        # steps with inf gradients on purpose.
+        # A non-finite loss is reported with its terms at the end of the batch; fp16 mixed precision
+        # skips steps with inf gradients on purpose.
         if getattr(trainer.precision_plugin, "scaler", None) is not None:
             return
         named = [(k, p.grad) for k, p in pl_module.named_parameters() if p.grad is not None]
@@ -157,22 +172,24 @@ class FiniteGuard(L.Callback):
         if not named or bool(torch.stack([torch.isfinite(g).all() for _, g in named]).all()):
             return
         params = [k for k, g in named if not bool(torch.isfinite(g).all())]
-        msg = (f"non-finite gradient at {self._where()}: from loss term {', '.join(self._culprits(trainer, pl_module))}"
-               f"; {len(params)} parameter(s) hit, e.g. {params[:3]}; stopping the run")
+        msg = (f"non-finite gradient at {self._where()}: from loss term "
+               f"{', '.join(self._culprits(trainer, pl_module))}; {len(params)} parameter(s) hit, "
+               f"e.g. {params[:3]}; stopping the run")
         log.error(msg)
         raise NonFiniteError(msg)
 
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
-                           batch_idx: int) -> None:
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any,
+                           batch: Any, batch_idx: int) -> None:
         if self._deferred is not None:
             self._count += 1
-            if (trainer.global_step - self._window_start) % self._deferred == 0 or batch_idx + 1 >= \
-                    trainer.num_training_batches:
+            if ((trainer.global_step - self._window_start) % self._deferred == 0
+                    or batch_idx + 1 >= trainer.num_training_batches):
                 self._read_back(trainer, pl_module)
             return
         if self._loss_finite or not isinstance(outputs, dict):
             return
-        names = [*(k for k in outputs if k not in ("loss", "nelbo")), "loss"]  # the terms, then their weighted sum
+        # the terms, then their weighted sum
+        names = [*(k for k in outputs if k not in ("loss", "nelbo")), "loss"]
         values = torch.stack([outputs[k].detach().float() for k in names]).tolist()
         bad = {k: v for k, v in zip(names, values, strict=True) if not math.isfinite(v)}
         culprits = [k for k in bad if k != "loss"] or ["loss"]
@@ -186,10 +203,10 @@ class FiniteGuard(L.Callback):
         loss_at, grad_at = self._first_bad.tolist()
         for what, at in (("loss", loss_at), ("gradient", grad_at)):
             if at >= 0:
-                msg = (f"non-finite {what} at step {self._window_start + at} (found at step {trainer.global_step}: "
-                       f"the checks are read every {self._deferred} steps on a GPU); stopping the run. To name the "
-                       f"loss term, resume from the last checkpoint before it on a CPU (trainer=cpu), which checks "
-                       f"each step")
+                msg = (f"non-finite {what} at step {self._window_start + at} (found at step "
+                       f"{trainer.global_step}: the checks are read every {self._deferred} steps "
+                       "on a GPU); stopping the run. To name the loss term, resume from the last "
+                       "checkpoint before it on a CPU (trainer=cpu), which checks each step")
                 log.error(msg)
                 raise NonFiniteError(msg)
         self._reset(trainer, pl_module.device)
@@ -217,36 +234,40 @@ class FiniteGuard(L.Callback):
 
 
 class ResumeMidEpoch(L.Callback):
-    """A run stopped mid-epoch (SIGTERM) resumes on the very batches the uninterrupted run would have trained on:
-    a checkpoint saved inside an epoch carries the epoch's order (the training sampler's seed,
-    :class:`~dider.data.common.EpochOrder`) and the batches done; on resume the data module's next training
-    loader replays that order from the next batch. With the random state the checkpoint restores
-    (:class:`EvalRandomState`) the resumed run gives the uninterrupted one's numbers."""
+    """A run stopped mid-epoch (SIGTERM) resumes on the very batches the uninterrupted run would
+    have trained on: a checkpoint saved inside an epoch carries the epoch's order (the training
+    sampler's seed, :class:`~dider.data.common.EpochOrder`) and the batches done; on resume the data
+    module's next training loader replays that order from the next batch. With the random state the
+    checkpoint restores (:class:`EvalRandomState`) the resumed run gives the uninterrupted one's
+    numbers."""
 
     CHECKPOINT_KEY = "dider_epoch_position"
 
     def __init__(self) -> None:
         self.done = 0  # batches of the current epoch trained
 
-    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
-                           batch_idx: int) -> None:
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any,
+                           batch: Any, batch_idx: int) -> None:
         self.done = batch_idx + 1
 
     def on_train_epoch_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.done = 0
 
-    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+    def on_save_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           checkpoint: dict[str, Any]) -> None:
         order = getattr(getattr(trainer, "datamodule", None), "train_order", None)
-        # Saved after a batch of the epoch and before its end (inside it, or in its validation): the resumed run
-        # finishes the epoch in its order (maybe no batch left) with the saved random state, so the next epoch
-        # draws its order as the uninterrupted run's did.
+        # Saved after a batch of the epoch and before its end (inside it, or in its validation): the
+        # resumed run finishes the epoch in its order (maybe no batch left) with the saved random
+        # state, so the next epoch draws its order as the uninterrupted run's did.
         inside = 0 < self.done <= trainer.num_training_batches
         if order is not None and order.seed is not None and inside:
             checkpoint[self.CHECKPOINT_KEY] = {"seed": order.seed, "done": self.done}
-            if (means := getattr(pl_module, "epoch_means", None)) is not None:  # the epoch's logged means so far
+            # the epoch's logged means so far
+            if (means := getattr(pl_module, "epoch_means", None)) is not None:
                 checkpoint[self.CHECKPOINT_KEY]["means"] = means.state_dict()
 
-    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule, checkpoint: dict[str, Any]) -> None:
+    def on_load_checkpoint(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           checkpoint: dict[str, Any]) -> None:
         position = checkpoint.get(self.CHECKPOINT_KEY)
         dm = getattr(trainer, "datamodule", None)
         rng = checkpoint.get(EvalRandomState.CHECKPOINT_KEY, {}).get("torch")  # the training run's, at the save
@@ -259,38 +280,42 @@ class ResumeMidEpoch(L.Callback):
 
 
 class SaveOnTerminate(L.Callback):
-    """On SIGTERM (a scheduler's time limit, ``kill``) or Ctrl-C (SIGINT, taken as SIGTERM), Lightning stops training
-    with ``SIGTERMException``: save the run's state to the checkpoint folder's ``last.ckpt`` first, so
-    ``ckpt_path=last`` resumes it (mid-epoch from the next batch: :class:`ResumeMidEpoch`). ``dider.run`` then exits
-    non-zero.
+    """On SIGTERM (a scheduler's time limit, ``kill``) or Ctrl-C (SIGINT, taken as SIGTERM),
+    Lightning stops training with ``SIGTERMException``: save the run's state to the checkpoint
+    folder's ``last.ckpt`` first, so ``ckpt_path=last`` resumes it (mid-epoch from the next batch:
+    :class:`ResumeMidEpoch`). ``dider.run`` then exits non-zero.
 
-    A SIGTERM during an epoch's validation waits for the validation to end (a validation is short beside a
-    scheduler's grace period): its metrics, and the best checkpoints they pick, are then the uninterrupted run's.
-    Stopped halfway, the resumed run could not validate that epoch again (Lightning resumes an evaluation from its
-    next batch, the earlier batches' means lost)."""
+    A SIGTERM during an epoch's validation waits for the validation to end (a validation is short
+    beside a scheduler's grace period): its metrics, and the best checkpoints they pick, are then
+    the uninterrupted run's. Stopped halfway, the resumed run could not validate that epoch again
+    (Lightning resumes an evaluation from its next batch, the earlier batches' means lost)."""
 
     def __init__(self) -> None:
         self._deferred = False
         self._sigint: Any = None  # the SIGINT handler before this run's
 
     def setup(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
-        # Ctrl-C as SIGTERM: the run stops at the next batch's end and saves; a second Ctrl-C interrupts at once.
+        # Ctrl-C as SIGTERM: the run stops at the next batch's end and saves; a second Ctrl-C
+        # interrupts at once.
         if threading.current_thread() is threading.main_thread():
             self._sigint = signal.signal(signal.SIGINT, lambda *_: self._interrupt(trainer))
 
     def _interrupt(self, trainer: L.Trainer) -> None:
         trainer._signal_connector.received_sigterm = True
         signal.signal(signal.SIGINT, signal.default_int_handler)
-        log.warning("Ctrl-C: stopping after this batch and saving (press it again to stop at once, unsaved)")
+        log.warning("Ctrl-C: stopping after this batch and saving (press it again to stop at once, "
+                    "unsaved)")
 
     def teardown(self, trainer: L.Trainer, pl_module: L.LightningModule, stage: str) -> None:
         if self._sigint is not None and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, self._sigint)
             self._sigint = None
 
-    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, outputs: Any, batch: Any,
+    def on_validation_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                                outputs: Any, batch: Any,
                                 batch_idx: int, dataloader_idx: int = 0) -> None:
-        # Lightning reads the flag right after this hook; it sets it again (and raises) once validation is over.
+        # Lightning reads the flag right after this hook; it sets it again (and raises) once
+        # validation is over.
         connector = trainer._signal_connector
         if trainer.state.fn == "fit" and not trainer.sanity_checking and connector.received_sigterm:
             connector.received_sigterm, self._deferred = False, True
@@ -299,25 +324,27 @@ class SaveOnTerminate(L.Callback):
         if self._deferred:
             trainer._signal_connector.received_sigterm, self._deferred = True, False
 
-    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                     exception: BaseException) -> None:
         folder = getattr(trainer.checkpoint_callback, "dirpath", None)
-        if not isinstance(exception, SIGTERMException) or folder is None or trainer.state.fn != "fit":
+        if (not isinstance(exception, SIGTERMException) or folder is None
+            or trainer.state.fn != "fit"):
             return
         path = f"{folder}/last.ckpt"
         trainer.save_checkpoint(path)
-        log.error("terminated (SIGTERM or Ctrl-C) at epoch %d, step %d: saved %s", trainer.current_epoch,
-                  trainer.global_step, path)
+        log.error("terminated (SIGTERM or Ctrl-C) at epoch %d, step %d: saved %s",
+                  trainer.current_epoch, trainer.global_step, path)
 
 
 class EpochLine(L.Callback):
-    """One log line per epoch, at its end (after its validation): the epoch, the training loss, the validation metrics
-    named in ``metrics`` (those logged; a name ending in ``/*`` shows the last logged key under it, e.g. the
-    longest horizon), the time spent and an estimate of the time left (from the epochs still to run, or
-    ``trainer.max_time`` when that comes first). Through logging, so it shows in a log file and in output
-    redirected to one, where a progress bar does not."""
+    """One log line per epoch, at its end (after its validation): the epoch, the training loss, the
+    validation metrics named in ``metrics`` (those logged; a name ending in ``/*`` shows the last
+    logged key under it, e.g. the longest horizon), the time spent and an estimate of the time left
+    (from the epochs still to run, or ``trainer.max_time`` when that comes first). Through logging,
+    so it shows in a log file and in output redirected to one, where a progress bar does not."""
 
-    def __init__(self, metrics: tuple[str, ...] = ("train/loss_epoch", "val/nll", "val/select", "val/mse/h01",
-                                                   "val/ade_vs_cv/*")) -> None:
+    def __init__(self, metrics: tuple[str, ...] = ("train/loss_epoch", "val/nll", "val/select",
+                                                   "val/mse/h01", "val/ade_vs_cv/*")) -> None:
         self.metrics = tuple(metrics)
         self.started = 0.0
 
@@ -325,7 +352,8 @@ class EpochLine(L.Callback):
         keys = []
         for name in self.metrics:
             if name.endswith("/*"):
-                keys += sorted((k for k in logged if k.startswith(name[:-1])), key=lambda k: (len(k), k))[-1:]
+                keys += sorted((k for k in logged if k.startswith(name[:-1])),
+                               key=lambda k: (len(k), k))[-1:]
             elif name in logged:
                 keys.append(name)
         return keys
@@ -364,8 +392,9 @@ def _clock(seconds: float) -> str:
 
 
 def every_run(eval_seed: int, check_finite: bool) -> list[L.Callback]:
-    """The callbacks of every fit, test and prediction (``RelationalVAEModule.configure_callbacks``), in order: the
-    data's checks before any step, evaluation's random state, the NaN/inf guard (``check_finite``), the mid-epoch
-    resume and the checkpoint on termination."""
+    """The callbacks of every fit, test and prediction
+    (``RelationalVAEModule.configure_callbacks``), in order: the data's checks before any step,
+    evaluation's random state, the NaN/inf guard (``check_finite``), the mid-epoch resume and the
+    checkpoint on termination."""
     guard = [FiniteGuard()] if check_finite else []
     return [ProtocolFits(), EdgeLabelsFit(), EvalRandomState(eval_seed), *guard, ResumeMidEpoch(), SaveOnTerminate()]

@@ -1,5 +1,5 @@
-"""Interrupted runs: SIGTERM and Ctrl-C where no Lightning loop listens for them (the figures, drawn after the
-results), and the checkpoint a resumed run leaves behind."""
+"""Interrupted runs: SIGTERM and Ctrl-C where no Lightning loop listens for them (the figures, drawn
+after the results), and the checkpoint a resumed run leaves behind."""
 
 from __future__ import annotations
 
@@ -20,10 +20,12 @@ log = logging.getLogger(__name__)
 
 @contextmanager
 def stop_on_signals() -> Iterator[None]:
-    """Within the block, SIGTERM or SIGINT raises ``SIGTERMException`` (as inside Lightning's loops) instead of
-    killing the process: the write in progress removes its temporary file (:func:`dider.io.atomic_write`) and the
-    caller ends the run as an interrupted one, with a word."""
-    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+    """Within the block, SIGTERM or SIGINT raises ``SIGTERMException`` (as inside Lightning's loops)
+    instead of killing the process: the write in progress removes its temporary file
+    (:func:`dider.io.atomic_write`) and the caller ends the run as an interrupted one, with a
+    word."""
+    # signals reach the main thread only
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
 
@@ -39,8 +41,8 @@ def stop_on_signals() -> Iterator[None]:
 
 
 def drop_resumed_from(ckpt: str | None, checkpointers: list[ModelCheckpoint]) -> None:
-    """Lightning never deletes the checkpoint a run resumed from: one of the folder's best-k that a better epoch
-    has since displaced is removed here, as it would have been without the resume."""
+    """Lightning never deletes the checkpoint a run resumed from: one of the folder's best-k that a
+    better epoch has since displaced is removed here, as it would have been without the resume."""
     if not ckpt or not checkpointers or not Path(ckpt).is_file() or not is_rank_zero():
         return
     resumed = Path(ckpt).resolve()

@@ -239,12 +239,12 @@ class RelationalVAEModule(L.LightningModule):
         if self.make_scheduler is None:
             return opt
         # name: the tag LearningRateMonitor logs the rate under (callbacks.lr_monitor)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=opt), "interval": "epoch",
-                                                   "name": "train/lr"}}
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": self.make_scheduler(optimizer=opt),
+                                                   "interval": "epoch", "name": "train/lr"}}
 
 
 def _segment_stats(out: Inference, batch: Batch) -> dict[str, torch.Tensor]:
-    """How the duration plugin cut a batch's edges: ``segments/<stat>`` (segments per edge, their length, the
-    latents' spread) over the edges present at some step."""
+    """How the duration plugin cut a batch's edges: ``segments/<stat>`` (segments per edge, their
+    length, the latents' spread) over the edges present at some step."""
     present = edge_mask(batch["mask"][:, :-1]).any(1)  # [B, E]
     return {f"segments/{k}": v for k, v in out.seg.stats(present).items()}

@@ -1,8 +1,9 @@
-"""Library messages that say nothing about a run, silenced where they come from, so a run's output is its
-own: Lightning's tips about its cloud products and notes on its own bookkeeping, a deprecation inside
-Lightning's own pytree helper, the model summary's note that it counts bf16 parameters as fp32, and the hint
-to add data-loader workers (the data sets here are in memory: workers would only copy them), and the warning that a
-loader is not resumable mid-epoch (the training order is: :class:`dider.training.callbacks.ResumeMidEpoch`)."""
+"""Library messages that say nothing about a run, silenced where they come from, so a run's output
+is its own: Lightning's tips about its cloud products and notes on its own bookkeeping, a
+deprecation inside Lightning's own pytree helper, the model summary's note that it counts bf16
+parameters as fp32, and the hint to add data-loader workers (the data sets here are in memory:
+workers would only copy them), and the warning that a loader is not resumable mid-epoch (the
+training order is: :class:`dider.training.callbacks.ResumeMidEpoch`)."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ WARNINGS = (
 )
 
 
-# Lightning's info lines with nothing to act on: product tips, and two notes on its own bookkeeping at test
+# Lightning's info lines with nothing to act on: product tips, and two notes on its own bookkeeping
+# at test
 INFO = ("💡 Tip", "returned in `LightningModule.configure_callbacks` will override",
         "to estimate number of stepping batches")
 

@@ -1,6 +1,7 @@
 """The resolvers the app's configs use (``${dider_job_name:...}``, ``${dider_precision:...}``,
-``${kloppy_sample:...}``): registered when the config package ``dider.conf`` is imported, so the configs compose
-wherever Hydra reads them (the app, the search, ``hydra.compose`` in a notebook or a test)."""
+``${kloppy_sample:...}``): registered when the config package ``dider.conf`` is imported, so the
+configs compose wherever Hydra reads them (the app, the search, ``hydra.compose`` in a notebook or a
+test)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,8 @@ from dider.validation import ConfigError
 
 
 def job_name(override_dirname: str, limit: int = 120) -> str:
-    """A sweep job's folder name: its overrides, shortened with a stable hash when too long for a path."""
+    """A sweep job's folder name: its overrides, shortened with a stable hash when too long for a
+    path."""
     name = override_dirname.replace("/", "_") or "default"
     if len(name) <= limit:
         return name
@@ -27,21 +29,23 @@ PRECISIONS = ("64-true", "32-true", "16-mixed", "bf16-mixed", "16-true", "bf16-t
 
 
 def default_precision(accelerator: str | None) -> str:
-    """``trainer.precision``'s default: bf16 autocast where training runs on a CPU that computes bf16 natively
-    (AVX-512-BF16 or AMX: the synthetic DNRI step 1.85x as fast, the metrics within the seed spread;
-    docs/performance.md), fp32 elsewhere (GPUs: not measured here). ``$DIDER_DEFAULT_PRECISION`` replaces the choice
-    for a whole environment (the test suite sets 32-true: its thresholds were measured in fp32)."""
+    """``trainer.precision``'s default: bf16 autocast where training runs on a CPU that computes
+    bf16 natively (AVX-512-BF16 or AMX: the synthetic DNRI step 1.85x as fast, the metrics within
+    the seed spread; docs/performance.md), fp32 elsewhere (GPUs: not measured here).
+    ``$DIDER_DEFAULT_PRECISION`` replaces the choice for a whole environment (the test suite sets
+    32-true: its thresholds were measured in fp32)."""
     pinned = os.environ.get("DIDER_DEFAULT_PRECISION")
     if pinned:
         if pinned not in PRECISIONS:
-            raise ConfigError(f"DIDER_DEFAULT_PRECISION={pinned!r}: expected one of {list(PRECISIONS)}")
+            raise ConfigError(f"DIDER_DEFAULT_PRECISION={pinned!r}: expected one of "
+                              f"{list(PRECISIONS)}")
         return pinned
     return "bf16-mixed" if trains_on_cpu(accelerator) and native_bf16("cpu") else "32-true"
 
 
 def kloppy_sample(name: str) -> str:
-    """``${kloppy_sample:NAME}``: :func:`dider.data.readers.kloppy.kloppy_sample`, imported when a config uses it
-    (composing a config loads neither the data modules nor Lightning)."""
+    """``${kloppy_sample:NAME}``: :func:`dider.data.readers.kloppy.kloppy_sample`, imported when a
+    config uses it (composing a config loads neither the data modules nor Lightning)."""
     from dider.data.readers.kloppy import kloppy_sample as find
 
     return find(name)

@@ -1,6 +1,6 @@
-"""A run folder's lock (``.dider.lock``): one live run writes a folder at a time; the lock of a run that is gone
-(its process ended, or its pid since given to another process) is taken over, one that cannot be says which file it
-is, who holds it and how to proceed."""
+"""A run folder's lock (``.dider.lock``): one live run writes a folder at a time; the lock of a run
+that is gone (its process ended, or its pid since given to another process) is taken over, one that
+cannot be says which file it is, who holds it and how to proceed."""
 
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ HELD: set[Path] = set()  # the locks this process holds
 
 
 class RunLock:
-    """``folder/.dider.lock`` while a run writes the folder; a second live run there fails naming the first."""
+    """``folder/.dider.lock`` while a run writes the folder; a second live run there fails naming
+    the first."""
 
     def __init__(self, folder: Path) -> None:
         self.path = folder / LOCK
@@ -40,10 +41,11 @@ class RunLock:
                 owner = self._owner()
                 if owner is not None and _alive(owner, self.path):
                     raise RunRefused(
-                        f"{self.path.parent} is being written by another run (pid {owner.get('pid')} on "
-                        f"{owner.get('host')}, its lock {self.path}); wait for it, or use another hydra.run.dir. If "
-                        f"that run is gone (another machine's, or a container since restarted), remove {self.path} "
-                        f"and run again") from None
+                        f"{self.path.parent} is being written by another run (pid "
+                        f"{owner.get('pid')} on {owner.get('host')}, its lock {self.path}); wait "
+                        "for it, or use another hydra.run.dir. If that run is gone (another "
+                        f"machine's, or a container since restarted), remove {self.path} and run "
+                        "again") from None
                 log.warning("%s: taking over the lock of a run that is gone (%s)", self.path, owner)
                 self.path.unlink(missing_ok=True)
                 continue
@@ -52,7 +54,8 @@ class RunLock:
                     json.dump(me, f)
             except OSError as e:  # a full disk: no empty lock left behind, and the file named
                 self.path.unlink(missing_ok=True)
-                raise OSError(e.errno, f"{self.path}: could not write the run folder's lock ({e.strerror})") from e
+                raise OSError(e.errno, f"{self.path}: could not write the run folder's lock "
+                                       f"({e.strerror})") from e
             self.held = True
             HELD.add(self.path.resolve())
             return self
@@ -72,7 +75,8 @@ class RunLock:
 
 
 def owner_of(folder: Path) -> dict[str, Any] | None:
-    """The live run that holds ``folder``'s lock (its pid and host), or None (no lock, or its writer is gone)."""
+    """The live run that holds ``folder``'s lock (its pid and host), or None (no lock, or its writer
+    is gone)."""
     try:
         owner = json.loads((folder / LOCK).read_text())
     except (OSError, ValueError):
@@ -81,8 +85,9 @@ def owner_of(folder: Path) -> dict[str, Any] | None:
 
 
 def _started(pid: int) -> int | None:
-    """When process ``pid`` started (clock ticks since boot, Linux's /proc), or None where that cannot be read: with
-    the pid it names one process, not whichever later process was given the same number."""
+    """When process ``pid`` started (clock ticks since boot, Linux's /proc), or None where that
+    cannot be read: with the pid it names one process, not whichever later process was given the
+    same number."""
     try:
         return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
     except (OSError, ValueError, IndexError):
@@ -90,11 +95,12 @@ def _started(pid: int) -> int | None:
 
 
 def _alive(owner: Mapping[str, Any], lock: Path) -> bool:
-    """Whether the writer of ``lock`` still runs. This very process is it only while it holds the lock (a lock
-    naming our pid that we do not hold is a container's restarted as the same pid); a pid that now names a later
-    process (another start time) is gone."""
+    """Whether the writer of ``lock`` still runs. This very process is it only while it holds the
+    lock (a lock naming our pid that we do not hold is a container's restarted as the same pid); a
+    pid that now names a later process (another start time) is gone."""
     if owner.get("host") != socket.gethostname():
-        return True  # another machine's process: cannot tell, so respect it (the refusal says how to proceed)
+        # another machine's process: cannot tell, so respect it (the refusal says how to proceed)
+        return True
     try:
         pid = int(owner["pid"])
         if pid == os.getpid():
